@@ -1,0 +1,1 @@
+"""geoseg command-line subcommands: one module each, ``configure(parser)`` and ``run(args)``."""

@@ -1,0 +1,55 @@
+"""Typed configs: defaults, YAML overrides, dotted overrides and the errors they raise."""
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from geoseg.config import load_config, to_dict
+from geoseg.errors import ConfigError
+
+
+@dataclass
+class Inner:
+    size: tuple[int, int] = (320, 240)
+    name: str = "a"
+
+
+@dataclass
+class Outer:
+    epochs: int = 3
+    lr: float = 1e-3
+    flag: bool = False
+    inner: Inner = field(default_factory=Inner)
+    tags: list[str] = field(default_factory=list)
+    maybe: float | None = None
+
+
+def test_defaults_yaml_and_overrides(tmp_path: Path) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text("epochs: 5\ninner:\n  size: [64, 48]\n")
+    cfg = load_config(Outer, path, overrides=["lr=0.5", "inner.name=b", "maybe=2"])
+    assert cfg.epochs == 5 and cfg.lr == 0.5 and cfg.inner.size == (64, 48)
+    assert cfg.inner.name == "b" and cfg.maybe == 2.0 and cfg.flag is False
+    assert to_dict(cfg)["inner"]["size"] == [64, 48]
+
+
+@pytest.mark.parametrize(
+    "data, needle",
+    [
+        ({"epoch": 1}, "epoch"),
+        ({"epochs": "three"}, "epochs"),
+        ({"epochs": 1.5}, "epochs"),
+        ({"flag": 1}, "flag"),
+        ({"inner": {"size": [1, 2, 3]}}, "inner.size"),
+        ({"inner": {"colour": 1}}, "inner.colour"),
+    ],
+)
+def test_bad_keys_and_types_name_the_key(data: dict, needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.")):
+        load_config(Outer, data)
+
+
+def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(Outer, tmp_path / "nope.yaml")
