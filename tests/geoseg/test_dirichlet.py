@@ -1,0 +1,264 @@
+"""Tests for the Dirichlet false-positive filter (thesis eqs. 4.3-4.9)."""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+from scipy.stats import dirichlet as sp_dirichlet
+
+from geoseg.classes import BUILDING, NUM_CLASSES
+from geoseg.dirichlet import (
+    FORMAT_VERSION,
+    DirichletFilter,
+    MaxProbabilityFilter,
+    dirichlet_cost,
+    dirichlet_cost_grad,
+    load_filter,
+    sufficient_statistics,
+)
+from geoseg.errors import GeosegError
+
+ALPHAS = [
+    np.array([0.3, 0.5, 5.0, 0.8, 0.2, 0.4, 0.6, 0.9]),
+    np.array([1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]),
+    np.array([0.15, 0.25, 12.0, 0.3, 0.5, 0.2, 0.7, 0.35]),
+    np.array([2.5, 0.7]),
+]
+
+
+def _building_alpha() -> np.ndarray:
+    a = np.full(NUM_CLASSES, 0.5)
+    a[BUILDING] = 8.0
+    a[3] = 2.0  # building often confused with vegetation
+    return a
+
+
+@pytest.mark.parametrize("alpha", [ALPHAS[0], ALPHAS[1]])
+@pytest.mark.parametrize("lam", [0.0, 3.0])
+def test_gradient_matches_central_differences(alpha: np.ndarray, lam: float) -> None:
+    x = np.random.default_rng(1).dirichlet(alpha, size=500)
+    log_t, m = sufficient_statistics(x)
+    a0 = alpha * 1.3 + 0.1
+    grad = dirichlet_cost_grad(a0, log_t, m, lam)
+    h = 1e-6
+    num = np.empty_like(a0)
+    for i in range(a0.size):
+        e = np.zeros_like(a0)
+        e[i] = h
+        num[i] = (dirichlet_cost(a0 + e, log_t, m, lam) - dirichlet_cost(a0 - e, log_t, m, lam)) / (
+            2 * h
+        )
+    np.testing.assert_allclose(grad, num, rtol=1e-5, atol=1e-4)
+
+
+def test_cost_is_negative_log_likelihood() -> None:
+    alpha = ALPHAS[0]
+    x = np.random.default_rng(2).dirichlet(alpha, size=200)
+    x = np.clip(x, 1e-12, 1)
+    x /= x.sum(axis=1, keepdims=True)
+    log_t, m = sufficient_statistics(x)
+    a = alpha * 0.9
+    nll = -sp_dirichlet.logpdf(x.T, a).sum()
+    assert dirichlet_cost(a, log_t, m, lam=0.0) == pytest.approx(nll, rel=1e-10)
+
+
+@pytest.mark.parametrize("alpha", ALPHAS)
+def test_recovers_known_alpha(alpha: np.ndarray) -> None:
+    x = np.random.default_rng(0).dirichlet(alpha, size=100_000)
+    f = DirichletFilter(num_classes=alpha.size, building_class=0).fit(x)
+    rel = np.abs(f.alpha / alpha - 1.0)
+    assert rel.max() < 0.05, (f.alpha, alpha)
+
+
+def test_fit_float32_inputs_and_fast() -> None:
+    alpha = _building_alpha()
+    x = np.random.default_rng(0).dirichlet(alpha, size=200_000).astype(np.float32)
+    t0 = time.perf_counter()
+    f = DirichletFilter().fit(x)
+    assert time.perf_counter() - t0 < 5.0
+    assert np.abs(f.alpha / alpha - 1).max() < 0.05
+
+
+def test_log_density_matches_scipy() -> None:
+    alpha = ALPHAS[1]
+    x = np.random.default_rng(3).dirichlet(alpha, size=50)
+    f = DirichletFilter(alpha=alpha)
+    np.testing.assert_allclose(f.log_density(x), sp_dirichlet.logpdf(x.T, alpha), rtol=1e-10)
+    # (H, W, K) input keeps the spatial shape
+    assert f.log_density(x[:48].reshape(6, 8, 8)).shape == (6, 8)
+
+
+@pytest.mark.parametrize("cls", [DirichletFilter, MaxProbabilityFilter])
+def test_threshold_gives_requested_false_rejection(cls) -> None:
+    alpha = _building_alpha()
+    rng = np.random.default_rng(4)
+    train = rng.dirichlet(alpha, size=20_000)
+    calib = rng.dirichlet(alpha, size=20_000)
+    held_out = rng.dirichlet(alpha, size=20_000)
+    f = cls().fit(train)
+    for rate in (0.05, 0.15, 0.3):
+        f.threshold_for_false_rejection(calib, rate)
+        # exact on the calibration set itself (score > threshold is kept)
+        assert np.mean(f.score(calib) <= f.threshold) == pytest.approx(rate, abs=1e-4)
+        # close on held-out samples of the same distribution
+        assert np.mean(f.score(held_out) <= f.threshold) == pytest.approx(rate, abs=0.015)
+
+
+def test_filter_keeps_building_pixels_and_drops_confused_ones() -> None:
+    f = DirichletFilter(alpha=_building_alpha())
+    rng = np.random.default_rng(5)
+    f.threshold_for_false_rejection(rng.dirichlet(_building_alpha(), size=5000), 0.1)
+    # a building-argmax pixel confusing building with sky (not the learned confusion)
+    bad = np.full(NUM_CLASSES, 0.015)
+    bad[BUILDING], bad[6] = 0.46, 0.45
+    good = np.full(NUM_CLASSES, 0.01)
+    good[BUILDING], good[3] = 0.8, 0.14
+    other = np.full(NUM_CLASSES, 0.01)
+    other[0] = 0.93
+    probs = np.stack([bad, good, other, good]).reshape(2, 2, NUM_CLASSES)
+    keep = f.filter(probs)
+    assert keep.shape == (2, 2) and keep.dtype == bool
+    np.testing.assert_array_equal(keep, [[False, True], [False, True]])
+    # explicit labels override the argmax
+    labels = np.full((2, 2), BUILDING)
+    labels[1, 1] = 0
+    np.testing.assert_array_equal(f.filter(probs, labels), [[False, True], [False, False]])
+    # the baseline keeps the confused pixel at a threshold that keeps the good one
+    base = MaxProbabilityFilter()
+    base.threshold = 0.45
+    assert base.filter(probs).tolist() == [[True, True], [False, True]]
+
+
+def test_point_rule_mean_and_weight() -> None:
+    alpha = _building_alpha()
+    f = DirichletFilter(alpha=alpha)
+    rng = np.random.default_rng(6)
+    f.threshold_for_false_rejection(rng.dirichlet(alpha, size=5000), 0.1)
+    obs = rng.dirichlet(alpha, size=(5, 3))  # 5 points, 3 observations each
+    res = f.classify_points(obs)
+    mean = obs.mean(axis=1)
+    np.testing.assert_allclose(res.mean_probs, mean)
+    np.testing.assert_allclose(res.score, f.log_density(mean))
+    np.testing.assert_allclose(res.weight, np.exp(f.log_density(mean)))
+    np.testing.assert_array_equal(res.is_building, f.log_density(mean) > f.threshold)
+    assert ((res.normalized_weight >= 0) & (res.normalized_weight <= 1)).all()
+    # ragged observation counts
+    ragged = f.classify_points([obs[0], obs[1, :1], obs[2, :2]])
+    np.testing.assert_allclose(ragged.mean_probs[1], obs[1, 0])
+    np.testing.assert_allclose(ragged.mean_probs[2], obs[2, :2].mean(axis=0))
+
+
+@pytest.mark.parametrize("cls", [DirichletFilter, MaxProbabilityFilter])
+def test_save_load_round_trip(tmp_path, cls) -> None:
+    alpha = _building_alpha()
+    x = np.random.default_rng(7).dirichlet(alpha, size=3000)
+    f = cls().fit(x)
+    f.threshold_for_false_rejection(x, 0.2)
+    path = f.save(tmp_path / "sub" / "filter.json")
+    g = cls.load(path)
+    h = load_filter(path)
+    assert type(g) is cls and type(h) is cls
+    assert g.threshold == f.threshold
+    np.testing.assert_array_equal(g.score(x), f.score(x))
+    np.testing.assert_array_equal(g.filter(x), f.filter(x))
+    np.testing.assert_array_equal(g.calibration, f.calibration)
+    assert json.loads(path.read_text())["version"] == FORMAT_VERSION
+
+
+def test_load_errors(tmp_path) -> None:
+    f = DirichletFilter(alpha=_building_alpha())
+    path = f.save(tmp_path / "f.json")
+    data = json.loads(path.read_text())
+    with pytest.raises(GeosegError, match="max_probability"):
+        MaxProbabilityFilter.load(path)
+    for key, value, msg in [
+        ("version", 99, "version"),
+        ("format", "other", "format"),
+        ("kind", "nope", "kind"),
+        ("alpha", [1.0, -1.0], "alpha"),
+    ]:
+        bad = dict(data, **{key: value})
+        p = tmp_path / f"bad_{key}.json"
+        p.write_text(json.dumps(bad))
+        with pytest.raises(GeosegError, match=msg):
+            load_filter(p)
+    (tmp_path / "garbage.json").write_text("{not json")
+    with pytest.raises(GeosegError, match="garbage.json"):
+        load_filter(tmp_path / "garbage.json")
+    with pytest.raises(GeosegError, match="no such"):
+        load_filter(tmp_path / "missing.json")
+
+
+def test_bad_inputs() -> None:
+    alpha = _building_alpha()
+    good = np.random.default_rng(8).dirichlet(alpha, size=10)
+    f = DirichletFilter()
+    with pytest.raises(GeosegError, match="not fitted"):
+        f.log_density(good)
+    f.fit(np.random.default_rng(9).dirichlet(alpha, size=1000))
+    with pytest.raises(GeosegError, match="threshold"):
+        f.filter(good)
+    nan = good.copy()
+    nan[0, 0] = np.nan
+    neg = good.copy()
+    neg[0, 0], neg[0, 1] = -0.1, neg[0, 1] + 0.1 + neg[0, 0]
+    unnorm = good * 1.5
+    for bad, msg in [
+        (nan, "NaN"),
+        (neg, ">= 0"),
+        (unnorm, "sum to 1"),
+        (good[:, :5], "K = 8"),
+        (good.astype(int), "floating"),
+    ]:
+        with pytest.raises(GeosegError, match=msg):
+            f.log_density(bad)
+        with pytest.raises(GeosegError, match=msg):
+            DirichletFilter().fit(bad)
+    f.threshold = 0.0
+    with pytest.raises(GeosegError, match="labels"):
+        f.filter(good, np.zeros(3, dtype=int))
+    with pytest.raises(GeosegError, match="rate"):
+        f.threshold_for_false_rejection(good, 1.5)
+    with pytest.raises(GeosegError):
+        DirichletFilter(building_class=8)
+    with pytest.raises(GeosegError, match="point_probs"):
+        f.classify_points(good)  # (N, K) is not (N, V, K)
+
+
+def test_fit_statistics_matches_fit_streaming() -> None:
+    alpha = _building_alpha()
+    x = np.random.default_rng(10).dirichlet(alpha, size=20_000)
+    lt1, m1 = sufficient_statistics(x[:7000])
+    lt2, m2 = sufficient_statistics(x[7000:])
+    streamed = DirichletFilter().fit_statistics(lt1 + lt2, m1 + m2)
+    direct = DirichletFilter().fit(x)
+    np.testing.assert_allclose(streamed.alpha, direct.alpha, rtol=1e-5)
+    with pytest.raises(GeosegError, match="log_t"):
+        DirichletFilter().fit_statistics(np.ones(NUM_CLASSES), 10)
+    with pytest.raises(GeosegError, match="m:"):
+        DirichletFilter().fit_statistics(lt1, 1)
+
+
+def test_dirichlet_beats_max_probability_at_same_false_rejection() -> None:
+    """Building/road confusions (fig. 4.7 (b)) are caught by the shape of the distribution."""
+    rng = np.random.default_rng(0)
+    a_true = np.full(NUM_CLASSES, 0.5)
+    a_true[BUILDING], a_true[3] = 8.0, 3.0  # true buildings: confused with vegetation
+    a_fp = np.full(NUM_CLASSES, 0.5)
+    a_fp[BUILDING], a_fp[0] = 8.0, 3.0  # false positives: road pixels called building
+    true = rng.dirichlet(a_true, size=30_000)
+    true = true[true.argmax(1) == BUILDING]
+    fp = rng.dirichlet(a_fp, size=10_000)
+    fp = fp[fp.argmax(1) == BUILDING]
+    train, calib, test = np.array_split(true, 3)
+    removed = {}
+    for cls in (DirichletFilter, MaxProbabilityFilter):
+        f = cls().fit(train)
+        f.threshold_for_false_rejection(calib, 0.15)
+        assert 1 - f.filter(test).mean() == pytest.approx(0.15, abs=0.02)
+        removed[cls.kind] = 1 - f.filter(fp).mean()
+    assert removed["dirichlet"] > 0.6
+    assert removed["dirichlet"] > 2 * removed["max_probability"]
