@@ -102,13 +102,15 @@ def from_dict(cls: type[T], data: Mapping[str, Any], *, where: str = "") -> T:
 
 
 def to_dict(config: Any) -> dict[str, Any]:
-    """The plain-data form of a config dataclass (tuples become lists, for YAML/JSON)."""
+    """The plain-data form of a config dataclass (tuples become lists, paths strings: YAML/JSON)."""
 
     def plain(value: Any) -> Any:
         if isinstance(value, tuple | list):
             return [plain(v) for v in value]
         if isinstance(value, dict):
             return {k: plain(v) for k, v in value.items()}
+        if isinstance(value, Path):
+            return str(value)
         return value
 
     return plain(dataclasses.asdict(config))
@@ -155,6 +157,12 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
             raise ConfigError(f"{key}: expected a mapping, got {type(value).__name__}")
         return dict(value)
     if hint is float:
+        if isinstance(value, str):
+            # PyYAML reads "1e-3" (no dot) as a string: accept numeric strings for floats.
+            try:
+                return float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"{key}: expected a number, got {type(value).__name__} {value!r}")
         return float(value)

@@ -53,3 +53,20 @@ def test_bad_keys_and_types_name_the_key(data: dict, needle: str) -> None:
 def test_missing_file_is_a_clear_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="does not exist"):
         load_config(Outer, tmp_path / "nope.yaml")
+
+
+@dataclass
+class WithPath:
+    out: Path = Path("runs")
+    lr: float = 1e-3
+
+
+def test_paths_save_and_numeric_strings_load(tmp_path: Path) -> None:
+    from geoseg.config import save_config
+
+    cfg = load_config(WithPath, overrides=["lr=1e-4", f"out={tmp_path}"])
+    assert cfg.lr == 1e-4 and cfg.out == tmp_path
+    save_config(cfg, tmp_path / "c.yaml")
+    assert load_config(WithPath, tmp_path / "c.yaml") == cfg
+    with pytest.raises(ConfigError, match="lr"):
+        load_config(WithPath, {"lr": "fast"})

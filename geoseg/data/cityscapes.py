@@ -1,0 +1,280 @@
+"""A reader for Cityscapes-format folders, mapped to geoseg's 8 classes.
+
+Layout (the official one; only ``leftImg8bit`` and ``gtFine`` are read)::
+
+    <root>/leftImg8bit/<split>/<city>/<name>_leftImg8bit.png     8-bit RGB images
+    <root>/gtFine/<split>/<city>/<name>_gtFine_labelIds.png      8-bit label ids (0..33)
+
+Map from Cityscapes ``labelId`` to geoseg classes (:mod:`geoseg.classes`; 255 = ignored by losses
+and metrics):
+
+====  ====================  ==========  =====================================================
+id    Cityscapes name       geoseg      why
+====  ====================  ==========  =====================================================
+0     unlabeled             ignore      void
+1     ego vehicle           ignore      the car's own bonnet: never a scene vehicle
+2     rectification border  ignore      void
+3     out of roi            ignore      void
+4     static                object      street furniture, bins, boxes: like our "object"
+5     dynamic               ignore      carts, animals, strollers: no matching class
+6     ground                ignore      mixed flat areas (traffic islands, yards): ambiguous
+7     road                  road
+8     sidewalk              sidewalk
+9     parking               road        drivable paved surface, part of the road model (DEM)
+10    rail track            ignore      tram tracks in or beside the road: ambiguous
+11    building              building
+12    wall                  building    free-standing masonry walls are vertical planar built
+                                        surfaces that look like facades
+13    fence                 object      thin street furniture, not part of any building model
+14    guard rail            object      street furniture
+15    bridge                building    construction, large vertical/planar built surface
+16    tunnel                building    construction
+17    pole                  object
+18    polegroup             object
+19    traffic light         object
+20    traffic sign          object
+21    vegetation            vegetation
+22    terrain               terrain
+23    sky                   sky
+24    person                ignore      no person class (the synthetic world has none);
+                                        "object" would mislabel them
+25    rider                 ignore      as person
+26    car                   vehicle
+27    truck                 vehicle
+28    bus                   vehicle
+29    caravan               vehicle
+30    trailer               vehicle
+31    train                 vehicle     trams, mostly
+32    motorcycle            vehicle
+33    bicycle               vehicle
+-1    license plate         ignore      stored as 255 in 8-bit files (never present in gtFine)
+====  ====================  ==========  =====================================================
+
+Any other value in a ``labelIds`` file is an error. With ``label_format="geoseg"`` the label files
+already hold geoseg ids (0..7, 255).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from geoseg.classes import (
+    BUILDING,
+    IGNORE_INDEX,
+    NUM_CLASSES,
+    OBJECT,
+    ROAD,
+    SIDEWALK,
+    SKY,
+    TERRAIN,
+    VEGETATION,
+    VEHICLE,
+)
+from geoseg.errors import GeosegError
+
+logger = logging.getLogger(__name__)
+
+IMAGE_DIR = "leftImg8bit"
+LABEL_DIR = "gtFine"
+IMAGE_SUFFIX = "_leftImg8bit.png"
+LABEL_SUFFIX = "_gtFine_labelIds.png"
+NUM_CITYSCAPES_IDS = 34  # labelIds 0..33
+
+CITYSCAPES_TO_GEOSEG: dict[int, int] = {
+    **{i: IGNORE_INDEX for i in (0, 1, 2, 3, 5, 6, 10, 24, 25)},
+    4: OBJECT,
+    7: ROAD,
+    8: SIDEWALK,
+    9: ROAD,
+    11: BUILDING,
+    12: BUILDING,
+    13: OBJECT,
+    14: OBJECT,
+    15: BUILDING,
+    16: BUILDING,
+    17: OBJECT,
+    18: OBJECT,
+    19: OBJECT,
+    20: OBJECT,
+    21: VEGETATION,
+    22: TERRAIN,
+    23: SKY,
+    **{i: VEHICLE for i in range(26, 34)},
+}
+"""Cityscapes labelId → geoseg class id (or IGNORE_INDEX); the table in the module docstring."""
+
+
+def cityscapes_lut() -> np.ndarray:
+    """`(256,)` int64 lookup table labelId → geoseg id; 255 → ignore; other ids → -1 (invalid)."""
+    lut = np.full(256, -1, dtype=np.int64)
+    for cs_id, ours in CITYSCAPES_TO_GEOSEG.items():
+        lut[cs_id] = ours
+    lut[255] = IGNORE_INDEX  # license plate (-1) as stored in 8-bit files
+    return lut
+
+
+def map_cityscapes_labels(label_ids: np.ndarray, *, path: str | Path = "<labels>") -> np.ndarray:
+    """Map a Cityscapes ``labelIds`` map to geoseg classes.
+
+    Args:
+        label_ids: `(H, W)` integer labelIds.
+        path: named in error messages.
+
+    Returns:
+        `(H, W)` int64 geoseg ids in ``[0, 8)`` or IGNORE_INDEX.
+
+    Raises:
+        GeosegError: a value that is not a Cityscapes labelId.
+    """
+    arr = np.asarray(label_ids)
+    if arr.ndim != 2 or not np.issubdtype(arr.dtype, np.integer):
+        raise GeosegError(
+            f"labels {path}: expected a single-channel integer map, got {arr.dtype} {arr.shape}"
+        )
+    bad = (arr < 0) | (arr > 255)
+    lut = cityscapes_lut()
+    mapped = lut[np.clip(arr, 0, 255)]
+    bad |= mapped < 0
+    if bad.any():
+        values = np.unique(arr[bad])[:10].tolist()
+        raise GeosegError(
+            f"labels {path}: values {values} are not Cityscapes labelIds (0..{NUM_CITYSCAPES_IDS - 1})"
+        )
+    return mapped
+
+
+class CityscapesDataset(Dataset):
+    """Frames of a Cityscapes-format folder as ``{"image", "labels"}`` samples.
+
+    Args:
+        root: the folder holding ``leftImg8bit/`` and ``gtFine/``.
+        split: ``"train"``, ``"val"``, ``"test"`` or any sub-folder name.
+        cities: restrict to these city folders (default: all).
+        label_format: ``"cityscapes"`` (labelIds, mapped by :data:`CITYSCAPES_TO_GEOSEG`) or
+            ``"geoseg"`` (files already hold ids 0..7 / 255).
+        transform: applied to each sample dict (e.g. :func:`geoseg.data.transforms.build_transforms`).
+
+    Each sample is ``{"image": (3, H, W) float32 in [0, 1] RGB, "labels": (H, W) int64}``.
+
+    Raises:
+        GeosegError: ``root`` or a split folder missing (the message names the path expected), no
+            image in the split, an image without its label file; at load time: an unreadable file,
+            image and labels of different sizes, labels outside the class range.
+    """
+
+    def __init__(
+        self,
+        root: str | Path,
+        split: str = "train",
+        *,
+        cities: Sequence[str] | None = None,
+        label_format: Literal["cityscapes", "geoseg"] = "cityscapes",
+        transform: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
+    ) -> None:
+        if label_format not in ("cityscapes", "geoseg"):
+            raise GeosegError(f"label_format: expected cityscapes or geoseg, got {label_format!r}")
+        self.root = Path(root)
+        self.split = split
+        self.label_format = label_format
+        self.transform = transform
+        self.samples = self._scan(cities)
+        logger.info("%s/%s: %d frames", self.root, split, len(self.samples))
+
+    def _scan(self, cities: Sequence[str] | None) -> list[tuple[Path, Path]]:
+        if not self.root.is_dir():
+            raise GeosegError(f"Cityscapes root {self.root} does not exist or is not a folder")
+        image_root = self.root / IMAGE_DIR / self.split
+        label_root = self.root / LABEL_DIR / self.split
+        for folder in (image_root, label_root):
+            if not folder.is_dir():
+                raise GeosegError(
+                    f"Cityscapes layout: expected folder {folder} "
+                    f"(<root>/{IMAGE_DIR}/<split>/<city>/*{IMAGE_SUFFIX} and "
+                    f"<root>/{LABEL_DIR}/<split>/<city>/*{LABEL_SUFFIX})"
+                )
+        city_dirs = sorted(p for p in image_root.iterdir() if p.is_dir())
+        if cities is not None:
+            wanted = set(cities)
+            unknown = wanted - {p.name for p in city_dirs}
+            if unknown:
+                raise GeosegError(f"cities: {sorted(unknown)} not found in {image_root}")
+            city_dirs = [p for p in city_dirs if p.name in wanted]
+        samples = []
+        for city in city_dirs:
+            for image in sorted(city.glob(f"*{IMAGE_SUFFIX}")):
+                stem = image.name[: -len(IMAGE_SUFFIX)]
+                label = label_root / city.name / f"{stem}{LABEL_SUFFIX}"
+                if not label.is_file():
+                    raise GeosegError(f"image {image} has no label file: expected {label}")
+                samples.append((image, label))
+        if not samples:
+            stray = sorted(p.name for p in image_root.glob(f"*{IMAGE_SUFFIX}"))[:3]
+            hint = (
+                f" (images found directly in {image_root}: {stray}; they belong in <city>/ folders)"
+                if stray
+                else ""
+            )
+            raise GeosegError(
+                f"Cityscapes split {image_root} is empty: no <city>/*{IMAGE_SUFFIX} files{hint}"
+            )
+        return samples
+
+    def __len__(self) -> int:
+        return len(self.samples)
+
+    def load_labels(self, index: int) -> np.ndarray:
+        """`(H, W)` int64 geoseg ids of frame ``index`` (mapped and checked)."""
+        path = self.samples[index][1]
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise GeosegError(f"labels {path}: cannot read (not an image file?)")
+        if raw.ndim != 2:
+            raise GeosegError(
+                f"labels {path}: expected a single-channel labelIds image, got shape {raw.shape} "
+                f"(a *_color.png file?)"
+            )
+        if self.label_format == "cityscapes":
+            return map_cityscapes_labels(raw, path=path)
+        labels = raw.astype(np.int64)
+        bad = (labels >= NUM_CLASSES) & (labels != IGNORE_INDEX)
+        if bad.any():
+            raise GeosegError(
+                f"labels {path}: values {np.unique(labels[bad])[:10].tolist()} outside the class "
+                f"range [0, {NUM_CLASSES}) (or {IGNORE_INDEX})"
+            )
+        return labels
+
+    def load_image(self, index: int) -> np.ndarray:
+        """`(H, W, 3)` uint8 RGB image of frame ``index``."""
+        path = self.samples[index][0]
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise GeosegError(f"image {path}: cannot read (not an image file?)")
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        if not -len(self) <= index < len(self):
+            raise IndexError(f"index {index} out of range for {len(self)} frames")
+        index %= len(self)
+        image = self.load_image(index)
+        labels = self.load_labels(index)
+        if image.shape[:2] != labels.shape:
+            raise GeosegError(
+                f"labels {self.samples[index][1]}: size {labels.shape} differs from image "
+                f"{self.samples[index][0]} size {image.shape[:2]}"
+            )
+        sample: dict[str, Any] = {
+            "image": torch.from_numpy(image).permute(2, 0, 1).float().div_(255.0),
+            "labels": torch.from_numpy(labels),
+        }
+        if self.transform is not None:
+            sample = dict(self.transform(sample))
+        return sample

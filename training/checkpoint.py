@@ -1,0 +1,354 @@
+"""Checkpoints: atomic writes, safe loads, and clear errors for files that do not fit.
+
+A checkpoint is one ``torch.save``-d mapping of plain data (tensors, numbers, strings, lists,
+dicts) so that it loads with ``torch.load(path, weights_only=True)`` and nothing else:
+
+================== ==============================================================
+key                content
+================== ==============================================================
+``format``         ``"geoseg-checkpoint"`` (marks the file as ours)
+``version``        format version, :data:`FORMAT_VERSION`
+``model_name``     registry name of the architecture (``str`` or None)
+``model_config``   the builder's keyword arguments (plain dict)
+``model``          the model's ``state_dict`` (unwrapped from DDP)
+``optimizer``      the optimizer's ``state_dict`` or None
+``scheduler``      the LR scheduler's ``state_dict`` or None
+``scaler``         the AMP grad scaler's ``state_dict`` or None
+``epoch``          number of completed epochs
+``global_step``    number of completed optimizer steps
+``rng``            :func:`training.reproducibility.capture_rng_state` output
+``generators``     states of the data loader's ``torch.Generator`` objects
+``config``         the run's configuration (plain dict)
+``history``        per-epoch metric rows (list of dicts)
+``best``           best validation value so far (float or None)
+``extra``          anything else the caller wants to keep (plain data)
+================== ==============================================================
+
+Writes go to a temporary file in the destination's directory, are flushed and fsync-ed, then
+``os.replace``-d over the destination: a crash or a full disk never leaves a truncated
+checkpoint, and the previous one stays intact. A run keeps :data:`LAST` and :data:`BEST`.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import os
+import pickle
+import tempfile
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from geoseg.errors import GeosegError
+from training.reproducibility import capture_rng_state, restore_rng_state
+
+logger = logging.getLogger(__name__)
+
+FORMAT = "geoseg-checkpoint"
+FORMAT_VERSION = 1
+LAST = "last.pt"
+BEST = "best.pt"
+_REQUIRED = ("format", "version", "model", "epoch", "global_step")
+
+
+def unwrap_model(model: nn.Module) -> nn.Module:
+    """The module inside a DistributedDataParallel / DataParallel wrapper (or ``model``)."""
+    while isinstance(model, nn.parallel.DistributedDataParallel | nn.DataParallel):
+        model = model.module
+    return model
+
+
+def to_plain(value: Any) -> Any:
+    """Convert ``value`` to data ``torch.load(weights_only=True)`` accepts.
+
+    Paths become strings, tuples become lists, NumPy scalars and arrays become Python numbers and
+    tensors; dict keys become strings unless they are ints. Other objects raise GeosegError.
+    """
+    import numpy as np
+
+    if value is None or isinstance(value, bool | int | float | str | torch.Tensor):
+        return value
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return torch.from_numpy(value.copy())
+    if isinstance(value, Mapping):
+        return {(k if isinstance(k, int) else str(k)): to_plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_plain(v) for v in value]
+    raise GeosegError(
+        f"checkpoint content: cannot store a {type(value).__name__} ({value!r:.80}); "
+        "only tensors, numbers, strings, lists and dicts"
+    )
+
+
+def build_checkpoint(
+    model: nn.Module,
+    *,
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any = None,
+    scaler: Any = None,
+    epoch: int = 0,
+    global_step: int = 0,
+    model_name: str | None = None,
+    model_config: Mapping[str, Any] | None = None,
+    config: Mapping[str, Any] | None = None,
+    history: list[Mapping[str, Any]] | None = None,
+    best: float | None = None,
+    generators: list[torch.Tensor] | None = None,
+    rng: Mapping[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Assemble the checkpoint mapping described in the module docstring.
+
+    Args:
+        model: the model (a DDP wrapper is unwrapped).
+        optimizer, scheduler, scaler: objects with ``state_dict()``, or None.
+        epoch: completed epochs.
+        global_step: completed optimizer steps.
+        model_name, model_config: how to rebuild the architecture.
+        config: the run's configuration as a mapping (Paths and tuples are converted).
+        history: per-epoch metric rows.
+        best: best validation value so far.
+        generators: data-loader generator states (uint8 tensors).
+        rng: global RNG states; captured now when None.
+        extra: any other plain data.
+    """
+    return {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "model_name": model_name,
+        "model_config": to_plain(dict(model_config or {})),
+        "model": unwrap_model(model).state_dict(),
+        "optimizer": None if optimizer is None else optimizer.state_dict(),
+        "scheduler": None if scheduler is None else to_plain(scheduler.state_dict()),
+        "scaler": None if scaler is None else to_plain(scaler.state_dict()),
+        "epoch": int(epoch),
+        "global_step": int(global_step),
+        "rng": dict(rng) if rng is not None else capture_rng_state(),
+        "generators": list(generators or []),
+        "config": to_plain(dict(config or {})),
+        "history": to_plain(list(history or [])),
+        "best": None if best is None else float(best),
+        "extra": to_plain(dict(extra or {})),
+    }
+
+
+def atomic_save(obj: Any, path: str | Path) -> Path:
+    """``torch.save(obj)`` to ``path`` atomically (temp file, flush, fsync, ``os.replace``).
+
+    Raises:
+        GeosegError: the directory is not writable or the disk is full; the temporary file is
+            removed and any previous file at ``path`` is left untouched.
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise GeosegError(f"checkpoint {path}: directory {path.parent} does not exist")
+    tmp_name = None
+    try:
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        with os.fdopen(fd, "wb") as handle:
+            torch.save(obj, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, path)
+        tmp_name = None
+        _fsync_dir(path.parent)
+    except OSError as err:
+        if err.errno == errno.ENOSPC:
+            problem = "no space left on device"
+        elif err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            problem = "permission denied / read-only"
+        else:
+            problem = f"{type(err).__name__}: {err}"
+        kept = " (the previous checkpoint is kept)" if path.exists() else ""
+        raise GeosegError(f"cannot write checkpoint {path}: {problem}{kept}") from err
+    finally:
+        if tmp_name is not None:
+            try:
+                os.unlink(tmp_name)
+            except FileNotFoundError:
+                pass
+    return path
+
+
+def save_checkpoint(checkpoint: Mapping[str, Any], path: str | Path) -> Path:
+    """Validate a mapping from :func:`build_checkpoint` and write it atomically to ``path``."""
+    missing = [k for k in _REQUIRED if k not in checkpoint]
+    if missing or checkpoint.get("format") != FORMAT:
+        raise GeosegError(f"checkpoint {path}: not built by build_checkpoint (missing {missing})")
+    out = atomic_save(dict(checkpoint), path)
+    logger.debug("wrote checkpoint %s (epoch %s)", out, checkpoint["epoch"])
+    return out
+
+
+def save_run_checkpoints(
+    checkpoint: Mapping[str, Any], run_dir: str | Path, *, is_best: bool
+) -> Path:
+    """Write ``run_dir/last.pt`` and, when ``is_best``, ``run_dir/best.pt``; return last.pt."""
+    run_dir = Path(run_dir)
+    last = save_checkpoint(checkpoint, run_dir / LAST)
+    if is_best:
+        save_checkpoint(checkpoint, run_dir / BEST)
+    return last
+
+
+def load_checkpoint(path: str | Path, *, map_location: Any = "cpu") -> dict[str, Any]:
+    """Load and validate a checkpoint with ``torch.load(weights_only=True)``.
+
+    Args:
+        path: the ``.pt`` file.
+        map_location: passed to ``torch.load``.
+
+    Raises:
+        GeosegError: the file does not exist, is corrupt or truncated, or is not a geoseg
+            checkpoint; the message names the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise GeosegError(f"checkpoint {path} does not exist")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=True)
+    except (
+        RuntimeError,
+        EOFError,
+        OSError,
+        ValueError,
+        pickle.UnpicklingError,
+        zipfile.BadZipFile,
+        AttributeError,
+        TypeError,
+    ) as err:
+        raise GeosegError(
+            f"checkpoint {path} is corrupt or not a torch checkpoint "
+            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
+        ) from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        what = (
+            f"keys {sorted(map(str, data))[:8]}" if isinstance(data, dict) else type(data).__name__
+        )
+        raise GeosegError(f"checkpoint {path} is not a geoseg checkpoint (found {what})")
+    missing = [k for k in _REQUIRED if k not in data]
+    if missing:
+        raise GeosegError(f"checkpoint {path} is incomplete: missing {', '.join(missing)}")
+    if int(data["version"]) > FORMAT_VERSION:
+        raise GeosegError(
+            f"checkpoint {path} has format version {data['version']}, newer than this geoseg "
+            f"({FORMAT_VERSION})"
+        )
+    return data
+
+
+def check_compatible(
+    checkpoint: Mapping[str, Any],
+    model: nn.Module,
+    *,
+    model_name: str | None = None,
+    path: str | Path = "<checkpoint>",
+) -> None:
+    """Raise unless ``checkpoint["model"]`` fits ``model`` (same keys and shapes, same name).
+
+    Raises:
+        GeosegError: naming the file and the first mismatching keys/shapes or the two names.
+    """
+    saved_name = checkpoint.get("model_name")
+    if model_name is not None and saved_name is not None and saved_name != model_name:
+        raise GeosegError(
+            f"checkpoint {path} holds model {saved_name!r}, not {model_name!r} (another "
+            "architecture)"
+        )
+    saved = checkpoint["model"]
+    if not isinstance(saved, Mapping):
+        raise GeosegError(f"checkpoint {path}: 'model' is not a state dict")
+    current = unwrap_model(model).state_dict()
+    missing = [k for k in current if k not in saved]
+    unexpected = [k for k in saved if k not in current]
+    shapes = [
+        f"{k}: {tuple(saved[k].shape)} vs {tuple(v.shape)}"
+        for k, v in current.items()
+        if k in saved and hasattr(saved[k], "shape") and tuple(saved[k].shape) != tuple(v.shape)
+    ]
+    if missing or unexpected or shapes:
+        parts = []
+        if missing:
+            parts.append(f"missing keys {missing[:5]}{' ...' if len(missing) > 5 else ''}")
+        if unexpected:
+            parts.append(f"unexpected keys {unexpected[:5]}{' ...' if len(unexpected) > 5 else ''}")
+        if shapes:
+            parts.append(f"shape mismatch {shapes[:5]}{' ...' if len(shapes) > 5 else ''}")
+        name = f" ({saved_name!r})" if saved_name else ""
+        raise GeosegError(
+            f"checkpoint {path}{name} does not fit this model (another architecture?): "
+            + "; ".join(parts)
+        )
+
+
+def restore_checkpoint(
+    source: str | Path | Mapping[str, Any],
+    model: nn.Module,
+    *,
+    optimizer: torch.optim.Optimizer | None = None,
+    scheduler: Any = None,
+    scaler: Any = None,
+    model_name: str | None = None,
+    restore_rng: bool = True,
+    map_location: Any = "cpu",
+) -> dict[str, Any]:
+    """Load a checkpoint into ``model`` (and optimizer/scheduler/scaler/RNG when given).
+
+    Args:
+        source: a path, or a mapping already returned by :func:`load_checkpoint`.
+        model: the freshly built model (DDP wrappers are unwrapped).
+        optimizer, scheduler, scaler: restored when both given and stored.
+        model_name: when given, must match the stored ``model_name``.
+        restore_rng: restore the global RNG states.
+        map_location: for ``torch.load``.
+
+    Returns:
+        The checkpoint mapping (epoch, global_step, history, generators, config...).
+
+    Raises:
+        GeosegError: see :func:`load_checkpoint` and :func:`check_compatible`.
+    """
+    if isinstance(source, Mapping):
+        ckpt, path = dict(source), "<checkpoint>"
+    else:
+        path = Path(source)
+        ckpt = load_checkpoint(path, map_location=map_location)
+    check_compatible(ckpt, model, model_name=model_name, path=path)
+    unwrap_model(model).load_state_dict(ckpt["model"])
+    try:
+        if optimizer is not None and ckpt.get("optimizer") is not None:
+            optimizer.load_state_dict(ckpt["optimizer"])
+        if scheduler is not None and ckpt.get("scheduler") is not None:
+            scheduler.load_state_dict(ckpt["scheduler"])
+        if scaler is not None and ckpt.get("scaler") is not None:
+            scaler.load_state_dict(ckpt["scaler"])
+    except (ValueError, KeyError, RuntimeError) as err:
+        raise GeosegError(
+            f"checkpoint {path}: optimizer/scheduler state does not fit ({err})"
+        ) from None
+    if restore_rng and ckpt.get("rng"):
+        restore_rng_state(ckpt["rng"])
+    return ckpt
+
+
+def _fsync_dir(directory: Path) -> None:
+    """fsync a directory so a rename survives a power loss (best effort, POSIX only)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
