@@ -1,0 +1,230 @@
+"""DPC: direct pose constraints of the hybrid window (thesis §3.5.0.1, eqs. 3.2, 3.14-3.16).
+
+For two successive keyframes ``i`` and ``j = i + 1`` of the pose-graph window (camera-to-world
+``R_i = R_wc[i]``, ``T_i = t_wc[i]``), the relative pose of ``j`` in ``i`` is (eq. 3.2)::
+
+    S(R_i, T_i, R_j, T_j) = (R_i^T R_j, R_i^T (T_j - T_i))
+
+``S_hat`` is the same quantity before fusion (after the minimisation of zeta, eq. 3.14), and::
+
+    q_i = log_SE3(S_hat^-1 S(R_i, T_i, R_j, T_j))^vee      (eq. 3.15)
+    xi  = q_i^T D q_i,   D = diag(A, B)                    (eq. 3.16)
+
+Twists are rotation first (``[w, v]``, :mod:`slam_bridge.lie`), so ``A`` weighs the rotation and
+``B`` the translation part (identity by default, as in the thesis). The whitened residual is
+``r = L^T q`` with ``D = L L^T`` (Cholesky), so that ``||r||^2 = xi``.
+
+Analytic Jacobian (the thesis uses finite differences, §3.6.1; this one is exact). With the
+core's increments ``R <- exp(hat(dw)) R``, ``T <- T + dT`` the relative pose moves by a right
+perturbation ``S <- S exp(delta)`` with, to first order::
+
+    camera j:  delta = [R_j^T dw_j,  R_j^T dT_j]
+    camera i:  delta = [-R_j^T dw_i,  R_j^T [T_j - T_i]_x dw_i - R_j^T dT_i]
+
+and ``S_hat^-1 S`` moves by the same right perturbation, so ``dq = J_r^-1(q) delta`` with the
+SE(3) right Jacobian (:func:`slam_bridge.lie.se3_right_jacobian_inv`).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from geoseg.errors import GeosegError, check_finite
+from slam_bridge import lie
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.base import FactorBlock
+from slam_bridge.problem import BAState
+from slam_bridge.solvers.robust import RobustKernel, get_kernel
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "DPCFactor",
+    "relative_pose",
+    "dpc_residuals",
+    "dpc_whitener",
+]
+
+
+def relative_pose(
+    R_wc_i: np.ndarray, t_wc_i: np.ndarray, R_wc_j: np.ndarray, t_wc_j: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``S(R_i, T_i, R_j, T_j)`` of eq. 3.2: the pose of camera ``j`` in camera ``i``.
+
+    Args:
+        R_wc_i: ``(M, 3, 3)``.
+        t_wc_i: ``(M, 3)``.
+        R_wc_j: ``(M, 3, 3)``.
+        t_wc_j: ``(M, 3)``.
+
+    Returns:
+        ``R_ij (M, 3, 3) = R_i^T R_j`` and ``t_ij (M, 3) = R_i^T (T_j - T_i)``.
+    """
+    R_it = np.swapaxes(R_wc_i, -1, -2)
+    return R_it @ R_wc_j, np.einsum("...ab,...b->...a", R_it, t_wc_j - t_wc_i)
+
+
+def dpc_whitener(D: np.ndarray | None) -> np.ndarray:
+    """``L^T`` (``(6, 6)``) with ``D = L L^T``; identity for ``D = None``.
+
+    Args:
+        D: ``(6, 6)`` symmetric positive-definite weight ``diag(A, B)`` (or any SPD matrix), or
+            ``(6,)`` its diagonal.
+
+    Raises:
+        GeosegError: D is not symmetric positive definite.
+    """
+    if D is None:
+        return np.eye(6)
+    D = np.asarray(D, dtype=np.float64)
+    if D.shape == (6,):
+        D = np.diag(D)
+    if D.shape != (6, 6) or not np.all(np.isfinite(D)) or not np.allclose(D, D.T):
+        raise GeosegError(f"D: expected a finite symmetric (6, 6) matrix, got shape {D.shape}")
+    try:
+        L = np.linalg.cholesky(D)
+    except np.linalg.LinAlgError as exc:
+        raise GeosegError("D: expected a positive-definite weight matrix") from exc
+    return L.T.copy()
+
+
+def dpc_residuals(
+    R_wc_i: np.ndarray,
+    t_wc_i: np.ndarray,
+    R_wc_j: np.ndarray,
+    t_wc_j: np.ndarray,
+    R_hat_ij: np.ndarray,
+    t_hat_ij: np.ndarray,
+    whitener: np.ndarray | None = None,
+    *,
+    with_jacobians: bool = True,
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Whitened DPC residuals ``L^T q`` (eq. 3.15) and their analytic Jacobians.
+
+    Args:
+        R_wc_i: ``(M, 3, 3)`` rotation of the older camera of each pair.
+        t_wc_i: ``(M, 3)`` its optical centre.
+        R_wc_j: ``(M, 3, 3)`` rotation of the newer camera.
+        t_wc_j: ``(M, 3)`` its optical centre.
+        R_hat_ij: ``(M, 3, 3)`` relative rotation before fusion (``S_hat``, eq. 3.14).
+        t_hat_ij: ``(M, 3)`` relative translation before fusion.
+        whitener: ``(6, 6)`` ``L^T`` from :func:`dpc_whitener` (identity if None).
+        with_jacobians: also return the Jacobians.
+
+    Returns:
+        ``(r, J_i, J_j)``: ``r (M, 6)``; ``J_i``, ``J_j`` ``(M, 6, 6)`` derivatives with respect
+        to ``[dw, dT]`` of cameras ``i`` and ``j`` (None when ``with_jacobians`` is False).
+    """
+    Wt = np.eye(6) if whitener is None else whitener
+    R_ij, t_ij = relative_pose(R_wc_i, t_wc_i, R_wc_j, t_wc_j)
+    R_hi, t_hi = lie.se3_inverse(R_hat_ij, t_hat_ij)
+    R_e, t_e = lie.se3_compose(R_hi, t_hi, R_ij, t_ij)
+    q = lie.se3_log(R_e, t_e)  # (M, 6)
+    r = q @ Wt.T
+    if not with_jacobians:
+        return r, None, None
+    M = q.shape[0]
+    Jri = lie.se3_right_jacobian_inv(q)  # (M, 6, 6)
+    R_jt = np.swapaxes(R_wc_j, -1, -2)
+    d_j = np.zeros((M, 6, 6))
+    d_j[:, :3, :3] = R_jt
+    d_j[:, 3:, 3:] = R_jt
+    d_i = np.zeros((M, 6, 6))
+    d_i[:, :3, :3] = -R_jt
+    d_i[:, 3:, :3] = R_jt @ lie.so3_hat(t_wc_j - t_wc_i)
+    d_i[:, 3:, 3:] = -R_jt
+    WJ = Wt[None] @ Jri
+    return r, WJ @ d_i, WJ @ d_j
+
+
+class DPCFactor:
+    """Direct pose constraints between successive pose-graph cameras (eq. 3.16), one row each.
+
+    Args:
+        pairs: ``(Q, 2)`` state camera indices ``(i, j)`` of successive keyframes (``j`` newer).
+        R_hat_ij: ``(Q, 3, 3)`` relative rotations before fusion (``S_hat``, eq. 3.14).
+        t_hat_ij: ``(Q, 3)`` relative translations before fusion.
+        D: ``(6, 6)`` or ``(6,)`` weight ``diag(A, B)`` (rotation block first); identity if None.
+        kernel: robust kernel (default least squares, as eq. 3.16).
+        name: family label.
+
+    Use :meth:`from_state` to take ``S_hat`` from the current (pre-fusion) state.
+    """
+
+    def __init__(
+        self,
+        pairs: np.ndarray,
+        R_hat_ij: np.ndarray,
+        t_hat_ij: np.ndarray,
+        D: np.ndarray | None = None,
+        *,
+        kernel: str | RobustKernel | None = None,
+        name: str = "pose_graph_dpc",
+    ) -> None:
+        self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        Q = self.pairs.shape[0]
+        self.R_hat_ij = np.asarray(R_hat_ij, dtype=np.float64).reshape(Q, 3, 3)
+        self.t_hat_ij = np.asarray(t_hat_ij, dtype=np.float64).reshape(Q, 3)
+        check_finite("R_hat_ij", self.R_hat_ij)
+        check_finite("t_hat_ij", self.t_hat_ij)
+        self.whitener = dpc_whitener(D)
+        self.kernel = get_kernel(kernel)
+        self.name = name
+
+    @classmethod
+    def from_state(
+        cls, state: BAState, pairs: np.ndarray, D: np.ndarray | None = None, **kwargs
+    ) -> DPCFactor:
+        """Build the factor with ``S_hat`` = the relative poses of ``state`` (eq. 3.14).
+
+        Args:
+            state: the state after the minimisation of zeta (before fusion).
+            pairs: ``(Q, 2)`` state camera indices ``(i, i + 1)``.
+            D: weight, see the constructor.
+            **kwargs: forwarded to the constructor.
+        """
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        R_h, t_h = relative_pose(
+            state.R_wc[pairs[:, 0]],
+            state.t_wc[pairs[:, 0]],
+            state.R_wc[pairs[:, 1]],
+            state.t_wc[pairs[:, 1]],
+        )
+        return cls(pairs, R_h, t_h, D, **kwargs)
+
+    def _gather(self, state: BAState) -> tuple[np.ndarray, ...]:
+        C = state.num_cameras
+        if self.pairs.size and (self.pairs.max() >= C or self.pairs.min() < 0):
+            raise SlamError(f"{self.name}: camera index out of range for {C} cameras")
+        i, j = self.pairs[:, 0], self.pairs[:, 1]
+        return state.R_wc[i], state.t_wc[i], state.R_wc[j], state.t_wc[j]
+
+    def evaluate(self, state: BAState) -> FactorBlock:
+        """Rows ``(Q, 6)``, ``a = 2``."""
+        r, J_i, J_j = dpc_residuals(
+            *self._gather(state), self.R_hat_ij, self.t_hat_ij, self.whitener
+        )
+        return FactorBlock(
+            residuals=r,
+            cameras=self.pairs,
+            J_cameras=np.stack([J_i, J_j], axis=1),
+            kernel=self.kernel,
+            name=self.name,
+        )
+
+    def cost_and_invalid(self, state: BAState) -> tuple[float, int]:
+        """The cost and 0 (a DPC row is always defined)."""
+        return self.cost(state), 0
+
+    def cost(self, state: BAState) -> float:
+        """``sum_i rho(q_i^T D q_i)``."""
+        r, _, _ = dpc_residuals(
+            *self._gather(state),
+            self.R_hat_ij,
+            self.t_hat_ij,
+            self.whitener,
+            with_jacobians=False,
+        )
+        return float(np.sum(self.kernel.rho(np.einsum("mk,mk->m", r, r))))

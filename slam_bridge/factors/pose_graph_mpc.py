@@ -1,0 +1,311 @@
+"""MPC: multi-view (epipolar) pose-graph constraints of the hybrid window (thesis §3.5.0.2).
+
+For two successive keyframes ``i`` and ``j = i + 1`` of the pose-graph window and their 2D
+correspondences ``(x_k, x'_k)`` (pixels, ``x_k`` in image ``i``, ``x'_k`` in image ``j``), the
+residual is the signed distance, in pixels, from ``x_k`` to the epipolar line ``F x'_k`` (eqs. 3.17-3.18)::
+
+    psi_k = x_k^T F x'_k / ||P F x'_k||,     P = diag(1, 1, 0),
+    F = K_i^-T [L]_x R K_j^-1,  R = R_i^T R_j,  L = R_i^T (T_j - T_i)      (eq. C.3)
+
+with ``R_i = R_wc[i]`` and ``T_i = t_wc[i]`` (camera-to-world, ``X_w = R_i X_c + T_i``). The
+pose-graph term of camera pair ``(i, j)`` is ``xi = sum_k psi_k^2`` (eq. 3.18).
+
+Analytic Jacobian (appendix C, eqs. C.6-C.22, rederived in world-frame form): write the epipolar
+line in normalised coordinates of camera ``i`` as ``ell = R_i^T (Delta x n)`` with
+``Delta = T_j - T_i`` and ``n = R_j K_j^-1 x'`` (the ray of ``x'`` in world axes), so
+``F x' = K_i^-T ell``. With the increment convention of the core (``R <- exp(hat(dw)) R``,
+``T <- T + dT``)::
+
+    d ell / d dw_i = R_i^T [ell_w]_x          (ell_w = Delta x n; eqs. C.12, C.15)
+    d ell / d dT_i = R_i^T [n]_x              (eq. C.19, camera i)
+    d ell / d dw_j = -R_i^T [Delta]_x [n]_x   (eq. C.16)
+    d ell / d dT_j = -R_i^T [n]_x             (eq. C.19, camera j)
+
+and, with ``l = K_i^-T ell``, ``u = x^T l``, ``v = ||P l||`` (eqs. C.8, C.20-C.22)::
+
+    d psi = (x^T / v - u (P l)^T / v^3) K_i^-T d ell = g_w . d ell_w,
+    g_w = R_i K_i^-1 (x / v - u P l / v^3),
+
+so every block is a cross product (``g^T [a]_x = (g x a)^T``), vectorised over correspondences.
+
+The residual is invariant to the scale of ``Delta`` (the GPS fixes the scale, thesis §1.4
+footnote 5). It is undefined when the two optical centres coincide (``Delta = 0``, ``F = 0``) or
+when ``x'`` lies on the epipole (``P F x' = 0``): the first raises :class:`MPCDegenerateError`,
+the second flags the row invalid (it then counts in neither the cost nor the normal equations,
+like a point behind a camera in the reprojection factor).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from geoseg.errors import check_finite, check_positive
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.base import FactorBlock
+from slam_bridge.problem import BAState
+from slam_bridge.solvers.robust import RobustKernel, TrivialKernel, get_kernel
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["MPCDegenerateError", "MPCFactor", "epipolar_residuals"]
+
+
+class MPCDegenerateError(SlamError):
+    """The epipolar residual is undefined: the two optical centres coincide (``F = 0``)."""
+
+
+def _matvec(A: np.ndarray, x: np.ndarray, *, transpose: bool = False) -> np.ndarray:
+    """``A x`` (or ``A^T x``) for ``A (M, 3, 3)`` or ``(3, 3)`` and ``x (M, 3)``."""
+    if A.ndim == 2:
+        return x @ A if transpose else x @ A.T
+    At = np.swapaxes(A, 1, 2) if transpose else A
+    return np.matmul(At, x[:, :, None])[:, :, 0]
+
+
+def epipolar_residuals(
+    R_wc_i: np.ndarray,
+    t_wc_i: np.ndarray,
+    R_wc_j: np.ndarray,
+    t_wc_j: np.ndarray,
+    Kinv_i: np.ndarray,
+    Kinv_j: np.ndarray,
+    uv_i: np.ndarray,
+    uv_j: np.ndarray,
+    *,
+    with_jacobians: bool = True,
+    min_baseline: float = 1e-9,
+    min_line_norm: float = 1e-12,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """Normalised epipolar distances (eq. 3.18) and their analytic Jacobians (appendix C).
+
+    Every argument is given per correspondence (gather camera arrays with the pair index first).
+
+    Args:
+        R_wc_i: ``(M, 3, 3)`` rotation of the older camera ``i`` (camera-to-world).
+        t_wc_i: ``(M, 3)`` optical centre of camera ``i`` in the world.
+        R_wc_j: ``(M, 3, 3)`` rotation of the newer camera ``j = i + 1``.
+        t_wc_j: ``(M, 3)`` optical centre of camera ``j``.
+        Kinv_i: ``(M, 3, 3)`` inverse intrinsics ``K_i^-1`` of camera ``i`` (``(3, 3)``
+            broadcasts).
+        Kinv_j: ``(M, 3, 3)`` inverse intrinsics of camera ``j`` (``(3, 3)`` broadcasts).
+        uv_i: ``(M, 2)`` pixel ``x_k`` in image ``i``.
+        uv_j: ``(M, 2)`` corresponding pixel ``x'_k`` in image ``j``.
+        with_jacobians: also return the Jacobians.
+        min_baseline: below this ``||T_j - T_i||`` (metres) the pair is degenerate.
+        min_line_norm: below this ``||P F x'||`` relative to ``||F x'||`` the point is at the
+            epipole and its row is flagged invalid.
+
+    Returns:
+        ``(psi, valid, J_i, J_j)``: ``psi (M,)`` signed distances in pixels (0 where invalid);
+        ``valid (M,)`` bool, False for points on the epipole; ``J_i (M, 6)`` and ``J_j (M, 6)``
+        the derivatives with respect to the increments ``[dw, dT]`` of cameras ``i`` and ``j``
+        (``None`` when ``with_jacobians`` is False; zero rows where invalid).
+
+    Raises:
+        MPCDegenerateError: coincident optical centres.
+    """
+    M = uv_i.shape[0]
+    delta_w = t_wc_j - t_wc_i  # (M, 3)
+    base = np.linalg.norm(delta_w, axis=-1)
+    if M and np.any(base < min_baseline):
+        bad = int(np.argmin(base))
+        raise MPCDegenerateError(
+            f"epipolar residual undefined: cameras of correspondence {bad} share one optical "
+            f"centre (baseline {base[bad]:.3g} m < {min_baseline:g} m)"
+        )
+    ones = np.ones((M, 1))
+    x_i = np.concatenate([uv_i, ones], axis=1)  # (M, 3) homogeneous pixels
+    x_j = np.concatenate([uv_j, ones], axis=1)
+    b_j = _matvec(Kinv_j, x_j)  # normalised ray of x' in camera j
+    n_w = _matvec(R_wc_j, b_j)  # that ray in world axes
+    ell_w = np.cross(delta_w, n_w)  # (M, 3)
+    ell = _matvec(R_wc_i, ell_w, transpose=True)  # R_i^T ell_w: line in normalised coords of i
+    l_px = _matvec(Kinv_i, ell, transpose=True)  # K_i^-T ell = F x'
+    u = np.sum(x_i * l_px, axis=1)
+    v = np.hypot(l_px[:, 0], l_px[:, 1])
+    scale = np.linalg.norm(l_px, axis=-1)
+    valid = v > min_line_norm * np.maximum(scale, 1e-300)
+    v = np.where(valid, v, 1.0)
+    psi = np.where(valid, u / v, 0.0)
+    if not with_jacobians:
+        return psi, valid, None, None
+
+    # d psi / d l_px (M, 3) = x^T / v - u (P l)^T / v^3, then chain through K_i^-T and R_i^T:
+    # g_w = R_i K_i^-1 dpsi_dl is the world-frame row vector with d psi = g_w . d ell_w.
+    Pl = l_px.copy()
+    Pl[:, 2] = 0.0
+    dpsi_dl = x_i / v[:, None] - (u / v**3)[:, None] * Pl
+    g_w = _matvec(R_wc_i, _matvec(Kinv_i, dpsi_dl))
+    # g^T [a]_x = (g x a)^T, so every block is a cross product:
+    J_i = np.empty((M, 6))
+    J_j = np.empty((M, 6))
+    J_i[:, :3] = np.cross(g_w, ell_w)  # g^T [ell_w]_x
+    J_i[:, 3:] = np.cross(g_w, n_w)  # g^T [n]_x
+    J_j[:, :3] = -np.cross(np.cross(g_w, delta_w), n_w)  # -g^T [Delta]_x [n]_x
+    J_j[:, 3:] = -J_i[:, 3:]
+    J_i[~valid] = 0.0
+    J_j[~valid] = 0.0
+    return psi, valid, J_i, J_j
+
+
+class MPCFactor:
+    """Epipolar pose-graph terms between successive pose-graph cameras (eq. 3.18), one row per
+    2D correspondence.
+
+    Args:
+        K: ``(3, 3)`` shared calibration or ``(C, 3, 3)`` one per state camera.
+        cameras_i: ``(M,)`` state index of the older camera ``z_i`` of each correspondence.
+        cameras_j: ``(M,)`` state index of the newer camera ``z_{i+1}``.
+        uv_i: ``(M, 2)`` pixel in image ``i``.
+        uv_j: ``(M, 2)`` pixel in image ``j``.
+        sigma: pixel standard deviation (residuals divided by it; 1 keeps the thesis's pixels).
+        kernel: robust kernel (default least squares, as eq. 3.18).
+        compress: with the least-squares kernel, hand the assembler one exact 13-dimensional
+            row per camera pair instead of one row per correspondence (same cost, same normal
+            equations, far fewer rows; see :meth:`_compressed`).
+        name: family label.
+
+    Raises:
+        GeosegError: NaN/inf pixels, mismatched shapes.
+    """
+
+    def __init__(
+        self,
+        K: np.ndarray,
+        cameras_i: np.ndarray,
+        cameras_j: np.ndarray,
+        uv_i: np.ndarray,
+        uv_j: np.ndarray,
+        *,
+        sigma: float = 1.0,
+        kernel: str | RobustKernel | None = None,
+        compress: bool = True,
+        name: str = "pose_graph_mpc",
+    ) -> None:
+        self.K = np.asarray(K, dtype=np.float64)
+        if self.K.shape[-2:] != (3, 3) or self.K.ndim not in (2, 3):
+            raise SlamError(f"K: expected shape (3, 3) or (C, 3, 3), got {self.K.shape}")
+        check_finite("K", self.K)
+        try:
+            self.Kinv = np.linalg.inv(self.K)  # once, not per correspondence
+        except np.linalg.LinAlgError as exc:
+            raise SlamError("K: singular calibration matrix") from exc
+        self.cameras_i = np.asarray(cameras_i, dtype=np.int64).reshape(-1)
+        self.cameras_j = np.asarray(cameras_j, dtype=np.int64).reshape(-1)
+        M = self.cameras_i.size
+        self.uv_i = np.asarray(uv_i, dtype=np.float64)
+        self.uv_j = np.asarray(uv_j, dtype=np.float64)
+        if self.cameras_j.shape != (M,) or self.uv_i.shape != (M, 2) or self.uv_j.shape != (M, 2):
+            raise SlamError(
+                f"{name}: expected cameras_j ({M},), uv_i ({M}, 2), uv_j ({M}, 2); got "
+                f"{self.cameras_j.shape}, {self.uv_i.shape}, {self.uv_j.shape}"
+            )
+        check_finite("uv_i", self.uv_i)
+        check_finite("uv_j", self.uv_j)
+        check_positive("sigma", sigma)
+        self.sigma = float(sigma)
+        self.kernel = get_kernel(kernel)
+        self.compress = bool(compress)
+        self.name = name
+        pair_keys = np.stack([self.cameras_i, self.cameras_j], axis=1)
+        self._pairs, self._pair_of = np.unique(pair_keys, axis=0, return_inverse=True)
+        self._pair_of = self._pair_of.reshape(-1)
+        # padded layout (pair, slot) of the rows, for batched per-pair products
+        order = np.argsort(self._pair_of, kind="stable")
+        counts = np.bincount(self._pair_of, minlength=len(self._pairs))
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+        self._slot = np.empty(M, dtype=np.int64)
+        self._slot[order] = np.arange(M) - np.repeat(starts, counts)
+        self._max_rows = int(counts.max(initial=0))
+
+    def _args(self, state: BAState) -> tuple[np.ndarray, ...]:
+        C = state.num_cameras
+        for cams in (self.cameras_i, self.cameras_j):
+            if cams.size and (cams.max() >= C or cams.min() < 0):
+                raise SlamError(f"{self.name}: camera index out of range for {C} cameras")
+        if self.K.ndim == 2:
+            K_i = K_j = self.Kinv
+        else:
+            K_i, K_j = self.Kinv[self.cameras_i], self.Kinv[self.cameras_j]
+        return (
+            state.R_wc[self.cameras_i],
+            state.t_wc[self.cameras_i],
+            state.R_wc[self.cameras_j],
+            state.t_wc[self.cameras_j],
+            K_i,
+            K_j,
+            self.uv_i,
+            self.uv_j,
+        )
+
+    def evaluate(self, state: BAState) -> FactorBlock:
+        """The rows, ``a = 2`` (cameras ``i``, ``j``).
+
+        Without compression: one row ``(1,)`` per correspondence. With compression (default,
+        least-squares kernel only) one row ``(13,)`` per camera pair carrying exactly the same
+        cost and normal equations (:meth:`_compressed`).
+        """
+        psi, valid, J_i, J_j = epipolar_residuals(*self._args(state))
+        inv_s = 1.0 / self.sigma
+        r = psi * inv_s
+        J = np.concatenate([J_i, J_j], axis=1) * inv_s  # (M, 12)
+        if self.compress and isinstance(self.kernel, TrivialKernel) and self._pairs.shape[0]:
+            return self._compressed(np.where(valid, r, 0.0), np.where(valid[:, None], J, 0.0))
+        return FactorBlock(
+            residuals=r[:, None],
+            cameras=np.stack([self.cameras_i, self.cameras_j], axis=1),
+            J_cameras=J.reshape(-1, 2, 1, 6),
+            kernel=self.kernel,
+            valid=valid,
+            name=self.name,
+        )
+
+    def _compressed(self, r: np.ndarray, J: np.ndarray) -> FactorBlock:
+        """One row per camera pair with the same ``sum r^2``, ``J^T J`` and ``J^T r``.
+
+        Per pair ``p``: ``H_p = sum J^T J = V diag(lam) V^T`` (``12 x 12``), ``b_p = sum J^T r``,
+        ``c_p = sum r^2``. The row is ``r~ = [lam^-1/2 V^T b_p ; sqrt(c_p - |.|^2)]`` with
+        Jacobian ``[diag(lam^1/2) V^T ; 0]`` (eigen-directions with ``lam <= 1e-12 lam_max``
+        dropped: ``b_p`` has no component there). Then ``J~^T J~ = H_p``, ``J~^T r~ = b_p`` and
+        ``|r~|^2 = c_p``: the assembler sees the same normal equations and cost as with one row
+        per correspondence, for ``Q`` rows instead of ``M`` (an exact reformulation for the
+        least-squares kernel; the residual rows themselves are not the epipolar distances).
+        """
+        Q = self._pairs.shape[0]
+        Jp = np.zeros((Q, self._max_rows, 12))
+        rp = np.zeros((Q, self._max_rows))
+        Jp[self._pair_of, self._slot] = J
+        rp[self._pair_of, self._slot] = r
+        Jpt = np.swapaxes(Jp, 1, 2)
+        H = Jpt @ Jp  # (Q, 12, 12)
+        b = (Jpt @ rp[:, :, None])[:, :, 0]  # (Q, 12)
+        c = np.sum(rp * rp, axis=1)  # (Q,)
+        lam, V = np.linalg.eigh(H)
+        keep = lam > 1e-12 * np.maximum(lam[:, -1:], 1e-300)
+        sq = np.sqrt(np.where(keep, lam, 1.0))
+        Vtb = np.einsum("qab,qa->qb", V, b)  # V^T b
+        rt = np.where(keep, Vtb / sq, 0.0)  # (Q, 12)
+        rest = np.sqrt(np.maximum(c - np.sum(rt * rt, axis=1), 0.0))
+        res = np.concatenate([rt, rest[:, None]], axis=1)  # (Q, 13)
+        Jt = np.zeros((Q, 13, 12))
+        Jt[:, :12, :] = np.where(keep[:, :, None], sq[:, :, None] * np.swapaxes(V, 1, 2), 0.0)
+        J_cams = np.stack([Jt[:, :, :6], Jt[:, :, 6:]], axis=1)  # (Q, 2, 13, 6)
+        return FactorBlock(
+            residuals=res,
+            cameras=self._pairs,
+            J_cameras=J_cams,
+            kernel=self.kernel,
+            name=self.name,
+        )
+
+    def cost(self, state: BAState) -> float:
+        """``sum_k rho((psi_k / sigma)^2)`` over valid rows."""
+        return self.cost_and_invalid(state)[0]
+
+    def cost_and_invalid(self, state: BAState) -> tuple[float, int]:
+        """The cost and the number of invalid rows (points on the epipole), no Jacobians."""
+        psi, valid, _, _ = epipolar_residuals(*self._args(state), with_jacobians=False)
+        s = (psi / self.sigma) ** 2
+        return float(np.sum(np.where(valid, self.kernel.rho(s), 0.0))), int(np.sum(~valid))

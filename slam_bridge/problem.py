@@ -1,0 +1,492 @@
+"""Bundle-adjustment state and the block normal equations (thesis eqs. 1.25-1.28).
+
+**State.** :class:`BAState` holds ``C`` cameras named by frame (``R_wc (C, 3, 3)``,
+``t_wc (C, 3)`` = optical centre ``T_i``; ``X_w = R_wc X_c + t_wc``, eq. 1.3), ``P`` points
+``X_w (P, 3)`` and masks of fixed cameras/points (the gauge and the k-BA's fixed older cameras).
+Free cameras/points are numbered in increasing state order (``free_cameras``, ``free_points``);
+the free count is ``Cf``/``Pf``.
+
+**Increments** (:meth:`BAState.retract`): camera ``[dw (3), dT (3)]`` applied as
+``R_wc <- exp(hat(dw)) R_wc`` (left perturbation, thesis eq. 1.56) and ``t_wc <- t_wc + dT``;
+points additive.
+
+**Normal equations** (:func:`assemble`). For factor rows ``r_m`` (whitened, see
+:mod:`slam_bridge.factors.base`) with robust weights ``w_m = rho'(||r_m||^2)``::
+
+    H = sum_m w_m J_m^T J_m,   g = sum_m w_m J_m^T r_m,   cost = sum_m rho(||r_m||^2)
+
+so ``g`` is half the gradient of ``cost`` and ``H`` half its Gauss-Newton Hessian: the
+Gauss-Newton step ``H d = -g`` minimises the local model of ``cost``. ``H`` is kept in blocks
+(eq. 1.28, fig. 3.3)::
+
+    H = [[U + U_offdiag, W], [W^T, V]]
+
+* ``U (Cf, 6, 6)``: block diagonal camera part;
+* ``pairs (Q, 2)`` / ``U_pairs (Q, 6, 6)``: camera-camera off-diagonal blocks ``H[i, j]``
+  (``i < j`` free camera indices; ``H[j, i] = H[i, j]^T``), produced **only** by rows that involve
+  two cameras (pose-graph, odometry terms) — reprojection rows never create them, so the
+  fig. 3.3 structure stays visible;
+* ``W (N, 6, 3)`` with ``W_cameras (N,)``, ``W_points (N,)`` (free indices): one camera-point
+  block per (row, camera slot) whose camera and point are both free — duplicates of a pair are
+  allowed (they add up);
+* ``V (Pf, 3, 3)``: block diagonal point part;
+* ``g_c (Cf, 6)``, ``g_p (Pf, 3)``.
+
+Everything is vectorised over rows, no Python loop per observation: per-block sums are either
+one GEMM per camera/point over its rows laid out in a padded, cached layout (rows with one
+camera and one point, i.e. reprojections) or per-row batched ``matmul`` followed by a cached
+sparse 0/1 matrix product (segment sum).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from geoseg.errors import check_finite, check_shape
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.base import Factor, FactorBlock
+from slam_bridge.lie import so3_exp
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["BAState", "NormalEquations", "assemble", "total_cost"]
+
+
+@dataclass
+class BAState:
+    """Cameras and points of a bundle-adjustment problem.
+
+    Attributes:
+        R_wc: ``(C, 3, 3)`` camera-to-world rotations.
+        t_wc: ``(C, 3)`` optical centres in the world frame.
+        X_w: ``(P, 3)`` points in the world frame.
+        camera_fixed: ``(C,)`` bool, cameras held constant (gauge / older k-BA cameras).
+        point_fixed: ``(P,)`` bool, points held constant.
+    """
+
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    X_w: np.ndarray
+    camera_fixed: np.ndarray | None = None
+    point_fixed: np.ndarray | None = None
+    _cam_map: np.ndarray = field(init=False, repr=False)
+    _pt_map: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.R_wc = np.asarray(self.R_wc, dtype=np.float64)
+        self.t_wc = np.asarray(self.t_wc, dtype=np.float64)
+        self.X_w = np.asarray(self.X_w, dtype=np.float64)
+        check_shape("R_wc", self.R_wc, (None, 3, 3))
+        C = self.R_wc.shape[0]
+        check_shape("t_wc", self.t_wc, (C, 3))
+        check_shape("X_w", self.X_w, (None, 3))
+        P = self.X_w.shape[0]
+        for name, v in (("R_wc", self.R_wc), ("t_wc", self.t_wc), ("X_w", self.X_w)):
+            check_finite(name, v)
+        if self.camera_fixed is None:
+            self.camera_fixed = np.zeros(C, dtype=bool)
+        if self.point_fixed is None:
+            self.point_fixed = np.zeros(P, dtype=bool)
+        self.camera_fixed = np.asarray(self.camera_fixed, dtype=bool).copy()
+        self.point_fixed = np.asarray(self.point_fixed, dtype=bool).copy()
+        check_shape("camera_fixed", self.camera_fixed, (C,))
+        check_shape("point_fixed", self.point_fixed, (P,))
+        self._cam_map = _index_map(self.camera_fixed)
+        self._pt_map = _index_map(self.point_fixed)
+
+    # ----------------------------------------------------------------------------- bookkeeping
+    @property
+    def num_cameras(self) -> int:
+        """``C``."""
+        return self.R_wc.shape[0]
+
+    @property
+    def num_points(self) -> int:
+        """``P``."""
+        return self.X_w.shape[0]
+
+    @property
+    def free_cameras(self) -> np.ndarray:
+        """``(Cf,)`` state indices of the free cameras, increasing."""
+        return np.flatnonzero(~self.camera_fixed)
+
+    @property
+    def free_points(self) -> np.ndarray:
+        """``(Pf,)`` state indices of the free points, increasing."""
+        return np.flatnonzero(~self.point_fixed)
+
+    @property
+    def camera_index_map(self) -> np.ndarray:
+        """``(C,)`` int: free index of each camera, ``-1`` if fixed (follows in-place mask edits)."""
+        if self._cam_map.size != self.camera_fixed.size or np.any(
+            (self._cam_map < 0) != self.camera_fixed
+        ):
+            self._cam_map = _index_map(self.camera_fixed)
+        return self._cam_map
+
+    @property
+    def point_index_map(self) -> np.ndarray:
+        """``(P,)`` int: free index of each point, ``-1`` if fixed (follows in-place mask edits)."""
+        if self._pt_map.size != self.point_fixed.size or np.any(
+            (self._pt_map < 0) != self.point_fixed
+        ):
+            self._pt_map = _index_map(self.point_fixed)
+        return self._pt_map
+
+    def copy(self) -> BAState:
+        """Deep copy."""
+        return BAState(
+            self.R_wc.copy(),
+            self.t_wc.copy(),
+            self.X_w.copy(),
+            self.camera_fixed.copy(),
+            self.point_fixed.copy(),
+        )
+
+    def retract(self, delta_cameras: np.ndarray, delta_points: np.ndarray) -> BAState:
+        """Apply increments to the free parameters and return a new state.
+
+        Args:
+            delta_cameras: ``(Cf, 6)`` ``[dw, dT]`` per free camera:
+                ``R_wc <- exp(hat(dw)) R_wc``, ``t_wc <- t_wc + dT``.
+            delta_points: ``(Pf, 3)`` additive point increments.
+
+        Returns:
+            A new :class:`BAState` (masks shared by value).
+        """
+        fc, fp = self.free_cameras, self.free_points
+        dc = np.asarray(delta_cameras, dtype=np.float64)
+        dp = np.asarray(delta_points, dtype=np.float64)
+        check_shape("delta_cameras", dc, (fc.size, 6))
+        check_shape("delta_points", dp, (fp.size, 3))
+        check_finite("delta_cameras", dc)
+        check_finite("delta_points", dp)
+        new = self.copy()
+        if fc.size:
+            new.R_wc[fc] = so3_exp(dc[:, :3]) @ self.R_wc[fc]
+            new.t_wc[fc] = self.t_wc[fc] + dc[:, 3:]
+        if fp.size:
+            new.X_w[fp] = self.X_w[fp] + dp
+        return new
+
+
+def _index_map(fixed: np.ndarray) -> np.ndarray:
+    m = np.full(fixed.shape[0], -1, dtype=np.int64)
+    free = np.flatnonzero(~fixed)
+    m[free] = np.arange(free.size)
+    return m
+
+
+@dataclass
+class NormalEquations:
+    """Block normal equations of ``0.5 * cost`` (see the module docstring).
+
+    Attributes:
+        U: ``(Cf, 6, 6)`` camera diagonal blocks.
+        pairs: ``(Q, 2)`` int free camera indices ``(i, j)``, ``i < j``, unique.
+        U_pairs: ``(Q, 6, 6)`` off-diagonal blocks ``H[i, j]``.
+        W: ``(N, 6, 3)`` camera-point blocks.
+        W_cameras: ``(N,)`` int free camera index of each ``W`` block.
+        W_points: ``(N,)`` int free point index of each ``W`` block.
+        V: ``(Pf, 3, 3)`` point diagonal blocks.
+        g_c: ``(Cf, 6)`` camera gradient (of ``0.5 * cost``).
+        g_p: ``(Pf, 3)`` point gradient.
+        cost: ``sum rho(||r||^2)`` over all valid rows.
+        n_invalid: number of invalid rows (e.g. points behind cameras).
+        costs: per-family costs, ``{name: cost}``.
+    """
+
+    U: np.ndarray
+    pairs: np.ndarray
+    U_pairs: np.ndarray
+    W: np.ndarray
+    W_cameras: np.ndarray
+    W_points: np.ndarray
+    V: np.ndarray
+    g_c: np.ndarray
+    g_p: np.ndarray
+    cost: float
+    n_invalid: int = 0
+    costs: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def num_free_cameras(self) -> int:
+        """``Cf``."""
+        return self.U.shape[0]
+
+    @property
+    def num_free_points(self) -> int:
+        """``Pf``."""
+        return self.V.shape[0]
+
+    def camera_offdiag(self) -> dict[tuple[int, int], np.ndarray]:
+        """The camera-camera off-diagonal blocks as ``{(i, j): (6, 6)}``, ``i < j``."""
+        return {(int(i), int(j)): b for (i, j), b in zip(self.pairs, self.U_pairs)}
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """Dense ``H`` ``(6Cf + 3Pf, 6Cf + 3Pf)`` and ``g`` ``(6Cf + 3Pf,)``, cameras first.
+
+        For tests and small problems only.
+        """
+        Cf, Pf = self.num_free_cameras, self.num_free_points
+        n = 6 * Cf + 3 * Pf
+        H = np.zeros((n, n))
+        for i in range(Cf):
+            H[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] += self.U[i]
+        for (i, j), b in zip(self.pairs, self.U_pairs):
+            H[6 * i : 6 * i + 6, 6 * j : 6 * j + 6] += b
+            H[6 * j : 6 * j + 6, 6 * i : 6 * i + 6] += b.T
+        o = 6 * Cf
+        for p in range(Pf):
+            H[o + 3 * p : o + 3 * p + 3, o + 3 * p : o + 3 * p + 3] += self.V[p]
+        for c, p, b in zip(self.W_cameras, self.W_points, self.W):
+            H[6 * c : 6 * c + 6, o + 3 * p : o + 3 * p + 3] += b
+            H[o + 3 * p : o + 3 * p + 3, 6 * c : 6 * c + 6] += b.T
+        g = np.concatenate([self.g_c.reshape(-1), self.g_p.reshape(-1)])
+        return H, g
+
+
+def total_cost(factors: Iterable[Factor], state: BAState) -> float:
+    """``sum`` of the families' ``cost(state)`` (no Jacobians)."""
+    return float(sum(f.cost(state) for f in factors))
+
+
+_IND_CACHE: OrderedDict[tuple, sp.csr_matrix] = OrderedDict()
+
+
+def _indicator(idx: np.ndarray, n: int) -> sp.csr_matrix:
+    """``(n, M)`` sparse 0/1 matrix with ``[idx[m], m] = 1`` for ``idx[m] >= 0`` (cached).
+
+    ``_indicator(idx, n) @ values`` sums the rows of ``values (M, d)`` per index: a segment sum
+    an order of magnitude faster than ``np.add.at`` for the block sizes of bundle adjustment.
+    """
+    key = (n, idx.tobytes())
+    hit = _IND_CACHE.get(key)
+    if hit is not None:
+        _IND_CACHE.move_to_end(key)
+        return hit
+    M = idx.size
+    keep = idx >= 0
+    mat = sp.csr_matrix((np.ones(int(keep.sum())), (idx[keep], np.flatnonzero(keep))), shape=(n, M))
+    _IND_CACHE[key] = mat
+    if len(_IND_CACHE) > 32:
+        _IND_CACHE.popitem(last=False)
+    return mat
+
+
+def _segment_sum(idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """``out[i] = sum_{m: idx[m] == i} values[m]``; ``idx (M,)`` (``-1`` skipped), ``values
+    (M, ...)`` -> ``(n, ...)``."""
+    flat = values.reshape(values.shape[0], -1)
+    out = _indicator(idx, n) @ flat
+    return np.asarray(out).reshape((n,) + values.shape[1:])
+
+
+_LAYOUT_CACHE: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
+
+
+def _group_layout(idx: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Padded per-group layout of rows: ``(dest (K,), rows (K,), nmax)`` (cached).
+
+    Row ``rows[q]`` goes to slot ``dest[q]`` of an ``(n * nmax)`` array, groups of ``nmax``
+    slots per index; rows with ``idx < 0`` are dropped.
+    """
+    key = (n, idx.tobytes())
+    hit = _LAYOUT_CACHE.get(key)
+    if hit is not None:
+        _LAYOUT_CACHE.move_to_end(key)
+        return hit
+    keep = idx >= 0
+    rows = np.flatnonzero(keep)
+    ki = idx[rows]
+    counts = np.bincount(ki, minlength=n)
+    nmax = int(counts.max()) if ki.size else 0
+    order = np.argsort(ki, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.empty(ki.size, dtype=np.int64)
+    slot[order] = np.arange(ki.size) - starts[ki[order]]
+    out = (ki * nmax + slot, rows, nmax)
+    _LAYOUT_CACHE[key] = out
+    if len(_LAYOUT_CACHE) > 32:
+        _LAYOUT_CACHE.popitem(last=False)
+    return out
+
+
+def _gram_sum(idx: np.ndarray, X: np.ndarray, a: int, n: int) -> np.ndarray:
+    """``out[i] = sum_{m: idx[m] == i} X[m, :, :a]^T X[m]``: ``X (M, k, d)`` -> ``(n, a, d)``.
+
+    Rows are laid out per group (padded to the largest group) so that each group's sum is one
+    GEMM; falls back to per-row products + segment sum when padding would more than triple the
+    data.
+    """
+    M, k, d = X.shape
+    dest, rows, nmax = _group_layout(idx, n)
+    if nmax == 0:
+        return np.zeros((n, a, d))
+    if n * nmax > 3 * max(rows.size, 1):
+        return _segment_sum(idx, np.swapaxes(X[:, :, :a], 1, 2) @ X, n)
+    P = np.zeros((n * nmax, k, d))
+    P[dest] = X if rows.size == M else X[rows]
+    P = P.reshape(n, nmax * k, d)
+    return np.swapaxes(P[:, :, :a], 1, 2) @ P
+
+
+def assemble(factors: Sequence[Factor] | Iterable[Factor], state: BAState) -> NormalEquations:
+    """Evaluate every factor family and assemble the block normal equations.
+
+    Args:
+        factors: factor families (objects following :class:`slam_bridge.factors.base.Factor`).
+        state: the current :class:`BAState`.
+
+    Returns:
+        The :class:`NormalEquations` of ``0.5 * cost`` restricted to the free parameters.
+    """
+    cmap, pmap = state.camera_index_map, state.point_index_map
+    Cf, Pf = state.free_cameras.size, state.free_points.size
+    U = np.zeros((Cf, 6, 6))
+    V = np.zeros((Pf, 3, 3))
+    g_c = np.zeros((Cf, 6))
+    g_p = np.zeros((Pf, 3))
+    pair_keys: list[np.ndarray] = []
+    pair_blocks: list[np.ndarray] = []
+    W_list: list[np.ndarray] = []
+    Wc_list: list[np.ndarray] = []
+    Wp_list: list[np.ndarray] = []
+    cost = 0.0
+    n_invalid = 0
+    costs: dict[str, float] = {}
+    for factor in factors:
+        blk = factor.evaluate(state)
+        if not isinstance(blk, FactorBlock):
+            raise SlamError(f"{type(factor).__name__}.evaluate must return a FactorBlock")
+        s = blk.squared_norms()
+        rho = blk.kernel.rho(s)
+        w = blk.kernel.weight(s)
+        if blk.valid is not None:
+            rho = np.where(blk.valid, rho, 0.0)
+            w = np.where(blk.valid, w, 0.0)
+        c = float(np.sum(rho))
+        if not np.isfinite(c):
+            raise SlamError(f"{blk.name}: non-finite cost (NaN/inf residuals)")
+        cost += c
+        costs[blk.name] = costs.get(blk.name, 0.0) + c
+        n_invalid += blk.n_invalid
+        r = blk.residuals[:, :, None]  # (M, k, 1)
+        a = blk.cameras.shape[1]
+        if a == 1 and blk.points is not None:
+            # fast path for one camera and one point per row (reprojection-like factors)
+            ci, pj = cmap[blk.cameras[:, 0]], pmap[blk.points]
+            Jc, Jp = blk.J_cameras[:, 0], blk.J_points
+            sw = np.sqrt(w)[:, None, None]
+            if np.any(ci >= 0):  # [U | g_c] = sum [Jc r]^T w [Jc r] per camera, one GEMM each
+                G = _gram_sum(ci, np.concatenate([Jc, r], axis=2) * sw, 6, Cf)
+                U += G[:, :, :6]
+                g_c += G[:, :, 6]
+            if np.any(pj >= 0):  # [V | g_p] per point
+                G = _gram_sum(pj, np.concatenate([Jp, r], axis=2) * sw, 3, Pf)
+                V += G[:, :, :3]
+                g_p += G[:, :, 3]
+            JcT_w = np.swapaxes(Jc, 1, 2) * w[:, None, None]  # (M, 6, k)
+            keep = (ci >= 0) & (pj >= 0)
+            if np.any(keep):
+                if np.all(keep):
+                    W_list.append(JcT_w @ Jp)
+                else:
+                    W_list.append(JcT_w[keep] @ Jp[keep])
+                Wc_list.append(ci[keep])
+                Wp_list.append(pj[keep])
+            continue
+        free_c = [cmap[blk.cameras[:, s_]] for s_ in range(a)]
+        # w-weighted transposed camera Jacobians, (M, 6, k)
+        JcT_w = [np.swapaxes(blk.J_cameras[:, s_], 1, 2) * w[:, None, None] for s_ in range(a)]
+        for sa in range(a):
+            ci = free_c[sa]
+            if not np.any(ci >= 0):
+                continue
+            Jc = blk.J_cameras[:, sa]
+            # diagonal block and gradient share one segment sum: (M, 36 + 6)
+            both = np.concatenate(
+                [(JcT_w[sa] @ Jc).reshape(-1, 36), (JcT_w[sa] @ r).reshape(-1, 6)], axis=1
+            )
+            summed = _segment_sum(ci, both, Cf)
+            U += summed[:, :36].reshape(Cf, 6, 6)
+            g_c += summed[:, 36:]
+            for sb in range(a):
+                if sb == sa:
+                    continue
+                cj = free_c[sb]
+                pair = (ci >= 0) & (cj >= 0)
+                if not np.any(pair):
+                    continue
+                Jab = JcT_w[sa][pair] @ blk.J_cameras[pair, sb]
+                cib, cjb = ci[pair], cj[pair]
+                same = cib == cjb
+                if np.any(same):
+                    U += _segment_sum(cib[same], Jab[same], Cf)
+                # keep only the i < j orientation (the other slot order gives the transpose)
+                lower = cib < cjb
+                if np.any(lower):
+                    pair_keys.append(np.stack([cib[lower], cjb[lower]], axis=1))
+                    pair_blocks.append(Jab[lower])
+        if blk.points is not None:
+            pj = pmap[blk.points]
+            if np.any(pj >= 0):
+                Jp = blk.J_points
+                JpT_w = np.swapaxes(Jp, 1, 2) * w[:, None, None]
+                both = np.concatenate(
+                    [(JpT_w @ Jp).reshape(-1, 9), (JpT_w @ r).reshape(-1, 3)], axis=1
+                )
+                summed = _segment_sum(pj, both, Pf)
+                V += summed[:, :9].reshape(Pf, 3, 3)
+                g_p += summed[:, 9:]
+                for sa in range(a):
+                    ci = free_c[sa]
+                    keep = (pj >= 0) & (ci >= 0)
+                    if not np.any(keep):
+                        continue
+                    Wm = JcT_w[sa] @ Jp  # (M, 6, 3); rows selected after the product
+                    if np.all(keep):
+                        W_list.append(Wm)
+                        Wc_list.append(ci)
+                        Wp_list.append(pj)
+                    else:
+                        W_list.append(Wm[keep])
+                        Wc_list.append(ci[keep])
+                        Wp_list.append(pj[keep])
+    if pair_keys:
+        keys = np.concatenate(pair_keys)
+        blocks = np.concatenate(pair_blocks)
+        uniq, inv = np.unique(keys[:, 0] * max(Cf, 1) + keys[:, 1], return_inverse=True)
+        U_pairs = _segment_sum(inv.reshape(-1), blocks, uniq.size)
+        pairs = np.stack([uniq // max(Cf, 1), uniq % max(Cf, 1)], axis=1).astype(np.int64)
+    else:
+        pairs = np.zeros((0, 2), dtype=np.int64)
+        U_pairs = np.zeros((0, 6, 6))
+    if W_list:
+        W = np.concatenate(W_list) if len(W_list) > 1 else W_list[0]
+        Wc = np.concatenate(Wc_list)
+        Wp = np.concatenate(Wp_list)
+    else:
+        W = np.zeros((0, 6, 3))
+        Wc = np.zeros(0, dtype=np.int64)
+        Wp = np.zeros(0, dtype=np.int64)
+    return NormalEquations(
+        U=U,
+        pairs=pairs,
+        U_pairs=U_pairs,
+        W=W,
+        W_cameras=Wc,
+        W_points=Wp,
+        V=V,
+        g_c=g_c,
+        g_p=g_p,
+        cost=cost,
+        n_invalid=n_invalid,
+        costs=costs,
+    )
