@@ -36,6 +36,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoseg.errors import GeosegError, check_finite
+from geoseg.models.checks import is_exporting
 
 logger = logging.getLogger(__name__)
 
@@ -47,16 +48,6 @@ __all__ = [
     "reloc_head",
     "triplet_loss",
 ]
-
-
-def _exporting() -> bool:
-    """True while tracing, compiling or exporting (skip Python-side input validation)."""
-    if torch.jit.is_tracing() or torch.compiler.is_compiling():
-        return True
-    is_exporting = getattr(torch.compiler, "is_exporting", None)
-    if is_exporting is not None and is_exporting():
-        return True
-    return bool(torch.onnx.is_in_onnx_export())
 
 
 def check_features(name: str, x: object, in_channels: int) -> None:
@@ -129,7 +120,7 @@ class RelocHead(nn.Module):
         Returns:
             ``{"embedding": (B, embedding_dim)}``, unit L2 norm when ``normalize``.
         """
-        if not _exporting():
+        if not is_exporting():
             check_features("features", features, self.in_channels)
         x = self.reduce(features)
         pooled = torch.cat([x.mean(dim=(2, 3)), x.amax(dim=(2, 3))], dim=1)
@@ -198,7 +189,7 @@ class RawFeatureEmbedder(nn.Module):
         Returns:
             ``{"embedding": (B, D)}`` with ``D = in_channels * h' * w'``.
         """
-        if not _exporting():
+        if not is_exporting():
             check_features("features", features, self.in_channels)
             if self.pool is not None and (
                 features.shape[2] < self.pool or features.shape[3] < self.pool

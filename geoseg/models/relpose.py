@@ -45,7 +45,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoseg.errors import GeosegError, check_finite, check_shape
-from geoseg.models.reloc import _exporting, check_features
+from geoseg.models.checks import is_exporting
+from geoseg.models.reloc import check_features
 
 logger = logging.getLogger(__name__)
 
@@ -269,7 +270,7 @@ class RelPoseHead(nn.Module):
             ``{"rotation": (B, 3)`` rotation vector of ``R_ab`` (usual hat convention),
             ``"direction": (B, 3)}`` unit direction a -> b in camera a's frame.
         """
-        if not _exporting():
+        if not is_exporting():
             check_features("feat_a", feat_a, self.in_channels)
             check_features("feat_b", feat_b, self.in_channels)
             if feat_a.shape != feat_b.shape:

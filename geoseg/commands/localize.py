@@ -1,0 +1,422 @@
+"""``geoseg localize``: relocalise query images against a georeferenced image base (§5.1).
+
+For each query image: the ``k`` nearest base images (optionally only within ``--radius`` metres
+of the query's GPS position), the relative pose to each of them (the relative-pose head when
+``--relpose-head`` is given, else the ORB/SIFT essential-matrix baseline), and the query's
+absolute position triangulated from the rays base -> query (:func:`geoseg.localize.absolute_position`)
+with its degeneracy flag. Prints a table; ``--out`` writes the same as JSON.
+
+Embeddings: ``--model`` (a segmentation checkpoint or ONNX file exposing layer-21 features)
+gives the raw layer-21 matching of §5.1.1, ``--model`` + ``--reloc-head`` the learned embedding;
+without ``--model`` a normalised grey thumbnail is used, a placeholder baseline that only
+finds near-duplicates (see :class:`geoseg.image_base.ThumbnailEmbedder`).
+
+Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame of the base, metres;
+``image`` is the query's file name or the path as given on the command line).
+
+Intrinsics for the essential-matrix baseline: ``BASE_DIR/camera.json``, else ``--focal``, else
+an assumed focal length of ``max(W, H)`` pixels (flagged in the output). Base and query images
+are assumed taken with the same camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("queries", nargs="+", type=Path, metavar="QUERY_IMAGE", help="query images")
+    parser.add_argument(
+        "--base", required=True, type=Path, help="image base directory (images + poses.csv)"
+    )
+    parser.add_argument(
+        "--gps", type=Path, help="CSV of query positions: image, x, y (world frame, metres)"
+    )
+    parser.add_argument("--radius", type=float, help="GPS window radius in metres (needs --gps)")
+    parser.add_argument("--k", type=int, default=3, help="matches per query (default 3)")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        help="segmentation network (.onnx or checkpoint) giving layer-21 features; without it, "
+        "a placeholder thumbnail embedding is used",
+    )
+    parser.add_argument(
+        "--reloc-head", type=Path, help="trained embedding head checkpoint (needs --model)"
+    )
+    parser.add_argument(
+        "--relpose-head", type=Path, help="trained relative-pose head checkpoint (needs --model)"
+    )
+    parser.add_argument(
+        "--pool",
+        type=int,
+        nargs=2,
+        metavar=("H", "W"),
+        help="average-pool layer-21 features to H x W before matching (default: full map)",
+    )
+    parser.add_argument(
+        "--features",
+        choices=["orb", "sift"],
+        default="orb",
+        help="keypoints of the essential-matrix baseline (default orb)",
+    )
+    parser.add_argument(
+        "--focal", type=float, help="focal length in pixels when the base has no camera.json"
+    )
+    parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
+    parser.add_argument(
+        "--no-cache", action="store_true", help="do not read/write cached embeddings"
+    )
+    parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
+
+
+# ============================================================================ inputs
+
+
+def _read_query_gps(path: Path, queries: list[Path]) -> list[tuple[float, float]]:
+    from geoseg.errors import GeosegError
+
+    if not path.is_file():
+        raise GeosegError(f"--gps: {path}: no such file")
+    try:
+        with path.open(newline="") as f:
+            reader = csv.DictReader(f)
+            header = [h.strip() for h in (reader.fieldnames or [])]
+            reader.fieldnames = header
+            rows = list(reader)
+    except (OSError, UnicodeDecodeError, csv.Error) as err:
+        raise GeosegError(f"--gps: {path}: unreadable ({err})") from None
+    missing = [c for c in ("image", "x", "y") if c not in header]
+    if missing:
+        raise GeosegError(f"--gps: {path}: missing column(s) {missing}; expected image, x, y")
+    table: dict[str, tuple[float, float]] = {}
+    for i, row in enumerate(rows):
+        try:
+            xy = (float(row["x"]), float(row["y"]))
+        except (TypeError, ValueError):
+            raise GeosegError(
+                f"--gps: {path} row {i + 2}: x, y are not numbers ({row.get('x')!r}, "
+                f"{row.get('y')!r})"
+            ) from None
+        if not all(math.isfinite(v) for v in xy):
+            raise GeosegError(f"--gps: {path} row {i + 2}: x, y are not finite")
+        table[(row.get("image") or "").strip()] = xy
+    out = []
+    for q in queries:
+        for key in (str(q), q.as_posix(), q.name):
+            if key in table:
+                out.append(table[key])
+                break
+        else:
+            raise GeosegError(
+                f"--gps: query {q} has no row in {path}; the GPS window (--radius) needs a "
+                "position for every query"
+            )
+    return out
+
+
+def _load_head(path: Path, kind: str, device: str):
+    from geoseg.errors import GeosegError
+    from geoseg.infer import load_model_checkpoint
+    from geoseg.models.reloc import RelocHead
+    from geoseg.models.relpose import RelPoseHead
+
+    model, _ = load_model_checkpoint(path, map_location=device)
+    expected = {"reloc": RelocHead, "relpose": RelPoseHead}[kind]
+    if not isinstance(model, expected):
+        raise GeosegError(
+            f"--{kind}-head: {path} holds a {type(model).__name__}, expected a {expected.__name__}"
+        )
+    return model.to(device).eval()
+
+
+def _intrinsics(base, args, image_shape: tuple[int, ...]):
+    import numpy as np
+
+    from geoseg.errors import check_positive
+
+    if base.K is not None:
+        return base.K, "camera.json"
+    h, w = image_shape[:2]
+    if args.focal is not None:
+        check_positive("--focal", args.focal)
+        f, source = float(args.focal), "--focal"
+    else:
+        f, source = float(max(w, h)), "assumed"
+        logger.warning(
+            "no camera.json in the base and no --focal: assuming a focal length of %.0f px "
+            "(relative poses of the essential-matrix baseline are approximate)",
+            f,
+        )
+    return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]]), source
+
+
+# ============================================================================ output
+
+
+def _clean(x: Any) -> Any:
+    """NumPy -> JSON-ready Python, NaN/inf -> None."""
+    import numpy as np
+
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_clean(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _clean(x.tolist())
+    if isinstance(x, np.generic):
+        return _clean(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def _fmt_vec(v) -> str:
+    if v is None:
+        return "-"
+    return "(" + ", ".join(f"{c:+.2f}" for c in v) + ")"
+
+
+def _print_table(result: dict[str, Any]) -> None:
+    print(
+        f"base {result['base']} ({result['base_size']} images), embedding "
+        f"{result['embedding']}, relative pose {result['relative_pose_method']}"
+        + (f", GPS window {result['gps_window_m']} m" if result["gps_window_m"] else "")
+    )
+    header = f"{'query':<24} {'rank':>4}  {'base image':<24} {'distance':>9}  relative pose"
+    print(header)
+    print("-" * len(header))
+    for q in result["queries"]:
+        name = Path(q["image"]).name
+        if not q["matches"]:
+            print(f"{name[:24]:<24} {'-':>4}  {'(no candidate)':<24}")
+        for m in q["matches"]:
+            rp = m["relative_pose"]
+            if rp["ok"]:
+                pose = f"rot {rp['rotation_deg']:5.1f} deg, dir {_fmt_vec(rp['t_dir_ab'])}"
+            else:
+                pose = f"failed: {rp['reason']}"
+            print(
+                f"{name[:24]:<24} {m['rank']:>4}  {Path(m['image']).name[:24]:<24} "
+                f"{m['distance']:>9.4g}  {pose}"
+            )
+            name = ""
+        pos = q["position"]
+        if pos["degenerate"]:
+            print(f"{'':<24} position: degenerate ({pos['reason']})")
+        else:
+            x, y, z = pos["xyz"]
+            print(
+                f"{'':<24} position: x {x:.2f}  y {y:.2f}  z {z:.2f} m "
+                f"({pos['n_inliers']}/{pos['n_rays']} rays)"
+            )
+
+
+# ============================================================================ run
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from geoseg.errors import GeosegError, check_positive
+    from geoseg.essential_baseline import estimate_relative_pose, rotation_error_deg
+    from geoseg.image_base import (
+        HeadEmbedder,
+        ThumbnailEmbedder,
+        layer21_features,
+        load_image_base,
+        raw_layer21_embedder,
+        read_rgb,
+    )
+    from geoseg.localize import absolute_position
+
+    # ---- arguments
+    if isinstance(args.k, bool) or args.k < 1:
+        raise GeosegError(f"--k: expected an int >= 1, got {args.k}")
+    if (args.radius is None) != (args.gps is None):
+        raise GeosegError("--gps and --radius: the GPS window needs both (or neither)")
+    if args.radius is not None:
+        check_positive("--radius", args.radius)
+    if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
+        raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
+    if args.pool is not None and (args.model is None or min(args.pool) < 1):
+        raise GeosegError("--pool: needs --model and two sizes >= 1")
+
+    base = load_image_base(args.base)
+    queries: list[Path] = list(args.queries)
+    gps = _read_query_gps(args.gps, queries) if args.gps is not None else None
+    query_images = [read_rgb(q) for q in queries]
+
+    # ---- models (all loaded before any work, so that a bad file fails fast)
+    segmenter = None
+    relpose_head = None
+    if args.relpose_head is not None:
+        relpose_head = _load_head(args.relpose_head, "relpose", args.device)
+    if args.model is not None:
+        from geoseg.export import available_providers
+        from geoseg.infer import Segmenter
+
+        if str(args.model).lower().endswith(".onnx"):
+            segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
+        else:
+            segmenter = Segmenter.from_checkpoint(args.model, device=args.device)
+        if args.reloc_head is not None:
+            head = _load_head(args.reloc_head, "reloc", args.device)
+            st = args.reloc_head.stat()
+            name = f"reloc-{args.model.stem}-{args.reloc_head.stem}-{st.st_size}-{st.st_mtime_ns}"
+            embedder: Any = HeadEmbedder(segmenter, head, name=name)
+            embedding_name = f"learned ({args.reloc_head.name})"
+        else:
+            embedder = raw_layer21_embedder(
+                segmenter, output_size=None if args.pool is None else tuple(args.pool)
+            )
+            embedding_name = "raw layer-21 features"
+    else:
+        embedder = ThumbnailEmbedder()
+        embedding_name = f"{embedder.name} (placeholder, not the learned embedding)"
+    index = base.build_index(embedder, cache=not args.no_cache)
+    q_emb = []
+    for q, img in zip(queries, query_images):
+        try:
+            e = np.asarray(embedder([img]), dtype=np.float64)
+        except GeosegError as err:
+            raise GeosegError(f"query {q}: {err}") from None
+        if e.shape != (1, index.dim):
+            raise GeosegError(
+                f"query {q}: embedding of size {e.shape[-1]} but the base's is {index.dim} "
+                "(feature maps of mismatched sizes: query and base images of different sizes?)"
+            )
+        q_emb.append(e[0])
+    ranked, dists = index.query(
+        np.stack(q_emb),
+        k=args.k,
+        gps=None if gps is None else np.asarray(gps),
+        radius_m=args.radius,
+    )
+
+    # ---- relative poses
+    if relpose_head is not None:
+        features = layer21_features(segmenter)
+        method = f"relative-pose head ({args.relpose_head.name})"
+        K, k_source = None, None
+    else:
+        method = f"essential matrix ({args.features.upper()} + MAGSAC)"
+        K, k_source = _intrinsics(base, args, base.load_image(0).shape)
+
+    def relative_pose(i_base: int, q_img: np.ndarray, q_name: Path) -> dict[str, Any]:
+        base_img = base.load_image(i_base)
+        if relpose_head is not None:
+            import torch
+
+            from geoseg.models.relpose import so3_exp
+
+            fa = torch.from_numpy(features(base_img))[None].to(args.device)
+            fb = torch.from_numpy(features(q_img))[None].to(args.device)
+            if fa.shape != fb.shape:
+                raise GeosegError(
+                    f"query {q_name}, base image {base.images[i_base]}: feature maps of "
+                    f"mismatched sizes {tuple(fb.shape[1:])} vs {tuple(fa.shape[1:])} "
+                    "(the relative-pose head needs images of the same size)"
+                )
+            with torch.no_grad():
+                out = relpose_head(fa, fb)
+            R_ab = so3_exp(out["rotation"].double())[0].cpu().numpy()
+            t_dir = out["direction"][0].double().cpu().numpy()
+            return {"ok": True, "reason": "", "R_ab": R_ab, "t_dir_ab": t_dir, "n_inliers": None}
+        est = estimate_relative_pose(base_img, q_img, K, method=args.features)
+        return {
+            "ok": est.ok,
+            "reason": est.reason,
+            "R_ab": est.R_ab,
+            "t_dir_ab": est.t_dir_ab,
+            "n_inliers": est.n_inliers,
+        }
+
+    results = []
+    for j, (q, img) in enumerate(zip(queries, query_images)):
+        matches = []
+        for r in range(args.k):
+            i = int(ranked[j, r])
+            if i < 0:
+                continue
+            rp = relative_pose(i, img, q)
+            rp["rotation_deg"] = (
+                float(rotation_error_deg(rp["R_ab"], np.eye(3))) if rp["ok"] else None
+            )
+            rp["query_R_wc"] = base.R_wc[i] @ rp["R_ab"] if rp["ok"] else None
+            matches.append(
+                {
+                    "rank": r + 1,
+                    "index": i,
+                    "image": base.images[i],
+                    "distance": float(dists[j, r]),
+                    "base_t_wc": base.t_wc[i],
+                    "relative_pose": rp,
+                }
+            )
+        ok = [m for m in matches if m["relative_pose"]["ok"]]
+        position: dict[str, Any] = {
+            "xyz": None,
+            "degenerate": True,
+            "n_rays": len(ok),
+            "n_inliers": 0,
+            "inlier_ranks": [],
+            "reason": "",
+        }
+        if not matches:
+            position["reason"] = (
+                f"no base image within {args.radius} m of the query's GPS"
+                if args.radius is not None
+                else "no match"
+            )
+        elif len(ok) < 2:
+            position["reason"] = f"{len(ok)} relative pose(s), at least 2 are needed"
+        else:
+            idx = [m["index"] for m in ok]
+            dirs = np.stack([m["relative_pose"]["t_dir_ab"] for m in ok])
+            ray = absolute_position(base.R_wc[idx], base.t_wc[idx], dirs)
+            position.update(
+                xyz=None if ray.degenerate else ray.point,
+                degenerate=ray.degenerate,
+                n_inliers=int(ray.inliers.sum()),
+                inlier_ranks=[m["rank"] for m, inl in zip(ok, ray.inliers) if inl],
+                residuals_m=ray.residuals,
+                reason="near-parallel or inconsistent rays" if ray.degenerate else "",
+            )
+        results.append(
+            {
+                "image": str(q),
+                "gps": None if gps is None else list(gps[j]),
+                "matches": matches,
+                "position": position,
+            }
+        )
+
+    result = _clean(
+        {
+            "base": str(args.base),
+            "base_size": len(base),
+            "k": args.k,
+            "gps_window_m": args.radius,
+            "embedding": embedding_name,
+            "relative_pose_method": method,
+            "intrinsics": k_source,
+            "queries": results,
+        }
+    )
+    _print_table(result)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            args.out.write_text(json.dumps(result, indent=2) + "\n")
+        except OSError as err:
+            raise GeosegError(f"--out: {args.out}: could not write ({err})") from None
+        print(f"results written to {args.out}")
+    return 0

@@ -1,0 +1,342 @@
+"""ONNX export (``torch.onnx.export(..., dynamo=True)``) and onnxruntime sessions with the model's
+call signature.
+
+:func:`export_onnx` writes a model with a dynamic batch and (when the model allows it) dynamic
+image size, and stores in the ONNX metadata the output names, the model name and configuration
+and the input normalisation (keys ``geoseg.*``). Models with ``(B, C, H, W)`` inputs pad
+internally, so any ``H, W >= 1`` is accepted by the exported graph as by the torch model. The
+naive CNN is exported in its dense form (:class:`~geoseg.models.naive_cnn.NaiveDense`, whole
+images to per-pixel log-probabilities).
+
+:class:`OnnxModel` wraps an ``onnxruntime.InferenceSession`` and returns the same named dict as
+the torch module (NumPy arrays for NumPy inputs, CPU tensors for tensor inputs).
+
+The legacy TorchScript-based exporter cannot export ``MaxUnpool2d`` with dynamic sizes, hence the
+dynamo exporter. Max-unpooling index ties may flip single pixels between torch and
+onnxruntime: compare outputs by argmax agreement and mean errors, not max-abs equality.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import inspect
+import io
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from geoseg.errors import GeosegError
+
+logger = logging.getLogger(__name__)
+
+META_PREFIX = "geoseg."
+FEATURE_CHANNELS = 128
+
+
+def _forward_arg_names(model: nn.Module, count: int) -> list[str]:
+    params = [
+        p.name
+        for p in inspect.signature(model.forward).parameters.values()
+        if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+    ]
+    return params[:count] if len(params) >= count else [f"input_{i}" for i in range(count)]
+
+
+def prepare_for_export(model: nn.Module) -> nn.Module:
+    """The module that is exported for ``model`` (the naive CNN becomes its dense form)."""
+    from geoseg.models.naive_cnn import NaiveCNN, NaiveDense
+
+    return NaiveDense(model) if isinstance(model, NaiveCNN) else model
+
+
+def default_example_inputs(
+    model: nn.Module, *, batch: int = 1, height: int = 64, width: int = 48
+) -> tuple[torch.Tensor, ...]:
+    """Example inputs for a geoseg model: an image, or layer-21 features for the heads.
+
+    Args:
+        model: an ENet, joint, naive CNN (or its dense form), relocalisation or relative-pose head.
+        batch, height, width: example size (image pixels; features are ``ceil(size / 8)``).
+
+    Returns:
+        ``((batch, 3, height, width),)`` for image models, ``((batch, 128, h, w),)`` for the
+        relocalisation head, two such tensors for the relative-pose head.
+    """
+    from geoseg.models.enet import ENet
+    from geoseg.models.joint import JointNet
+    from geoseg.models.naive_cnn import NaiveCNN, NaiveDense
+
+    gen = torch.Generator().manual_seed(0)
+    if isinstance(model, ENet | JointNet | NaiveCNN | NaiveDense):
+        channels = getattr(model, "in_channels", None) or model.net.in_channels
+        return (torch.randn(batch, channels, height, width, generator=gen),)
+    n_inputs = len(
+        [
+            p
+            for p in inspect.signature(model.forward).parameters.values()
+            if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
+        ]
+    )
+    channels = int(getattr(model, "in_channels", FEATURE_CHANNELS))
+    shape = (batch, channels, -(-height // 8), -(-width // 8))
+    if n_inputs in (1, 2):
+        return tuple(torch.randn(*shape, generator=gen) for _ in range(n_inputs))
+    raise GeosegError(f"model: cannot guess example inputs for {type(model).__name__}; pass them")
+
+
+def _dynamic_shapes(
+    names: Sequence[str], inputs: Sequence[torch.Tensor], spatial: bool
+) -> dict[str, dict[int, Any]]:
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    height = torch.export.Dim("height", min=1, max=8192)
+    width = torch.export.Dim("width", min=1, max=8192)
+    shapes: dict[str, dict[int, Any]] = {}
+    for name, x in zip(names, inputs):
+        dims: dict[int, Any] = {0: batch}
+        if spatial and x.dim() == 4:
+            dims.update({2: height, 3: width})
+        shapes[name] = dims
+    return shapes
+
+
+@contextlib.contextmanager
+def _quiet_exporter_logs(level: int = logging.ERROR):
+    """Silence the exporter's chatty INFO/WARNING logs (restored afterwards)."""
+    names = ("onnx_ir", "onnxscript", "torch.onnx", "torch.export")
+    saved = {n: logging.getLogger(n).level for n in names}
+    try:
+        for n in names:
+            logging.getLogger(n).setLevel(level)
+        yield
+    finally:
+        for n, lvl in saved.items():
+            logging.getLogger(n).setLevel(lvl)
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def export_onnx(
+    model: nn.Module,
+    path: str | os.PathLike,
+    *,
+    example_inputs: torch.Tensor | Sequence[torch.Tensor] | None = None,
+    dynamic: bool = True,
+    metadata: Mapping[str, Any] | None = None,
+    opset: int | None = None,
+) -> Path:
+    """Export ``model`` to ONNX with the dynamo exporter, in eval mode, on CPU.
+
+    Args:
+        model: a geoseg model (or any module returning a dict of tensors). A
+            :class:`~geoseg.models.naive_cnn.NaiveCNN` is exported in its dense form.
+        path: output ``.onnx`` file (written atomically; parent directories created).
+        example_inputs: one tensor or a sequence of tensors, e.g. `(B, 3, H, W)` images;
+            default :func:`default_example_inputs`.
+        dynamic: dynamic batch and (for 4-D inputs) height and width. When the model cannot be
+            exported with a dynamic image size, it falls back to a dynamic batch only and logs
+            a warning (recorded as ``geoseg.dynamic_spatial`` in the metadata).
+        metadata: extra values stored in the ONNX metadata under ``geoseg.<key>`` (JSON-encoded
+            unless already strings), e.g. ``model_name``, ``model_config``, ``normalization``.
+        opset: ONNX opset (default: the exporter's).
+
+    Returns:
+        The written path.
+    """
+    import onnx
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    model = prepare_for_export(model)
+    if example_inputs is None:
+        example_inputs = default_example_inputs(model)
+    inputs = (
+        (example_inputs,) if isinstance(example_inputs, torch.Tensor) else tuple(example_inputs)
+    )
+    inputs = tuple(x.detach().cpu().float() for x in inputs)
+    was_training = model.training
+    device = next((p.device for p in model.parameters()), torch.device("cpu"))
+    model.eval().cpu()
+    try:
+        with torch.no_grad():
+            probe = model(*inputs)
+        if not isinstance(probe, Mapping):
+            raise GeosegError(
+                f"model: forward must return a dict of tensors, got {type(probe).__name__}"
+            )
+        output_names = list(probe)
+        input_names = _forward_arg_names(model, len(inputs))
+        attempts = [True, False] if dynamic else [None]
+        program = None
+        spatial_used = False
+        for spatial in attempts:
+            kwargs: dict[str, Any] = {}
+            if spatial is not None:
+                kwargs["dynamic_shapes"] = _dynamic_shapes(input_names, inputs, spatial)
+            if opset is not None:
+                kwargs["opset_version"] = opset
+            try:
+                with contextlib.redirect_stdout(io.StringIO()), _quiet_exporter_logs():
+                    program = torch.onnx.export(
+                        model,
+                        inputs,
+                        dynamo=True,
+                        input_names=input_names,
+                        output_names=output_names,
+                        verbose=False,
+                        **kwargs,
+                    )
+                spatial_used = bool(spatial)
+                break
+            except Exception as err:
+                if spatial:
+                    logger.warning(
+                        "%s: dynamic image size failed (%s); exporting with a dynamic batch only",
+                        type(model).__name__,
+                        str(err).splitlines()[0][:200],
+                    )
+                    continue
+                raise GeosegError(
+                    f"{path}: ONNX export of {type(model).__name__} failed: {err}"
+                ) from err
+    finally:
+        model.train(was_training).to(device)
+    proto = program.model_proto
+    meta = {"outputs": output_names, "inputs": input_names, "dynamic_spatial": spatial_used}
+    meta.update(metadata or {})
+    for key, value in meta.items():
+        entry = proto.metadata_props.add()
+        entry.key = META_PREFIX + key
+        entry.value = value if isinstance(value, str) else json.dumps(value)
+    _atomic_write_bytes(path, proto.SerializeToString())
+    onnx.checker.check_model(str(path))
+    logger.info("exported %s to %s", type(model).__name__, path)
+    return path
+
+
+def available_providers(device: str | None = None) -> list[str]:
+    """onnxruntime providers for ``device`` (``"cuda"``, ``"cpu"`` or ``None`` = best available)."""
+    import onnxruntime as ort
+
+    have = ort.get_available_providers()
+    if device == "cpu":
+        return ["CPUExecutionProvider"]
+    wanted = ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    chosen = [p for p in wanted if p in have]
+    if device == "cuda" and "CUDAExecutionProvider" not in chosen:
+        raise GeosegError("device: CUDA requested but onnxruntime has no CUDAExecutionProvider")
+    return chosen
+
+
+class OnnxModel:
+    """An onnxruntime session with the torch model's call signature and named outputs.
+
+    Args:
+        path: ``.onnx`` file written by :func:`export_onnx` (or any ONNX model).
+        providers: onnxruntime execution providers (default: CUDA when available, then CPU).
+        threads: intra-op threads (``None``: onnxruntime's default).
+
+    Raises:
+        GeosegError: missing, corrupt or invalid file (the message names the file).
+
+    Call:
+        ``model(x)`` or ``model(a, b)`` with NumPy arrays or torch tensors, e.g. `(B, 3, H, W)`
+        float images; returns ``{output name: array}`` (tensors when the inputs were tensors).
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        *,
+        providers: Sequence[str] | None = None,
+        threads: int | None = None,
+    ) -> None:
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise GeosegError(f"{self.path}: no such ONNX file")
+        options = ort.SessionOptions()
+        if threads is not None:
+            options.intra_op_num_threads = threads
+        try:
+            self.session = ort.InferenceSession(
+                str(self.path),
+                sess_options=options,
+                providers=list(providers or available_providers()),
+            )
+        except Exception as err:
+            raise GeosegError(f"{self.path}: not a valid ONNX model ({err})") from None
+        raw = self.session.get_modelmeta().custom_metadata_map
+        self.metadata: dict[str, Any] = {}
+        for key, value in raw.items():
+            if key.startswith(META_PREFIX):
+                try:
+                    self.metadata[key[len(META_PREFIX) :]] = json.loads(value)
+                except json.JSONDecodeError:
+                    self.metadata[key[len(META_PREFIX) :]] = value
+        self._inputs = self.session.get_inputs()
+        self.input_names = [i.name for i in self._inputs]
+        self.output_names = [o.name for o in self.session.get_outputs()]
+
+    @property
+    def providers(self) -> list[str]:
+        """The providers the session actually uses."""
+        return self.session.get_providers()
+
+    def __repr__(self) -> str:
+        return f"OnnxModel({str(self.path)!r}, outputs={self.output_names})"
+
+    def _check(self, name: str, arr: np.ndarray, spec) -> np.ndarray:
+        shape = spec.shape
+        if arr.ndim != len(shape):
+            raise GeosegError(
+                f"{self.path}: input {name!r} expects {len(shape)}-D {tuple(shape)}, got shape {arr.shape}"
+            )
+        for i, (want, got) in enumerate(zip(shape, arr.shape)):
+            if isinstance(want, int) and want != got:
+                raise GeosegError(
+                    f"{self.path}: input {name!r} expects size {want} in dim {i} "
+                    f"({tuple(shape)}), got shape {arr.shape}"
+                )
+        if not np.issubdtype(arr.dtype, np.floating):
+            raise GeosegError(f"{self.path}: input {name!r} expects float32, got dtype {arr.dtype}")
+        if not np.isfinite(arr).all():
+            raise GeosegError(f"{self.path}: input {name!r} contains NaN or infinite values")
+        return np.ascontiguousarray(arr, dtype=np.float32)
+
+    def __call__(self, *inputs: np.ndarray | torch.Tensor) -> dict[str, Any]:
+        if len(inputs) != len(self._inputs):
+            raise GeosegError(
+                f"{self.path}: expected {len(self._inputs)} input(s) {self.input_names}, got {len(inputs)}"
+            )
+        as_torch = any(isinstance(x, torch.Tensor) for x in inputs)
+        feed = {}
+        for spec, x in zip(self._inputs, inputs):
+            arr = x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else np.asarray(x)
+            feed[spec.name] = self._check(spec.name, arr, spec)
+        try:
+            outs = self.session.run(None, feed)
+        except Exception as err:
+            raise GeosegError(f"{self.path}: onnxruntime failed ({err})") from None
+        result = dict(zip(self.output_names, outs))
+        if as_torch:
+            return {k: torch.from_numpy(v) for k, v in result.items()}
+        return result

@@ -1,0 +1,311 @@
+"""Inference API: :class:`Segmenter` over a torch checkpoint or an ONNX file, one call signature.
+
+``segmenter(images)`` takes RGB uint8 images `(B, H, W, 3)` or `(H, W, 3)`, normalises them with
+the mean/std stored with the model, runs the network and returns a :class:`SegmentationResult`
+(class probabilities, labels, normals when the model predicts them, layer-21 features when it
+exposes them).
+
+Model checkpoints (:func:`save_model_checkpoint`) are dicts saved with ``torch.save``::
+
+    {"format": "geoseg-model", "version": 1, "model_name": "joint", "model_config": {...},
+     "state_dict": {...}, "normalization": {"mean": [r, g, b], "std": [r, g, b]}, ...}
+
+Extra keys (optimizer, epoch, ... from a training checkpoint) are ignored. They are read with
+``torch.load(..., weights_only=True)`` only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from geoseg.errors import GeosegError, check_shape
+
+logger = logging.getLogger(__name__)
+
+CHECKPOINT_FORMAT = "geoseg-model"
+# ImageNet statistics, applied to images scaled to [0, 1]; trainers store their own.
+DEFAULT_NORMALIZATION: dict[str, list[float]] = {
+    "mean": [0.485, 0.456, 0.406],
+    "std": [0.229, 0.224, 0.225],
+}
+
+
+def _check_normalization(name: str, norm: Mapping[str, Any]) -> dict[str, list[float]]:
+    try:
+        mean = [float(v) for v in norm["mean"]]
+        std = [float(v) for v in norm["std"]]
+    except (KeyError, TypeError, ValueError) as err:
+        raise GeosegError(
+            f"{name}: expected {{'mean': [3 floats], 'std': [3 floats]}} ({err})"
+        ) from None
+    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+        raise GeosegError(f"{name}: expected 3 means and 3 positive stds, got {mean}, {std}")
+    return {"mean": mean, "std": std}
+
+
+def save_model_checkpoint(
+    model: nn.Module,
+    path: str | os.PathLike,
+    *,
+    model_name: str,
+    model_config: Mapping[str, Any] | None = None,
+    normalization: Mapping[str, Any] | None = None,
+    extra: Mapping[str, Any] | None = None,
+) -> Path:
+    """Save a model checkpoint atomically (temp file in the same directory + ``os.replace``).
+
+    Args:
+        model: the module whose ``state_dict()`` is saved.
+        path: output file (parent directories created).
+        model_name: registry name (``"enet"``, ``"joint"``, ``"naive_cnn"``, ...).
+        model_config: the builder's keyword arguments (e.g. ``{"num_classes": 8}``).
+        normalization: ``{"mean": [3], "std": [3]}`` for images scaled to [0, 1]
+            (default :data:`DEFAULT_NORMALIZATION`).
+        extra: more entries to store (must be ``weights_only``-loadable: tensors, numbers,
+            strings, lists, dicts).
+
+    Returns:
+        The written path.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload: dict[str, Any] = dict(extra or {})
+    payload.update(
+        format=CHECKPOINT_FORMAT,
+        version=1,
+        model_name=model_name,
+        model_config=dict(model_config or {}),
+        state_dict={k: v.detach().cpu() for k, v in model.state_dict().items()},
+        normalization=_check_normalization("normalization", normalization or DEFAULT_NORMALIZATION),
+    )
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def load_model_checkpoint(
+    path: str | os.PathLike, *, map_location: str | torch.device = "cpu"
+) -> tuple[nn.Module, dict[str, Any]]:
+    """Rebuild a model from a checkpoint written by :func:`save_model_checkpoint`.
+
+    Args:
+        path: the checkpoint file.
+        map_location: where to load the tensors.
+
+    Returns:
+        ``(model in eval mode, checkpoint dict)``.
+
+    Raises:
+        GeosegError: missing or corrupt file, missing keys, unknown model, or weights that do
+            not match the architecture (the message names the file).
+    """
+    from geoseg.models.registry import get_model
+
+    path = Path(path)
+    if not path.is_file():
+        raise GeosegError(f"{path}: no such checkpoint file")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:
+        raise GeosegError(
+            f"{path}: not a readable torch checkpoint ({type(err).__name__}: {err})"
+        ) from None
+    if not isinstance(ckpt, dict):
+        raise GeosegError(f"{path}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    missing = [k for k in ("model_name", "state_dict") if k not in ckpt]
+    if missing:
+        raise GeosegError(f"{path}: not a geoseg model checkpoint (missing {missing})")
+    try:
+        model = get_model(ckpt["model_name"], **dict(ckpt.get("model_config") or {}))
+    except GeosegError as err:
+        raise GeosegError(f"{path}: {err}") from None
+    try:
+        model.load_state_dict(ckpt["state_dict"], strict=True)
+    except RuntimeError as err:
+        first = str(err).strip().splitlines()
+        raise GeosegError(
+            f"{path}: weights do not match the {ckpt['model_name']!r} architecture "
+            f"({' '.join(first[:3])[:400]})"
+        ) from None
+    return model.eval(), ckpt
+
+
+@dataclass
+class SegmentationResult:
+    """Outputs of a :class:`Segmenter` call (NumPy arrays).
+
+    Attributes:
+        probabilities: `(B, C, H, W)` float32 class probabilities.
+        labels: `(B, H, W)` uint8 argmax class ids.
+        normals: `(B, 3, H, W)` float32 unit normals (camera frame), or None.
+        features: `(B, 128, ceil(H/8), ceil(W/8))` float32 layer-21 features, or None.
+    """
+
+    probabilities: np.ndarray
+    labels: np.ndarray
+    normals: np.ndarray | None = None
+    features: np.ndarray | None = None
+
+
+def _softmax(logits: np.ndarray) -> np.ndarray:
+    e = np.exp(logits - logits.max(axis=1, keepdims=True))
+    return e / e.sum(axis=1, keepdims=True)
+
+
+class Segmenter:
+    """Image → labels (+ normals, features), over a torch module or an onnxruntime session.
+
+    Build with :meth:`from_checkpoint` or :meth:`from_onnx`; call with RGB uint8 images.
+
+    Args:
+        backend: callable mapping a `(B, 3, H, W)` float32 NumPy batch to a dict of NumPy arrays
+            with ``"logits"`` or ``"log_probs"``, and optionally ``"normals"``, ``"features"``.
+        normalization: ``{"mean": [3], "std": [3]}`` for images scaled to [0, 1].
+        model_name: name for messages and logs.
+        source: the file the model came from.
+    """
+
+    def __init__(
+        self,
+        backend: Callable[[np.ndarray], Mapping[str, np.ndarray]],
+        *,
+        normalization: Mapping[str, Any] | None = None,
+        model_name: str = "model",
+        source: str | os.PathLike | None = None,
+    ) -> None:
+        self.backend = backend
+        self.normalization = _check_normalization(
+            "normalization", normalization or DEFAULT_NORMALIZATION
+        )
+        self.model_name = model_name
+        self.source = None if source is None else Path(source)
+        self._mean = np.asarray(self.normalization["mean"], np.float32)[None, :, None, None]
+        self._std = np.asarray(self.normalization["std"], np.float32)[None, :, None, None]
+
+    @classmethod
+    def from_checkpoint(
+        cls, path: str | os.PathLike, *, device: str | torch.device = "cpu"
+    ) -> Segmenter:
+        """Load a torch checkpoint (see :func:`load_model_checkpoint`) onto ``device``."""
+        from geoseg.models.naive_cnn import NaiveCNN
+
+        device = torch.device(device)
+        model, ckpt = load_model_checkpoint(path, map_location=device)
+        model.to(device).eval()
+        if not isinstance(model, NaiveCNN) and not _is_image_model(model):
+            raise GeosegError(f"{path}: model {ckpt['model_name']!r} is not a segmentation network")
+
+        def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
+            x = torch.from_numpy(batch).to(device)
+            with torch.inference_mode():
+                if isinstance(model, NaiveCNN):
+                    out = {"log_probs": model.dense(x, band_rows=64)}
+                else:
+                    out = model(x)
+            return {k: v.float().cpu().numpy() for k, v in out.items()}
+
+        return cls(
+            backend,
+            normalization=ckpt.get("normalization"),
+            model_name=str(ckpt["model_name"]),
+            source=path,
+        )
+
+    @classmethod
+    def from_onnx(
+        cls, path: str | os.PathLike, *, providers: Sequence[str] | None = None
+    ) -> Segmenter:
+        """Open an ONNX file written by :func:`geoseg.export.export_onnx`."""
+        from geoseg.export import OnnxModel
+
+        onnx_model = OnnxModel(path, providers=providers)
+        outs = set(onnx_model.output_names)
+        if not outs & {"logits", "log_probs"} or len(onnx_model.input_names) != 1:
+            raise GeosegError(
+                f"{path}: not a segmentation network (inputs {onnx_model.input_names}, "
+                f"outputs {onnx_model.output_names}; expected one image input and 'logits' or "
+                "'log_probs')"
+            )
+        return cls(
+            onnx_model,
+            normalization=onnx_model.metadata.get("normalization"),
+            model_name=str(onnx_model.metadata.get("model_name", Path(path).stem)),
+            source=path,
+        )
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike, **kwargs) -> Segmenter:
+        """:meth:`from_onnx` for ``.onnx`` files, :meth:`from_checkpoint` otherwise."""
+        if str(path).lower().endswith(".onnx"):
+            return cls.from_onnx(path, providers=kwargs.get("providers"))
+        return cls.from_checkpoint(path, device=kwargs.get("device", "cpu"))
+
+    def preprocess(self, images: np.ndarray) -> np.ndarray:
+        """RGB uint8 `(B, H, W, 3)` or `(H, W, 3)` → normalised float32 `(B, 3, H, W)`."""
+        images = np.asarray(images)
+        if images.ndim == 3:
+            images = images[None]
+        check_shape("images", images, (None, None, None, 3))
+        if images.dtype != np.uint8:
+            raise GeosegError(f"images: expected uint8 RGB images, got dtype {images.dtype}")
+        if min(images.shape[:3]) < 1:
+            raise GeosegError(f"images: empty batch or image, shape {images.shape}")
+        x = images.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
+        return np.ascontiguousarray((x - self._mean) / self._std)
+
+    def __call__(self, images: np.ndarray) -> SegmentationResult:
+        """Segment RGB images.
+
+        Args:
+            images: `(B, H, W, 3)` or `(H, W, 3)` uint8 RGB.
+
+        Returns:
+            A :class:`SegmentationResult` with a batch axis even for a single image.
+        """
+        out = self.backend(self.preprocess(images))
+        if "logits" in out:
+            probs = _softmax(np.asarray(out["logits"], np.float32))
+        elif "log_probs" in out:
+            probs = np.exp(np.asarray(out["log_probs"], np.float32))
+        else:
+            raise GeosegError(f"{self.source}: model returned no 'logits' or 'log_probs'")
+        return SegmentationResult(
+            probabilities=probs.astype(np.float32, copy=False),
+            labels=probs.argmax(axis=1).astype(np.uint8),
+            normals=None if out.get("normals") is None else np.asarray(out["normals"], np.float32),
+            features=None
+            if out.get("features") is None
+            else np.asarray(out["features"], np.float32),
+        )
+
+
+def _is_image_model(model: nn.Module) -> bool:
+    from geoseg.models.enet import ENet
+    from geoseg.models.joint import JointNet
+
+    return isinstance(model, ENet | JointNet)
+
+
+def normals_to_rgb(normals: np.ndarray) -> np.ndarray:
+    """Encode unit normals `(3, H, W)` as an RGB uint8 image `(H, W, 3)`: ``(n + 1) / 2 * 255``."""
+    check_shape("normals", normals, (3, None, None))
+    rgb = (np.clip(normals.transpose(1, 2, 0), -1.0, 1.0) + 1.0) * 127.5
+    return np.round(rgb).astype(np.uint8)

@@ -1,0 +1,75 @@
+"""Model registry: ``get_model(name, **cfg)`` over the keyword-only builders.
+
+Builders are looked up lazily (their module is imported on first use), so that listing names or
+building one model never imports the others, and heads whose module is not written yet do not
+break the registry.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import logging
+from collections.abc import Callable
+
+from torch import nn
+
+from geoseg.errors import ConfigError, GeosegError
+
+logger = logging.getLogger(__name__)
+
+# name -> (module, builder function)
+MODELS: dict[str, tuple[str, str]] = {
+    "enet": ("geoseg.models.enet", "enet"),
+    "joint": ("geoseg.models.joint", "joint"),
+    "naive_cnn": ("geoseg.models.naive_cnn", "naive_cnn"),
+    "reloc": ("geoseg.models.reloc", "reloc_head"),
+    "relpose": ("geoseg.models.relpose", "relpose_head"),
+}
+
+
+def list_models() -> list[str]:
+    """The registered model names."""
+    return list(MODELS)
+
+
+def get_builder(name: str) -> Callable[..., nn.Module]:
+    """The builder function registered under ``name``.
+
+    Raises:
+        GeosegError: unknown name (the message lists the known ones) or a builder whose module
+            is not available.
+    """
+    if name not in MODELS:
+        raise GeosegError(f"model: unknown model {name!r}; known models: {', '.join(MODELS)}")
+    module_name, attr = MODELS[name]
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        if err.name == module_name:
+            raise GeosegError(f"model: {name!r} is not available ({module_name} missing)") from None
+        raise
+    return getattr(module, attr)
+
+
+def get_model(name: str, **cfg) -> nn.Module:
+    """Build the model registered under ``name`` with keyword configuration ``cfg``.
+
+    Args:
+        name: one of :func:`list_models` (``enet``, ``joint``, ``naive_cnn``, ``reloc``,
+            ``relpose``).
+        **cfg: the builder's keyword arguments (e.g. ``num_classes=8``).
+
+    Raises:
+        GeosegError: unknown name.
+        ConfigError: a keyword the builder does not take.
+    """
+    builder = get_builder(name)
+    params = inspect.signature(builder).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(set(cfg) - set(params))
+        if unknown:
+            raise ConfigError(
+                f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}"
+            )
+    return builder(**cfg)
