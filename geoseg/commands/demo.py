@@ -1,0 +1,222 @@
+"""``geoseg demo``: the end-to-end demonstration on the synthetic world (first version).
+
+Renders one short route with both rigs (car: forward camera; tram: side camera) under two
+appearance conditions, then writes a contact sheet of the four sequences and a top-down map of
+the world with its GIS products (true buildings, the erroneous building model, DEM segments,
+true trajectories, GPS fixes), and prints where everything is.
+
+The demo is a list of steps (:data:`STEPS`), each a function of a shared :class:`DemoContext`
+that records what it wrote in ``context.outputs``; later issues append steps (training,
+inference, SLAM) to the list.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_CONFIG = Path("configs/world_default.yaml")
+RIGS = ("car", "tram")
+
+
+@dataclass
+class DemoContext:
+    """State shared by the demo steps.
+
+    Attributes:
+        out: output directory.
+        world_config: the world's configuration.
+        rigs: camera rigs rendered.
+        conditions: appearance conditions rendered.
+        frames: frames per sequence.
+        image_size: ``(W, H)``.
+        fps: frame rate of the sequences (low by default: few frames, a long enough route
+            for the map to show the GPS error).
+        seed: seed of the routes and GIS errors.
+        force: redo steps whose outputs exist.
+        world: the built world (set by the first step that needs it).
+        sequences: ``(rig, condition)`` -> sequence directory.
+        outputs: label -> path of what the steps wrote, printed at the end.
+    """
+
+    out: Path
+    world_config: Any
+    rigs: tuple[str, ...] = RIGS
+    conditions: tuple[str, ...] = ("summer_day", "winter")
+    frames: int = 10
+    image_size: tuple[int, int] = (160, 120)
+    fps: float = 1.0
+    seed: int = 0
+    force: bool = False
+    world: Any = None
+    sequences: dict[tuple[str, str], Path] = field(default_factory=dict)
+    outputs: dict[str, Path] = field(default_factory=dict)
+
+    def get_world(self) -> Any:
+        if self.world is None:
+            from geoseg.synth.world import build_world
+
+            self.world = build_world(self.world_config)
+        return self.world
+
+
+def step_render(ctx: DemoContext) -> None:
+    """Render every (rig, condition) sequence with its GIS products."""
+    from geoseg.synth.export import render_sequence
+
+    world = ctx.get_world()
+    for rig in ctx.rigs:
+        for condition in ctx.conditions:
+            ctx.sequences[(rig, condition)] = render_sequence(
+                ctx.world_config,
+                ctx.out / "sequences" / f"{rig}_{condition}",
+                frames=ctx.frames,
+                condition=condition,
+                rig=rig,
+                image_size=ctx.image_size,
+                fps=ctx.fps,
+                seed=ctx.seed,
+                world=world,
+                overwrite=ctx.force,
+                progress=True,
+            )
+    ctx.outputs["sequences"] = ctx.out / "sequences"
+
+
+def step_contact_sheet(ctx: DemoContext) -> None:
+    """One row per sequence: a few RGB frames and the label map of the middle one."""
+    import cv2
+    import numpy as np
+
+    from geoseg.synth.maps import contact_sheet
+
+    rows, labels = [], []
+    n_show = min(4, ctx.frames)
+    picks = np.unique(np.linspace(0, ctx.frames - 1, n_show).round().astype(int))
+    for (rig, condition), seq in ctx.sequences.items():
+        row = [cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1] for i in picks]
+        mid = picks[len(picks) // 2]
+        row.append(cv2.imread(str(seq / "labels_color" / f"{mid:06d}.png"))[..., ::-1])
+        rows.append(row)
+        labels.append(f"{rig} / {condition}")
+    path = contact_sheet(
+        rows,
+        ctx.out / "contact_sheet.png",
+        row_labels=labels,
+        col_labels=[f"frame {i}" for i in picks] + [f"labels, frame {picks[len(picks) // 2]}"],
+        title="geoseg demo: the same routes under two conditions",
+    )
+    ctx.outputs["contact sheet"] = path
+
+
+def step_map(ctx: DemoContext) -> None:
+    """Top-down map: true buildings, GIS building model, DEM, both trajectories, GPS."""
+    from geoseg.synth.export import GisConfig, drive_frames, make_gis_products
+    from geoseg.synth.maps import plot_map
+
+    world = ctx.get_world()
+    tracks, gps, products = {}, {}, None
+    for rig in ctx.rigs:
+        # the very drives step_render rendered (deterministic)
+        traj = drive_frames(
+            world, ctx.frames, rig=rig, fps=ctx.fps, seed=ctx.seed, image_size=ctx.image_size
+        )
+        products = make_gis_products(world, traj, GisConfig(), seed=ctx.seed)
+        tracks[rig] = traj.vehicle_xyz[:, :2]
+        gps[rig] = products.gps
+    path = plot_map(
+        ctx.out / "map.png",
+        true_footprints=[b.footprint for b in world.buildings],
+        building_model=products.building_model if products else None,
+        dem=products.dem if products else None,
+        streets=world.streets,
+        tracks=tracks,
+        gps=gps,
+        title=f"world seed {ctx.world_config.seed}: buildings, GIS model, DEM, routes, GPS",
+    )
+    ctx.outputs["map"] = path
+
+
+# The demo, in order; later issues append (name, step) pairs.
+STEPS: list[tuple[str, Callable[[DemoContext], None]]] = [
+    ("render", step_render),
+    ("contact sheet", step_contact_sheet),
+    ("map", step_map),
+]
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--out", type=Path, default=Path("geoseg_demo"), help="output directory (geoseg_demo/)"
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help=f"world config YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+    )
+    parser.add_argument("--frames", type=int, default=10, help="frames per sequence (default 10)")
+    parser.add_argument("--fps", type=float, default=1.0, help="frame rate (default 1)")
+    parser.add_argument("--size", default="160x120", help="image size WxH (default 160x120)")
+    parser.add_argument(
+        "--conditions",
+        default="summer_day,winter",
+        help="two (or more) comma-separated conditions (default summer_day,winter)",
+    )
+    parser.add_argument("--seed", type=int, default=None, help="seed of the city, routes and GIS")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a world config key (repeatable)",
+    )  # fmt: skip
+    parser.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
+
+
+def run(args: argparse.Namespace) -> int:
+    from geoseg.config import load_config
+    from geoseg.errors import GeosegError
+    from geoseg.synth.conditions import get_condition
+    from geoseg.synth.export import ensure_writable, parse_size
+    from geoseg.synth.world import WorldConfig
+
+    start = time.perf_counter()
+    size = parse_size(args.size)
+    if args.frames < 1:
+        raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
+    if not args.fps > 0:
+        raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
+    conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
+    if not conditions:
+        raise GeosegError(f"--conditions: expected condition names, got {args.conditions!r}")
+    for c in conditions:
+        get_condition(c)
+    out = ensure_writable(args.out)
+    source = args.config
+    if source is None and DEFAULT_CONFIG.is_file():
+        source = DEFAULT_CONFIG
+    overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
+    world_config = load_config(WorldConfig, source, overrides=overrides)
+    ctx = DemoContext(
+        out=out,
+        world_config=world_config,
+        conditions=conditions,
+        frames=args.frames,
+        image_size=size,
+        fps=args.fps,
+        seed=world_config.seed,
+        force=args.force,
+    )
+    for name, step in STEPS:
+        t0 = time.perf_counter()
+        step(ctx)
+        logger.info("demo step %s: %.1f s", name, time.perf_counter() - t0)
+    print(f"geoseg demo finished in {time.perf_counter() - start:.1f} s; outputs in {out}/")
+    for label, path in ctx.outputs.items():
+        print(f"  {label}: {path}")
+    return 0

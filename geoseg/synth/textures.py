@@ -1,0 +1,409 @@
+"""Procedural textures: surface colours computed from world-space hit coordinates.
+
+All functions are vectorised over ``N`` hit points and return float32 RGB albedo in [0, 1]
+(display space, the renderer multiplies by the light). Patterns are chosen to be stable at
+the usual viewing distances (a few pixels per feature at 320x240 and 10-40 m) and rich in
+corners, so that ORB/Harris find features on facades (window frames, storey bands, shop signs,
+doors), roads (lane dashes, zebra crossings, repair patches, kerb line), sidewalks (paving
+tiles) and trees (leaf clusters).
+
+Randomness comes from an integer hash of cell coordinates (no state), so textures are
+deterministic and identical from any viewpoint.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+_M1 = np.uint32(0xCC9E2D51)
+_M2 = np.uint32(0x1B873593)
+_M3 = np.uint32(0x85EBCA6B)
+_M4 = np.uint32(0xC2B2AE35)
+
+MATERIAL_CODES = {"brick": 0, "plaster": 1, "stone": 2, "concrete": 3}
+
+
+def hash_u32(*keys: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Integer hash of integer-valued arrays (broadcast together) -> uint32 array."""
+    h = np.uint32((seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF)
+    for key in keys:
+        k = np.asarray(key)
+        k = k.astype(np.int32) if k.dtype != np.int32 else k
+        h = (h ^ k.view(np.uint32)) * _M1
+        h ^= h >> np.uint32(15)
+    h *= _M3
+    h ^= h >> np.uint32(13)
+    h *= _M4
+    h ^= h >> np.uint32(16)
+    return h
+
+
+def hash01(*keys: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Uniform float32 in [0, 1) from integer keys."""
+    return (hash_u32(*keys, seed=seed) >> np.uint32(8)).astype(np.float32) * np.float32(2.0**-24)
+
+
+def value_noise(x: np.ndarray, y: np.ndarray, seed: int = 0) -> np.ndarray:
+    """Smooth 2D value noise in [0, 1), unit cell size: `(N,)` float32."""
+    ix = np.floor(x)
+    iy = np.floor(y)
+    fx = (x - ix).astype(np.float32)
+    fy = (y - iy).astype(np.float32)
+    fx = fx * fx * (3 - 2 * fx)
+    fy = fy * fy * (3 - 2 * fy)
+    ix = ix.astype(np.int64)
+    iy = iy.astype(np.int64)
+    a = hash01(ix, iy, seed=seed)
+    b = hash01(ix + 1, iy, seed=seed)
+    c = hash01(ix, iy + 1, seed=seed)
+    d = hash01(ix + 1, iy + 1, seed=seed)
+    return (a + (b - a) * fx) * (1 - fy) + (c + (d - c) * fx) * fy
+
+
+def _rgb(value: np.ndarray | float, color) -> np.ndarray:
+    return np.asarray(value, dtype=np.float32)[..., None] * np.asarray(color, dtype=np.float32)
+
+
+# --------------------------------------------------------------------------------------------
+# Facades
+# --------------------------------------------------------------------------------------------
+@dataclass
+class FacadeStyles:
+    """Per-facade texture parameters, ``F`` rows (computed once per world).
+
+    Attributes:
+        length: `(F,)` facade length, metres.
+        base_z: `(F,)` float64 bottom of the facade, metres.
+        material: `(F,)` int :data:`MATERIAL_CODES`.
+        storey_height: `(F,)` metres (the ground floor is 1.3x).
+        storeys: `(F,)` number of storeys.
+        tint: `(F, 3)` wall colour.
+        spacing: `(F,)` window column spacing, metres.
+        window_width: `(F,)` metres.
+        n_cols: `(F,)` window columns.
+        u0: `(F,)` start of the window grid along the facade, metres.
+        door_col: `(F,)` column of the door.
+        frame_rgb: `(F, 3)` window frame colour.
+    """
+
+    length: np.ndarray
+    base_z: np.ndarray
+    material: np.ndarray
+    storey_height: np.ndarray
+    storeys: np.ndarray
+    tint: np.ndarray
+    spacing: np.ndarray
+    window_width: np.ndarray
+    n_cols: np.ndarray
+    u0: np.ndarray
+    door_col: np.ndarray
+    frame_rgb: np.ndarray
+
+
+def facade_styles(
+    length: np.ndarray,
+    base_z: np.ndarray,
+    material: np.ndarray,
+    storey_height: np.ndarray,
+    storeys: np.ndarray,
+    tint: np.ndarray,
+) -> FacadeStyles:
+    """Derive the window grid and colours of ``F`` facades (row index = facade id)."""
+    key = np.arange(len(length))
+    spacing = (2.6 + 1.0 * hash01(key, seed=21)).astype(np.float32)
+    width = spacing * (0.42 + 0.2 * hash01(key, seed=22))
+    n_cols = np.floor((length - 1.6) / spacing).astype(np.float32)
+    u0 = ((length - n_cols * spacing) / 2).astype(np.float32)
+    door_col = np.floor(hash01(key, seed=23) * np.maximum(n_cols, 1)).astype(np.float32)
+    frame_rgb = np.where(
+        (hash01(key, seed=26) < 0.7)[:, None],
+        np.float32([0.92, 0.92, 0.9]),
+        np.float32([0.3, 0.25, 0.22]),
+    ).astype(np.float32)
+    return FacadeStyles(
+        length=np.asarray(length, dtype=np.float32),
+        base_z=np.asarray(base_z, dtype=np.float64),
+        material=np.asarray(material, dtype=np.int64),
+        storey_height=np.asarray(storey_height, dtype=np.float32),
+        storeys=np.asarray(storeys, dtype=np.float32),
+        tint=np.asarray(tint, dtype=np.float32).reshape(-1, 3),
+        spacing=spacing,
+        window_width=width.astype(np.float32),
+        n_cols=n_cols,
+        u0=u0,
+        door_col=door_col,
+        frame_rgb=frame_rgb,
+    )
+
+
+def facade_albedo(
+    u: np.ndarray, v: np.ndarray, row: np.ndarray, styles: FacadeStyles, window_light: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Facade colour from facade-plane coordinates.
+
+    Args:
+        u: `(N,)` metres along the facade from its start corner p0.
+        v: `(N,)` metres above the facade's base_z.
+        row: `(N,)` int facade id (row of ``styles``).
+        styles: per-facade parameters.
+        window_light: share of windows lit (night), 0..1.
+
+    Returns:
+        albedo `(N, 3)` float32 and emissive `(N, 3)` float32 (lit windows).
+    """
+    u = u.astype(np.float32)
+    v = v.astype(np.float32)
+    n = len(u)
+    h = styles.storey_height[row]
+    material = styles.material[row]
+    wall = np.ones(n, dtype=np.float32)
+
+    # material patterns (per-cell brightness, stable at the usual distances)
+    i = np.nonzero(material == 0)[0]  # brick
+    if len(i):
+        course = np.floor(v[i] / 0.16)
+        cell = np.floor((u[i] + 0.15 * (course % 2)) / 0.3)
+        wall[i] = 0.9 + 0.2 * hash01(cell, course, row[i], seed=11)
+    i = np.nonzero(material == 1)[0]  # plaster
+    if len(i):
+        wall[i] = (
+            0.92 + 0.14 * value_noise(u[i] / 2.5, v[i] / 2.5, seed=13) - 0.12 * np.exp(-v[i] / 0.8)
+        )
+    i = np.nonzero(material == 2)[0]  # stone blocks
+    if len(i):
+        srow = np.floor(v[i] / 0.5)
+        us = u[i] + 0.45 * (srow % 2)
+        joint = ((v[i] % 0.5) < 0.045) | ((us % 0.9) < 0.045)
+        value = 0.88 + 0.22 * hash01(np.floor(us / 0.9), srow, row[i], seed=12)
+        wall[i] = np.where(joint, 0.72, value)
+    i = np.nonzero(material == 3)[0]  # concrete panels
+    if len(i):
+        joint = ((v[i] % h[i]) < 0.06) | ((u[i] % 3.0) < 0.06)
+        wall[i] = np.where(joint, 0.6, 0.86 + 0.2 * value_noise(u[i] / 1.5, v[i] / 4.0, seed=14))
+
+    # storey bands (cornices) above the ground floor
+    ground_h = 1.3 * h
+    storeys = styles.storeys[row]
+    above = v - ground_h
+    band = (above >= 0) & ((above % h) < 0.2) & (above < (storeys - 1) * h)
+    wall[band] *= 0.72
+    albedo = wall[:, None] * styles.tint[row]
+
+    # window grid
+    spacing = styles.spacing[row]
+    width = styles.window_width[row]
+    col = np.floor((u - styles.u0[row]) / spacing)
+    in_cols = (col >= 0) & (col < styles.n_cols[row])
+    du = np.abs((u - styles.u0[row]) - (col + 0.5) * spacing)  # from the window axis
+    storey = np.floor(above / h)
+    dv = above - storey * h
+    win_top = 0.9 + h * 0.5
+    upper = in_cols & (above >= 0) & (storey < storeys - 1)
+    frame = upper & (du < width / 2 + 0.1) & (dv > 0.8) & (dv < win_top + 0.1)
+    sill = upper & (du < width / 2 + 0.18) & (dv > 0.62) & (dv <= 0.8)
+    glass = frame & (du < width / 2) & (dv > 0.9) & (dv < win_top)
+    # ground floor: shop windows, shop sign band and one door per facade
+    ground = in_cols & (v < ground_h)
+    is_door_col = ground & (col == styles.door_col[row])
+    door = is_door_col & (du < 0.65) & (v < 2.3)
+    door_frame = is_door_col & (du < 0.8) & (v < 2.45) & ~door
+    shop_w = spacing * 0.36
+    shop_area = ground & ~is_door_col & (v > 0.33) & (v < 2.72) & (du < shop_w + 0.12)
+    shop = shop_area & (du < shop_w) & (v > 0.45) & (v < 2.6)
+    sign = in_cols & (v > 2.95) & (v < 3.45) & (du < spacing * 0.45)
+
+    framed = np.nonzero(frame | sill | door_frame | shop_area)[0]
+    albedo[framed] = styles.frame_rgb[row[framed]]
+    lit_rows = np.zeros(0, dtype=np.int64)
+    g = np.nonzero(glass)[0]
+    if len(g):
+        key = hash01(row[g], col[g], storey[g], seed=25)
+        albedo[g] = _rgb(0.1 + 0.22 * key, (0.85, 0.95, 1.1))
+        if window_light > 0:
+            lit_rows = g[key < window_light]
+    sh = np.nonzero(shop)[0]
+    if len(sh):
+        key = hash01(row[sh], col[sh], seed=25)
+        albedo[sh] = _rgb(0.08 + 0.18 * key, (0.9, 0.95, 1.05))
+        if window_light > 0.3:
+            lit_rows = np.concatenate([lit_rows, sh])
+    albedo[door] = np.float32([0.28, 0.17, 0.1])
+    sg = np.nonzero(sign)[0]
+    if len(sg):
+        on = hash01(row[sg], col[sg], seed=24) < 0.5
+        sg = sg[on]
+        keys = (row[sg], col[sg])
+        rgb = np.stack([hash01(*keys, seed=27), hash01(*keys, seed=28), hash01(*keys, seed=29)], 1)
+        albedo[sg] = 0.15 + 0.8 * rgb
+
+    emissive = np.zeros((n, 3), dtype=np.float32)
+    if len(lit_rows):
+        emissive[lit_rows] = np.float32([0.95, 0.8, 0.5])
+    return albedo, emissive
+
+
+# --------------------------------------------------------------------------------------------
+# Ground
+# --------------------------------------------------------------------------------------------
+def ground_albedo(
+    xy: np.ndarray,
+    cls: np.ndarray,
+    side: np.ndarray,
+    s: np.ndarray,
+    street_length: np.ndarray,
+    half_width: float,
+    sidewalk_width: float,
+    parking_width: float,
+    classes: tuple[int, int, int],
+    ground_tint: np.ndarray,
+) -> np.ndarray:
+    """Road (asphalt, lane markings, parking bays, zebra crossings), sidewalk (paving, kerb)
+    and terrain (grass, dirt).
+
+    Args:
+        xy: `(N, 2)` world xy of the hits.
+        cls: `(N,)` ground class per hit (road / sidewalk / terrain ids given in ``classes``).
+        side: `(N,)` signed distance to the nearest centreline (> 0 left), metres (finite).
+        s: `(N,)` arc length along that street, metres.
+        street_length: `(N,)` that street's length, metres.
+        half_width: half the carriageway width, metres.
+        sidewalk_width: metres.
+        parking_width: width of the parking strip along each kerb, metres.
+        classes: the ids of (road, sidewalk, terrain).
+        ground_tint: `(3,)` multiplier of grass.
+
+    Returns:
+        `(N, 3)` float32 albedo.
+    """
+    road_id, walk_id, _ = classes
+    n = len(xy)
+    out = np.empty((n, 3), dtype=np.float32)
+
+    r = np.nonzero(cls == road_id)[0]
+    if len(r):
+        x, y = xy[r, 0], xy[r, 1]
+        sd, sr, length = side[r].astype(np.float32), s[r].astype(np.float32), street_length[r]
+        dist = np.abs(sd)
+        # asphalt: mottled grey, bright/dark grit, rectangular repair patches
+        coarse = value_noise(x / 1.7, y / 1.7, seed=31)
+        grit = hash01(np.floor(x / 0.09), np.floor(y / 0.09), seed=32)
+        value = 0.30 + 0.08 * coarse
+        value += np.where(grit > 0.9, 0.1, 0.0) - np.where(grit < 0.1, 0.06, 0.0)
+        s5 = sr % 5.0
+        patch = (s5 > 1.0) & (s5 < 4.2) & ((sd % 2.5) > 0.4)
+        patch &= hash01(np.floor(sr / 5.0), np.floor(sd / 2.5), seed=33) < 0.12
+        value[patch] -= 0.07
+        junction_zone = half_width + sidewalk_width + 0.5
+        inner = (sr > junction_zone) & (sr < length - junction_zone)
+        lane_edge = half_width - parking_width
+        marking = (dist < 0.08) & ((sr % 6.0) < 3.0)  # dashed centre line
+        marking |= (dist > lane_edge - 0.15) & (dist < lane_edge)  # lane / parking edge
+        if parking_width > 0:
+            marking |= (dist > lane_edge) & ((sr % 6.2) < 0.12)  # parking bays
+        marking &= inner
+        zebra_s = np.minimum(sr - junction_zone, length - junction_zone - sr)
+        zebra = (zebra_s > 0.3) & (zebra_s < 3.3) & (dist < half_width - 0.4)
+        zebra &= (np.floor((sd + half_width) / 0.55) % 2) == 0
+        marking |= zebra
+        value[marking] = 0.82 + 0.05 * coarse[marking]
+        out[r] = value[:, None]
+
+    w = np.nonzero(cls == walk_id)[0]
+    if len(w):
+        sd = side[w].astype(np.float32)
+        tile = hash01(np.floor(sd / 0.6), np.floor(s[w] / 0.6), seed=34)
+        paving = 0.52 + 0.18 * tile
+        paving[np.abs(sd) < half_width + 0.25] = 0.7  # kerb stones
+        out[w] = _rgb(paving, (0.98, 0.96, 0.92))
+
+    o = np.nonzero((cls != walk_id) & (cls != road_id))[0]
+    if len(o):
+        x, y = xy[o, 0], xy[o, 1]
+        grass = value_noise(x / 0.8, y / 0.8, seed=35)
+        dirt = value_noise(x / 6.0, y / 6.0, seed=36) > 0.72
+        out[o] = _rgb(0.55 + 0.45 * grass, (0.3, 0.45, 0.17)) * ground_tint.astype(np.float32)
+        out[o[dirt]] = _rgb(0.5 + 0.2 * grass[dirt], (0.6, 0.5, 0.38))
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# Trees, roofs, vehicles, street furniture, sky
+# --------------------------------------------------------------------------------------------
+def leaf_albedo(X: np.ndarray, leaf_color: np.ndarray) -> np.ndarray:
+    """Leaf clusters with dark gaps: `(N, 3)` world hits -> `(N, 3)` float32 albedo."""
+    cluster = hash01(*(np.floor(X[:, i] / 0.3) for i in range(3)), seed=41)
+    shade = value_noise(X[:, 0] / 0.9 + X[:, 2], X[:, 1] / 0.9 - X[:, 2], seed=42)
+    value = np.where(cluster < 0.3, 0.3, 0.8 + 0.8 * cluster * (0.6 + 0.4 * shade))
+    return _rgb(value, leaf_color)
+
+
+def branch_mask(X: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """Bare-crown branches: True where a ray hitting the crown surface at ``X`` stops.
+
+    A sparse voxel pattern (~22 % of 0.14 m voxels per crown layer) stands for the branches of a
+    leafless crown; other rays go through and are cast again.
+
+    Args:
+        X: `(N, 3)` world hit points on crown surfaces.
+        instance: `(N,)` tree instance ids.
+    """
+    cell = [np.floor(X[:, i] / 0.14) for i in range(3)]
+    return hash01(*cell, instance, seed=43) < 0.22
+
+
+def bark_albedo(X: np.ndarray) -> np.ndarray:
+    """`(N, 3)` world hits -> `(N, 3)` float32 bark colour."""
+    grain = hash01(np.floor(X[:, 2] / 0.12), np.floor((X[:, 0] + X[:, 1]) / 0.08), seed=44)
+    return _rgb(0.75 + 0.5 * grain, (0.32, 0.24, 0.17))
+
+
+def roof_albedo(X: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """Gravel / tar roofs: `(N, 3)` float32."""
+    tone = 0.3 + 0.25 * hash01(instance, seed=51)
+    gravel = value_noise(X[:, 0] / 0.7, X[:, 1] / 0.7, seed=52)
+    return _rgb(tone * (0.85 + 0.3 * gravel), (1.0, 0.97, 0.93))
+
+
+def panel_albedo(X: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """Advertising panels, sign plates and lamp heads: bold per-instance stripes/blocks."""
+    stripe = np.floor(X[:, 2] * 2.2 + (X[:, 0] + X[:, 1]) * 1.3)
+    keys = (instance, stripe)
+    rgb = np.stack([hash01(*keys, seed=61), hash01(*keys, seed=62), hash01(*keys, seed=63)], 1)
+    return (0.12 + 0.85 * rgb).astype(np.float32)
+
+
+def sky_color(
+    directions_w: np.ndarray,
+    zenith: np.ndarray,
+    horizon: np.ndarray,
+    sun_direction: np.ndarray,
+    sun_color: np.ndarray,
+    sun_strength: float,
+) -> np.ndarray:
+    """Sky gradient with a sun glow.
+
+    Args:
+        directions_w: `(N, 3)` unit ray directions, world frame.
+        zenith: `(3,)` RGB overhead.
+        horizon: `(3,)` RGB at the horizon.
+        sun_direction: `(3,)` unit vector to the sun.
+        sun_color: `(3,)` RGB.
+        sun_strength: glow strength.
+
+    Returns:
+        `(N, 3)` float32 RGB.
+    """
+    elevation = np.clip(directions_w[:, 2], 0.0, 1.0).astype(np.float32)
+    t = np.sqrt(elevation)[:, None]
+    rgb = horizon.astype(np.float32) * (1 - t) + zenith.astype(np.float32) * t
+    if sun_strength > 0:
+        d = directions_w
+        cos_sun = (
+            d[:, 0] * sun_direction[0] + d[:, 1] * sun_direction[1] + d[:, 2] * sun_direction[2]
+        )
+        cos_sun = np.clip(cos_sun, 0.0, 1.0).astype(np.float32)
+        glow = 0.6 * cos_sun**64 + 0.15 * cos_sun**8
+        rgb = rgb + (sun_strength * glow)[:, None] * sun_color.astype(np.float32)
+    return rgb
