@@ -5,9 +5,25 @@ from geoseg.data.cityscapes import (
     CityscapesDataset,
     map_cityscapes_labels,
 )
+from geoseg.data.synthetic import (
+    EVAL_SEEDS,
+    HELDOUT_CONDITIONS,
+    PatchDataset,
+    SyntheticConfig,
+    SyntheticDataset,
+    prerender,
+    synthetic_config,
+)
 from geoseg.data.transforms import AugmentConfig, Normals, SampleTransform, build_transforms
 
 __all__ = [
+    "EVAL_SEEDS",
+    "HELDOUT_CONDITIONS",
+    "PatchDataset",
+    "SyntheticConfig",
+    "SyntheticDataset",
+    "prerender",
+    "synthetic_config",
     "CITYSCAPES_TO_GEOSEG",
     "AugmentConfig",
     "CityscapesDataset",

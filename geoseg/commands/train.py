@@ -1,0 +1,108 @@
+"""``geoseg train``: train a segmentation-side network, or fit the Dirichlet filter.
+
+Examples::
+
+    geoseg train seg --config configs/seg.yaml
+    geoseg train normals --config configs/normals.yaml --set enet_checkpoint=runs/seg
+    geoseg train naive --config configs/naive.yaml --device cpu --set epochs=2
+    geoseg train dirichlet --config configs/dirichlet.yaml --set naive_checkpoint=runs/naive
+    geoseg train seg --config configs/seg.yaml --resume        # continue after a crash
+    torchrun --nproc_per_node=2 -m geoseg.cli train seg ...    # data-parallel
+
+The config YAML overrides the trainer's typed defaults (``training.<trainer>``); ``--set
+key.sub=value`` overrides it (values parsed as YAML). An unknown key is an error naming it.
+``--config`` defaults to ``configs/<trainer>.yaml`` when that file exists.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+from pathlib import Path
+
+TRAINERS: dict[str, str | None] = {
+    "seg": "training.seg",
+    "normals": "training.normals",
+    "naive": "training.naive",
+    "dirichlet": "training.dirichlet_fit",
+    "reloc": None,  # issue 5
+    "relpose": None,  # issue 5
+}
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("trainer", choices=list(TRAINERS), help="what to train")
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=None,
+        help="trainer config YAML (default: configs/<trainer>.yaml when present)",
+    )
+    parser.add_argument("--resume", action="store_true", help="continue from <out>/last.pt")
+    parser.add_argument(
+        "--device", default=None, help="auto (CUDA when present), cpu, cuda or cuda:N"
+    )
+    parser.add_argument("--out", type=Path, default=None, help="run directory (out_dir)")
+    parser.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a config key, e.g. --set epochs=2 --set optim.lr=1e-3 (repeatable)",
+    )  # fmt: skip
+
+
+def _command_line(args: argparse.Namespace, config: Path | None) -> str:
+    parts = ["geoseg", "train", args.trainer]
+    if config is not None:
+        parts += ["--config", str(config)]
+    if args.resume:
+        parts.append("--resume")
+    if args.device:
+        parts += ["--device", args.device]
+    if args.out is not None:
+        parts += ["--out", str(args.out)]
+    for item in args.overrides:
+        parts += ["--set", item]
+    return " ".join(parts)
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from geoseg.config import load_config
+    from geoseg.errors import GeosegError
+
+    module_name = TRAINERS[args.trainer]
+    if module_name is None:
+        raise GeosegError(f"train {args.trainer}: not implemented yet: issue 5")
+    module = importlib.import_module(module_name)
+    cls = module.CONFIG_CLASS
+    fields = {f.name for f in dataclasses.fields(cls)}
+    config = args.config
+    if config is None:
+        default = Path("configs") / f"{args.trainer}.yaml"
+        config = default if default.is_file() else None
+    overrides = list(args.overrides)
+    if args.resume:
+        if "resume" not in fields:
+            print(
+                f"geoseg train {args.trainer}: --resume has no effect (a finished stage is skipped)"
+            )
+        else:
+            overrides.append("resume=true")
+    if args.device is not None:
+        overrides.append(f"device={args.device}")
+    if args.out is not None:
+        overrides.append(f"out_dir={args.out}")
+    cfg = load_config(cls, config, overrides=overrides)
+
+    from training import distributed as dd
+
+    dd.init_distributed(getattr(cfg, "device", "auto"))
+    dd.quiet_non_main_ranks()
+    try:
+        run_dir = module.main(cfg, command=_command_line(args, config))
+        main_process = dd.is_main_process()
+    finally:
+        dd.cleanup()
+    if main_process:
+        print(f"geoseg train {args.trainer}: outputs in {run_dir}")
+    return 0

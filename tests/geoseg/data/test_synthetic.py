@@ -1,0 +1,160 @@
+"""Synthetic frames: aligned typed samples, determinism, the cache, held-out data, patches."""
+
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+import geoseg.data.synthetic as synthetic
+import geoseg.synth.renderer as renderer_module
+import geoseg.synth.world as world_module
+from geoseg.classes import IGNORE_INDEX, NUM_CLASSES, SKY
+from geoseg.data.synthetic import (
+    EVAL_SEEDS,
+    HELDOUT_CONDITIONS,
+    PatchDataset,
+    SyntheticConfig,
+    SyntheticDataset,
+    prerender,
+    synthetic_config,
+)
+from geoseg.errors import ConfigError
+
+SIZE = (24, 32)
+
+
+def _config(**kw) -> SyntheticConfig:
+    base = dict(seeds=[1], frames=3, conditions=["summer_day", "winter"], drives_per_city=2)
+    base.update(kw)
+    return SyntheticConfig(**base)
+
+
+@pytest.fixture
+def render_spy(monkeypatch):
+    calls = []
+    real = renderer_module.render
+
+    def spy(*args, **kwargs):
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(renderer_module, "render", spy)
+    return calls
+
+
+def test_samples_are_aligned_and_typed():
+    ds = SyntheticDataset(_config(), size=SIZE)
+    s = ds[0]
+    assert s["image"].shape == (3, *SIZE) and s["image"].dtype == torch.float32
+    assert 0.0 <= float(s["image"].min()) and float(s["image"].max()) <= 1.0
+    assert s["labels"].shape == SIZE and s["labels"].dtype == torch.int64
+    assert s["normals"].shape == (3, *SIZE) and s["normals"].dtype == torch.float32
+    assert s["normal_valid"].shape == SIZE and s["normal_valid"].dtype == torch.bool
+    lab, valid, n = s["labels"], s["normal_valid"], s["normals"]
+    assert ((lab >= 0) & (lab < NUM_CLASSES)).all()
+    # sky has no normal, every surface has a unit one
+    assert torch.equal(valid, lab != SKY)
+    norms = n.norm(dim=0)
+    assert torch.allclose(norms[valid], torch.ones(int(valid.sum())), atol=2e-3)
+    assert (norms[~valid] == 0).all()
+    assert s["seed"] == 1 and s["condition"] in ("summer_day", "winter")
+    assert s["rig"] in ("car", "tram")
+
+
+def test_deterministic_per_index_and_indices_differ():
+    a = SyntheticDataset(_config(), size=SIZE)
+    b = SyntheticDataset(_config(), size=SIZE)
+    s0, t0 = a[1], b[1]
+    for key in ("image", "labels", "normals", "normal_valid"):
+        assert torch.equal(s0[key], t0[key])
+    assert not torch.equal(a[0]["image"], s0["image"])
+    # the same index is the same frame whatever the dataset length
+    longer = SyntheticDataset(_config(frames=5), size=SIZE)
+    assert torch.equal(longer[1]["image"], s0["image"])
+
+
+def test_cache_is_used_on_second_access(tmp_path, render_spy, monkeypatch):
+    ds = SyntheticDataset(_config(), size=SIZE, cache_dir=tmp_path)
+    first = ds[2]
+    assert len(render_spy) == 1
+    synthetic._WORLDS.clear()
+    builds = []
+    real_build = world_module.build_world
+    monkeypatch.setattr(world_module, "build_world", lambda c: builds.append(1) or real_build(c))
+    again = SyntheticDataset(_config(), size=SIZE, cache_dir=tmp_path)[2]
+    assert len(render_spy) == 1  # read from the cache, not rendered
+    assert builds == []  # a warm cache needs no city
+    for key in ("image", "labels", "normals", "normal_valid"):
+        assert torch.equal(first[key], again[key])
+    assert len(list(tmp_path.rglob("*.npz"))) == 1
+    assert not list(tmp_path.rglob("*.tmp"))
+
+
+def test_corrupted_cache_entry_is_rerendered(tmp_path, render_spy):
+    ds = SyntheticDataset(_config(), size=SIZE, cache_dir=tmp_path)
+    good = ds[0]
+    (entry,) = tmp_path.rglob("*.npz")
+    entry.write_bytes(b"not a zip file")
+    again = ds[0]
+    assert len(render_spy) == 2
+    assert torch.equal(good["image"], again["image"])
+    third = SyntheticDataset(_config(), size=SIZE, cache_dir=tmp_path)[0]  # repaired entry
+    assert len(render_spy) == 2 and torch.equal(third["labels"], good["labels"])
+
+
+def test_prerender_fills_the_cache(tmp_path, render_spy):
+    ds = SyntheticDataset(_config(), size=SIZE, cache_dir=tmp_path)
+    assert prerender(ds, progress=False) == 3
+    assert len(list(tmp_path.rglob("*.npz"))) == 3
+    n = len(render_spy)
+    for i in range(3):
+        ds[i]
+    assert len(render_spy) == n
+
+
+def test_held_out_seed_and_condition_are_refused():
+    with pytest.raises(ConfigError, match="held-out evaluation"):
+        _config(seeds=[1, EVAL_SEEDS[0]])
+    with pytest.raises(ConfigError, match="held-out condition"):
+        _config(conditions=["summer_day", HELDOUT_CONDITIONS[0]])
+    # evaluation sets opt in explicitly
+    test = synthetic_config({}, split="test")
+    assert test.allow_heldout and test.seeds == list(EVAL_SEEDS)
+    train = synthetic_config({"train": {"frames": 7}}, split="train")
+    assert EVAL_SEEDS[0] not in train.seeds
+    assert not set(train.conditions) & set(HELDOUT_CONDITIONS)
+    ds = SyntheticDataset(_config(seeds=[1, 2], frames=4), size=SIZE)
+    assert {ds.spec(i).seed for i in range(len(ds))} == {1, 2}
+
+
+def test_unknown_synth_key_is_named():
+    with pytest.raises(ConfigError, match="data.synth.val.bogus"):
+        synthetic_config({"val": {"bogus": 1}}, split="val")
+    with pytest.raises(ConfigError, match="synth.world"):
+        synthetic_config({"world": {"no_such_key": 1}}, split="train")
+
+
+def test_works_with_worker_processes():
+    ds = SyntheticDataset(_config(frames=2), size=SIZE)
+    direct = [ds[i]["labels"] for i in range(2)]
+    loader = DataLoader(ds, batch_size=1, num_workers=2)
+    got = [b["labels"][0] for b in loader]
+    assert all(torch.equal(a, b) for a, b in zip(direct, got))
+
+
+def test_patch_dataset_is_class_balanced_and_centred():
+    frames = SyntheticDataset(_config(frames=2), size=SIZE)
+    patches = PatchDataset(frames, patches_per_frame=40, seed=0)
+    assert len(patches) == 80
+    p = patches[5]
+    assert p["image"].shape == (3, 46, 46) and p["labels"].dtype == torch.int64
+    y, x = p["yx"].tolist()
+    assert int(frames[0]["labels"][y, x]) == int(p["labels"])
+    # the centre pixel of the patch is the frame's pixel
+    assert torch.allclose(p["image"][:, 23, 23], frames[0]["image"][:, y, x], atol=1 / 255)
+    labels = np.array([int(patches[i]["labels"]) for i in range(40)])
+    present = np.unique(frames[0]["labels"].numpy())
+    present = present[present != IGNORE_INDEX]
+    assert set(np.unique(labels)) <= set(present)
+    assert len(np.unique(labels)) >= min(3, len(present))  # not dominated by the big classes
+    assert torch.equal(patches[5]["image"], PatchDataset(frames, patches_per_frame=40)[5]["image"])

@@ -1,0 +1,418 @@
+"""What the segmentation-side trainers share: datasets and loaders from a config, weights from
+earlier runs, and the end of a run (model checkpoint, ONNX export, model card).
+
+Every trainer's run directory ends up holding (DESIGN §3.1)::
+
+    config.yaml  last.pt  best.pt  metrics.csv  metrics.json  loss.png  metrics.png   (fit)
+    model.pt     the best weights as a geoseg model checkpoint (geoseg.infer)
+    model.onnx   the same network exported to ONNX (geoseg.export)
+    model_card.json / model_card.md   data, config, command, metrics, timings
+
+Images reach the networks normalised with :data:`NORMALIZATION` (ImageNet statistics, stored in
+``model.pt`` and the ONNX metadata so that :class:`geoseg.infer.Segmenter` applies the same).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import platform
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+from torch.utils.data import Dataset
+
+from geoseg.errors import GeosegError
+from geoseg.infer import DEFAULT_NORMALIZATION, save_model_checkpoint
+from training import distributed as dd
+from training.checkpoint import BEST, LAST, load_checkpoint, restore_checkpoint
+from training.config import DataConfig, TrainConfig
+
+logger = logging.getLogger(__name__)
+
+NORMALIZATION: dict[str, list[float]] = {k: list(v) for k, v in DEFAULT_NORMALIZATION.items()}
+MODEL_FILE = "model.pt"
+ONNX_FILE = "model.onnx"
+CARD_JSON = "model_card.json"
+CARD_MD = "model_card.md"
+
+
+# ----------------------------------------------------------------------------- data
+class NormalizeImage:
+    """Sample transform: ``image = (image - mean) / std`` on a `(3, H, W)` image in [0, 1]."""
+
+    def __init__(self, normalization: Mapping[str, Sequence[float]] = NORMALIZATION) -> None:
+        self.mean = torch.tensor(normalization["mean"], dtype=torch.float32)[:, None, None]
+        self.std = torch.tensor(normalization["std"], dtype=torch.float32)[:, None, None]
+
+    def __call__(self, sample: Mapping[str, Any]) -> dict[str, Any]:
+        out = dict(sample)
+        out["image"] = (out["image"] - self.mean) / self.std
+        return out
+
+
+class Chain:
+    """Apply sample transforms in order (picklable, for DataLoader workers)."""
+
+    def __init__(self, *steps: Any) -> None:
+        self.steps = [s for s in steps if s is not None]
+
+    def __call__(self, sample: Mapping[str, Any]) -> dict[str, Any]:
+        out = dict(sample)
+        for step in self.steps:
+            out = dict(step(out))
+        return out
+
+
+def random_crop(size: Sequence[int]) -> Any:
+    """A sample transform cutting a random ``(h, w)`` window out of image, labels and normals
+    (padded with ignore labels / zero normals when the frame is smaller)."""
+    from torchvision import tv_tensors
+    from torchvision.transforms import v2
+
+    from geoseg.classes import IGNORE_INDEX
+    from geoseg.data.transforms import Normals, SampleTransform
+
+    if len(size) != 2 or any(int(s) < 1 for s in size):
+        raise GeosegError(f"crop: expected positive (h, w), got {list(size)}")
+    fill = {tv_tensors.Image: 0.0, tv_tensors.Mask: IGNORE_INDEX, Normals: 0.0}
+    return SampleTransform(v2.RandomCrop([int(s) for s in size], pad_if_needed=True, fill=fill))
+
+
+def build_frame_dataset(
+    data: DataConfig,
+    split: str,
+    *,
+    augment: bool | None = None,
+    normalize: bool = True,
+    crop: Sequence[int] | None = None,
+) -> Dataset:
+    """The frame dataset of ``split`` described by ``data``.
+
+    Args:
+        data: the run's data section.
+        split: ``"train"``, ``"val"`` or ``"test"`` (synthetic: the held-out evaluation city;
+            Cityscapes: ``data.val_split``).
+        augment: apply the training augmentations (default: only for ``train``).
+        normalize: normalise images with :data:`NORMALIZATION` (False: leave them in [0, 1]).
+        crop: ``(h, w)``: a random crop of that size after the augmentations (training on
+            crops of full-scale frames is cheaper and keeps the scale of evaluation).
+
+    Returns:
+        A dataset of ``{"image": (3, H, W), "labels": (H, W), ...}`` samples at ``data.size``
+        (synthetic samples also hold ``normals`` and ``normal_valid``).
+
+    Raises:
+        GeosegError: unknown split, Cityscapes without ``root`` or in the wrong layout, bad
+            ``data.synth`` keys.
+    """
+    from geoseg.data.transforms import build_transforms
+
+    if split not in ("train", "val", "test"):
+        raise GeosegError(f"split: expected train, val or test, got {split!r}")
+    augment = split == "train" if augment is None else augment
+    transform = Chain(
+        build_transforms(data.augment, size=tuple(data.size), train=augment),
+        random_crop(crop) if crop is not None else None,
+        NormalizeImage() if normalize else None,
+    )
+    if data.source == "synth":
+        from geoseg.data.synthetic import SyntheticDataset, synthetic_config
+
+        return SyntheticDataset(
+            synthetic_config(data.synth, split=split),
+            size=tuple(data.size),
+            cache_dir=data.cache_dir,
+            transform=transform,
+        )
+    if data.source == "cityscapes":
+        from geoseg.data.cityscapes import CityscapesDataset
+
+        if data.root is None:
+            raise GeosegError(
+                "data.root: a Cityscapes-format folder is needed for source=cityscapes"
+            )
+        name = data.train_split if split == "train" else data.val_split
+        return CityscapesDataset(data.root, name, transform=transform)
+    raise GeosegError(f"data.source: expected synth or cityscapes, got {data.source!r}")
+
+
+def make_loaders(cfg: TrainConfig, train_set: Dataset, val_set: Dataset | None) -> tuple[Any, Any]:
+    """Seeded, shard-aware training and validation loaders (:func:`training.distributed.make_loader`)."""
+    train = dd.make_loader(
+        train_set,
+        batch_size=cfg.batch_size,
+        shuffle=True,
+        seed=cfg.seed,
+        num_workers=cfg.data.num_workers,
+        drop_last=len(train_set) > cfg.batch_size,
+    )
+    val = None
+    if val_set is not None:
+        val = dd.make_loader(
+            val_set,
+            batch_size=cfg.val_batch_size or cfg.batch_size,
+            shuffle=False,
+            seed=cfg.seed,
+            num_workers=cfg.data.num_workers,
+        )
+    return train, val
+
+
+def describe_data(data: DataConfig) -> dict[str, Any]:
+    """Plain-data summary of the data a run used (for model cards)."""
+    out: dict[str, Any] = {"source": data.source, "size_hw": list(data.size)}
+    if data.source == "synth":
+        from geoseg.config import to_dict
+        from geoseg.data.synthetic import RENDER_VERSION, synthetic_config
+
+        for split in ("train", "val"):
+            out[split] = to_dict(synthetic_config(data.synth, split=split))
+        out["render_version"] = RENDER_VERSION
+    else:
+        out.update(root=str(data.root), train_split=data.train_split, val_split=data.val_split)
+    out["augment"] = {k: v for k, v in vars(data.augment).items()}
+    return out
+
+
+# ----------------------------------------------------------------------------- weights
+def resolve_weights_file(path: str | os.PathLike) -> Path:
+    """A weights file from a path: a file as is; a run directory's ``model.pt``, else
+    ``best.pt``, else ``last.pt``.
+
+    Raises:
+        GeosegError: nothing usable at ``path``.
+    """
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for name in (MODEL_FILE, BEST, LAST):
+            if (path / name).is_file():
+                return path / name
+        raise GeosegError(f"{path}: no {MODEL_FILE}, {BEST} or {LAST} in this run directory")
+    raise GeosegError(f"{path}: no such checkpoint file or run directory")
+
+
+def load_state(
+    path: str | os.PathLike, *, expected_model: str | None = None
+) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Weights and metadata from a geoseg model checkpoint (``model.pt``) or a training
+    checkpoint (``best.pt``/``last.pt``), or a run directory holding one.
+
+    Args:
+        path: file or run directory (:func:`resolve_weights_file`).
+        expected_model: registry name the checkpoint must hold (e.g. ``"enet"``).
+
+    Returns:
+        ``(state_dict, checkpoint)``.
+
+    Raises:
+        GeosegError: unreadable file, not a geoseg checkpoint, or another architecture.
+    """
+    file = resolve_weights_file(path)
+    try:
+        ckpt = torch.load(file, map_location="cpu", weights_only=True)
+    except Exception as err:
+        raise GeosegError(
+            f"{file}: not a readable checkpoint ({type(err).__name__}: {err})"
+        ) from None
+    if not isinstance(ckpt, dict):
+        raise GeosegError(f"{file}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    if "state_dict" in ckpt:
+        state = ckpt["state_dict"]
+    elif "model" in ckpt and ckpt.get("format") is not None:
+        ckpt = load_checkpoint(file)
+        state = ckpt["model"]
+    else:
+        raise GeosegError(f"{file}: not a geoseg model or training checkpoint")
+    name = ckpt.get("model_name")
+    if expected_model is not None and name != expected_model:
+        raise GeosegError(
+            f"{file}: holds a {name!r} model, expected {expected_model!r} (another architecture)"
+        )
+    return dict(state), ckpt
+
+
+def seed_model_init(seed: int) -> None:
+    """Seed torch before building a model so that its initial weights depend on ``seed`` only."""
+    torch.manual_seed(int(seed))
+
+
+# ----------------------------------------------------------------------------- end of a run
+def read_history(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
+    """The per-epoch rows of ``metrics.json`` (empty when absent)."""
+    path = Path(run_dir) / "metrics.json"
+    if not path.is_file():
+        return []
+    return list(json.loads(path.read_text()))
+
+
+def best_row(history: Sequence[Mapping[str, Any]], key: str, mode: str) -> dict[str, Any]:
+    """The epoch row with the best ``key`` (the last row when none holds a number)."""
+    scored = [r for r in history if isinstance(r.get(key), int | float) and math.isfinite(r[key])]
+    if not scored:
+        return dict(history[-1]) if history else {}
+    pick = min if mode == "min" else max
+    return dict(pick(scored, key=lambda r: r[key]))
+
+
+def load_best_weights(model: nn.Module, run_dir: str | os.PathLike) -> Path:
+    """Load ``best.pt`` (else ``last.pt``) of ``run_dir`` into ``model``; returns the file."""
+    run_dir = Path(run_dir)
+    file = run_dir / BEST if (run_dir / BEST).is_file() else run_dir / LAST
+    restore_checkpoint(file, model, restore_rng=False)
+    return file
+
+
+def finalize_run(
+    run_dir: str | os.PathLike,
+    model: nn.Module,
+    *,
+    kind: str,
+    cfg: Any,
+    model_name: str,
+    model_config: Mapping[str, Any],
+    metrics: Mapping[str, Any],
+    data_summary: Mapping[str, Any],
+    command: str | None = None,
+    export: bool = True,
+    example_size: Sequence[int] = (48, 64),
+    extra_card: Mapping[str, Any] | None = None,
+    extra_checkpoint: Mapping[str, Any] | None = None,
+) -> Path:
+    """Write ``model.pt``, ``model.onnx`` (when ``export``) and the model card (main process).
+
+    Args:
+        run_dir: the run directory.
+        model: the trained model, best weights already loaded.
+        kind: trainer name (``seg``, ``normals``, ``naive``).
+        cfg: the run's config (``as_dict()`` or a dataclass).
+        model_name, model_config: registry name and builder arguments.
+        metrics: final metrics (flat mapping).
+        data_summary: :func:`describe_data` output.
+        command: the command line that produced the run.
+        export: export ONNX.
+        example_size: ``(H, W)`` of the export's example input (the graph is dynamic).
+        extra_card: more entries for the card.
+        extra_checkpoint: more entries for ``model.pt``.
+
+    Returns:
+        ``run_dir``.
+    """
+    run_dir = Path(run_dir)
+    if not dd.is_main_process():
+        return run_dir
+    files = {"checkpoint": MODEL_FILE}
+    save_model_checkpoint(
+        model,
+        run_dir / MODEL_FILE,
+        model_name=model_name,
+        model_config=dict(model_config),
+        normalization=NORMALIZATION,
+        extra=dict(extra_checkpoint or {}),
+    )
+    if export:
+        from geoseg.export import export_onnx
+
+        t0 = time.perf_counter()
+        h, w = (int(s) for s in example_size)
+        export_onnx(
+            model,
+            run_dir / ONNX_FILE,
+            example_inputs=torch.zeros(1, 3, h, w),
+            metadata={
+                "model_name": model_name,
+                "model_config": dict(model_config),
+                "normalization": NORMALIZATION,
+            },
+        )
+        files["onnx"] = ONNX_FILE
+        logger.info("exported %s in %.1f s", run_dir / ONNX_FILE, time.perf_counter() - t0)
+    cfg_dict = cfg.as_dict() if hasattr(cfg, "as_dict") else _plain(cfg)
+    history = read_history(run_dir)
+    card: dict[str, Any] = {
+        "trainer": kind,
+        "model_name": model_name,
+        "model_config": dict(model_config),
+        "parameters": sum(p.numel() for p in model.parameters()),
+        "normalization": NORMALIZATION,
+        "data": dict(data_summary),
+        "config": cfg_dict,
+        "command": command or f"python -c 'from training.{kind} import main; main(cfg)'",
+        "metrics": {k: _json_number(v) for k, v in metrics.items()},
+        "epochs": len(history),
+        "train_minutes": round(sum(float(r.get("time_s") or 0.0) for r in history) / 60.0, 3),
+        "files": files,
+        "machine": {
+            "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "torch": torch.__version__,
+            "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+        },
+    }
+    card.update(extra_card or {})
+    _atomic_write(run_dir / CARD_JSON, json.dumps(card, indent=1, default=str))
+    _atomic_write(run_dir / CARD_MD, _card_markdown(card))
+    return run_dir
+
+
+def _json_number(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _plain(cfg: Any) -> Any:
+    from geoseg.config import to_dict
+
+    return to_dict(cfg)
+
+
+def _atomic_write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+def _card_markdown(card: Mapping[str, Any]) -> str:
+    lines = [
+        f"# Model card: {card['model_name']} ({card['trainer']})",
+        "",
+        f"- parameters: {card['parameters']:,}",
+        f"- epochs: {card['epochs']}, CPU/GPU training time: {card['train_minutes']} min",
+        f"- command: `{card['command']}`",
+        f"- files: {', '.join(str(v) for v in card['files'].values())}",
+        f"- normalisation (images in [0, 1]): mean {card['normalization']['mean']}, "
+        f"std {card['normalization']['std']}",
+        "",
+        "## Metrics",
+        "",
+        "| metric | value |",
+        "|---|---|",
+    ]
+    for key, value in card["metrics"].items():
+        shown = f"{value:.4f}" if isinstance(value, float) else str(value)
+        lines.append(f"| {key} | {shown} |")
+    lines += [
+        "",
+        "## Data",
+        "",
+        "```json",
+        json.dumps(card["data"], indent=1, default=str),
+        "```",
+        "",
+        "## Config",
+        "",
+        "```json",
+        json.dumps(card["config"], indent=1, default=str),
+        "```",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,143 @@
+"""Train the surface-normals head of the joint network (thesis §4.3.2, fig. 4.18, eq. 4.10).
+
+Transfer learning as in the thesis (no dataset holds both labels and normals): the joint
+network's trunk (layers 1-21) and label head are copied from a trained ENet
+(:meth:`~geoseg.models.joint.JointNet.load_enet_weights`) and frozen (``requires_grad=False``,
+batch-norm statistics and dropout fixed); only the normals head trains, with the MSE to the
+ground-truth normals on valid (non-sky) pixels (:class:`~training.losses.NormalsLoss`, optional
+angular term). Validation reports the angular error (mean, median, share within 11.25, 22.5 and
+30 degrees) over all valid pixels (``val_angle_*``) and over building pixels
+(``val_building_angle_*``), plus the (unchanged) label mIoU.
+
+The training data must carry normals: the synthetic source.
+
+Usage::
+
+    geoseg train normals --config configs/normals.yaml --set enet_checkpoint=runs/seg
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from geoseg.errors import ConfigError, GeosegError
+from geoseg.models.registry import get_model
+from training import common
+from training.config import TrainConfig
+from training.loop import fit
+from training.losses import NormalsLoss
+from training.metrics import (
+    MeterCollection,
+    NormalsMeter,
+    SegmentationMeter,
+    building_normals_meter,
+)
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class NormalsConfig(TrainConfig):
+    """Normals-head training run (fields beyond :class:`~training.config.TrainConfig`).
+
+    Attributes:
+        enet_checkpoint: the trained ENet: a ``model.pt``, a training checkpoint or a seg run
+            directory (required).
+        angular_weight: weight of the extra mean-angle loss term (0: the thesis's MSE only).
+        export: export ``model.onnx`` at the end.
+        train_crop: ``(h, w)`` random training crops of the ``data.size`` frames (None: whole
+            frames); validation always uses whole frames.
+    """
+
+    model: str = "joint"
+    out_dir: Path = Path("runs/normals")
+    best_metric: str = "val_building_angle_median"
+    best_mode: Literal["min", "max"] = "min"
+    enet_checkpoint: Path | None = None
+    angular_weight: float = 0.0
+    export: bool = True
+    train_crop: tuple[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.train_crop is not None and min(self.train_crop) < 1:
+            raise ConfigError(f"train_crop: expected positive (h, w), got {self.train_crop}")
+        if self.model != "joint":
+            raise ConfigError(f"model: the normals trainer trains 'joint', got {self.model!r}")
+        if self.angular_weight < 0:
+            raise ConfigError(f"angular_weight: expected >= 0, got {self.angular_weight}")
+        if self.enet_checkpoint is not None:
+            self.enet_checkpoint = Path(self.enet_checkpoint)
+
+
+CONFIG_CLASS = NormalsConfig
+
+
+def normals_meter(num_classes: int) -> MeterCollection:
+    """Angular errors on all valid pixels and on building pixels, plus the label confusion."""
+    return MeterCollection(NormalsMeter(), building_normals_meter(), SegmentationMeter(num_classes))
+
+
+def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
+    """Train the normals head as ``cfg`` says; returns the run directory.
+
+    Raises:
+        GeosegError: no ``enet_checkpoint``, a checkpoint of another architecture, data without
+            normals, an existing run without ``resume``/``overwrite``.
+    """
+    if cfg.enet_checkpoint is None:
+        raise GeosegError(
+            "enet_checkpoint: the normals trainer starts from a trained ENet; set it to a seg "
+            "run directory or model file (e.g. --set enet_checkpoint=runs/seg)"
+        )
+    if cfg.data.source != "synth":
+        raise GeosegError(
+            f"data.source: normals training needs ground-truth normals (synth), got "
+            f"{cfg.data.source!r}"
+        )
+    state, _ = common.load_state(cfg.enet_checkpoint, expected_model="enet")
+    common.seed_model_init(cfg.seed)
+    model = get_model("joint", **cfg.model_config)
+    model.load_enet_weights(state)
+    model.freeze_trunk_and_labels(True)
+    logger.info(
+        "joint network from %s: %d trainable of %d parameters (normals head)",
+        cfg.enet_checkpoint,
+        sum(p.numel() for p in model.parameters() if p.requires_grad),
+        sum(p.numel() for p in model.parameters()),
+    )
+    train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
+    val_set = common.build_frame_dataset(cfg.data, "val")
+    train_loader, val_loader = common.make_loaders(cfg, train_set, val_set)
+    loss_fn = NormalsLoss(angular_weight=cfg.angular_weight)
+    run_dir = fit(
+        cfg,
+        model,
+        train_loader,
+        val_loader,
+        loss_fn,
+        normals_meter(model.num_classes),
+        model_name="joint",
+        model_config=cfg.model_config,
+        extra={"enet_checkpoint": str(cfg.enet_checkpoint)},
+    )
+    common.load_best_weights(model, run_dir)
+    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
+    common.finalize_run(
+        run_dir,
+        model.cpu(),
+        kind="normals",
+        cfg=cfg,
+        model_name="joint",
+        model_config=cfg.model_config,
+        metrics=metrics,
+        data_summary=common.describe_data(cfg.data),
+        command=command,
+        export=cfg.export,
+        example_size=cfg.data.size,
+        extra_card={"enet_checkpoint": str(cfg.enet_checkpoint), "frozen": "trunk, label_head"},
+    )
+    return run_dir
