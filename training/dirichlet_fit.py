@@ -246,7 +246,7 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         "dirichlet_extra_false_rejections": d_scores["extra_false_rejections"],
         "maxprob_fp_removed_same_rejections": m_scores["fp_removed"],
         "maxprob_extra_false_rejections": m_scores["extra_false_rejections"],
-        "winner": _winner(d_scores, m_scores),
+        "winner": filter_winner(d_scores, m_scores),
         "false_rejection_rate": cfg.false_rejection_rate,
         "dirichlet_threshold_log_density": dirichlet.threshold,
         "maxprob_threshold": baseline.threshold,
@@ -295,7 +295,7 @@ def _finite(value: Any) -> Any:
     return value
 
 
-def _winner(d: dict[str, Any], m: dict[str, Any]) -> str:
+def filter_winner(d: dict[str, Any], m: dict[str, Any]) -> str:
     """The filter removing more false positives (ties: fewer extra rejections)."""
     a = (d["fp_removed"], -d["extra_false_rejections"])
     b = (m["fp_removed"], -m["extra_false_rejections"])
