@@ -20,7 +20,7 @@ import math
 import os
 import platform
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
-from geoseg.errors import GeosegError
+from geoseg.errors import ConfigError, GeosegError
 from geoseg.infer import DEFAULT_NORMALIZATION, save_model_checkpoint
 from training import distributed as dd
 from training.checkpoint import BEST, LAST, load_checkpoint, restore_checkpoint
@@ -41,6 +41,26 @@ MODEL_FILE = "model.pt"
 ONNX_FILE = "model.onnx"
 CARD_JSON = "model_card.json"
 CARD_MD = "model_card.md"
+
+
+# ----------------------------------------------------------------------------- config
+def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
+    """The ``__post_init__`` checks every image trainer's config shares.
+
+    Args:
+        cfg: the config; its ``train_crop`` (``(h, w)`` or None, when the trainer has one) must be
+            positive and its ``model`` must be ``model``.
+        trainer: trainer name for the message (``seg``, ``normals``, ``naive``).
+        model: the registry name that trainer trains.
+
+    Raises:
+        ConfigError: a non-positive crop, or another model.
+    """
+    crop = getattr(cfg, "train_crop", None)
+    if crop is not None and min(crop) < 1:
+        raise ConfigError(f"train_crop: expected positive (h, w), got {crop}")
+    if cfg.model != model:
+        raise ConfigError(f"model: the {trainer} trainer trains {model!r}, got {cfg.model!r}")
 
 
 # ----------------------------------------------------------------------------- data
@@ -361,6 +381,58 @@ def finalize_run(
     _atomic_write(run_dir / CARD_JSON, json.dumps(card, indent=1, default=str))
     _atomic_write(run_dir / CARD_MD, _card_markdown(card))
     return run_dir
+
+
+def finish_run(
+    run_dir: str | os.PathLike,
+    model: nn.Module,
+    cfg: Any,
+    *,
+    kind: str,
+    model_name: str,
+    command: str | None = None,
+    extra_card: Mapping[str, Any] | None = None,
+    extra_metrics: Callable[[nn.Module], Mapping[str, Any]] | None = None,
+) -> Path:
+    """The end of an image trainer's ``main``: best weights, best epoch's metrics, artefacts.
+
+    Loads the best weights into ``model`` (:func:`load_best_weights`), takes the metrics of the
+    best epoch by ``cfg.best_metric``/``cfg.best_mode`` (:func:`best_row`), adds
+    ``extra_metrics(model)`` when given (e.g. a dense evaluation, run on the best weights before
+    the model moves to the CPU), then :func:`finalize_run` with the config's data summary,
+    ``cfg.export`` and ``cfg.data.size`` as the export's example size.
+
+    Args:
+        run_dir: the run directory :func:`training.loop.fit` returned.
+        model: the trained model (any device).
+        cfg: the run's :class:`~training.config.TrainConfig` (with ``export``).
+        kind: trainer name (``seg``, ``normals``, ``naive``).
+        model_name: registry name of ``model``.
+        command: the command line that produced the run.
+        extra_card: more entries for the model card.
+        extra_metrics: ``model -> {name: value}`` merged into the final metrics.
+
+    Returns:
+        ``run_dir`` as a :class:`~pathlib.Path`.
+    """
+    load_best_weights(model, run_dir)
+    metrics = best_row(read_history(run_dir), cfg.best_metric, cfg.best_mode)
+    if extra_metrics is not None:
+        metrics.update(extra_metrics(model))
+    return finalize_run(
+        run_dir,
+        model.cpu(),
+        kind=kind,
+        cfg=cfg,
+        model_name=model_name,
+        model_config=cfg.model_config,
+        metrics=metrics,
+        data_summary=describe_data(cfg.data),
+        command=command,
+        export=cfg.export,
+        example_size=cfg.data.size,
+        extra_card=extra_card,
+    )
 
 
 def _json_number(value: Any) -> Any:

@@ -63,8 +63,7 @@ class NaiveConfig(TrainConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.model != "naive_cnn":
-            raise ConfigError(f"model: the naive trainer trains 'naive_cnn', got {self.model!r}")
+        common.check_trainer_config(self, trainer="naive", model="naive_cnn")
         for key in ("patches_per_frame", "val_patches_per_frame"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"{key}: expected >= 1, got {getattr(self, key)}")
@@ -157,21 +156,14 @@ def main(cfg: NaiveConfig, *, command: str | None = None) -> Path:
         model_name="naive_cnn",
         model_config=cfg.model_config,
     )
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
-    metrics.update(dense_evaluate(model, cfg))
-    common.finalize_run(
+    return common.finish_run(
         run_dir,
-        model.cpu(),
+        model,
+        cfg,
         kind="naive",
-        cfg=cfg,
         model_name="naive_cnn",
-        model_config=cfg.model_config,
-        metrics=metrics,
-        data_summary=common.describe_data(cfg.data),
         command=command,
-        export=cfg.export,
-        example_size=cfg.data.size,
         extra_card={"patches_per_frame": cfg.patches_per_frame, "patch_size": model.patch_size},
+        # dense scores of the best weights, before finish_run moves the model to the CPU
+        extra_metrics=lambda best: dense_evaluate(best, cfg),
     )
-    return run_dir

@@ -63,10 +63,7 @@ class NormalsConfig(TrainConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.train_crop is not None and min(self.train_crop) < 1:
-            raise ConfigError(f"train_crop: expected positive (h, w), got {self.train_crop}")
-        if self.model != "joint":
-            raise ConfigError(f"model: the normals trainer trains 'joint', got {self.model!r}")
+        common.check_trainer_config(self, trainer="normals", model="joint")
         if self.angular_weight < 0:
             raise ConfigError(f"angular_weight: expected >= 0, got {self.angular_weight}")
         if self.enet_checkpoint is not None:
@@ -124,20 +121,12 @@ def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
         model_config=cfg.model_config,
         extra={"enet_checkpoint": str(cfg.enet_checkpoint)},
     )
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
-    common.finalize_run(
+    return common.finish_run(
         run_dir,
-        model.cpu(),
+        model,
+        cfg,
         kind="normals",
-        cfg=cfg,
         model_name="joint",
-        model_config=cfg.model_config,
-        metrics=metrics,
-        data_summary=common.describe_data(cfg.data),
         command=command,
-        export=cfg.export,
-        example_size=cfg.data.size,
         extra_card={"enet_checkpoint": str(cfg.enet_checkpoint), "frozen": "trunk, label_head"},
     )
-    return run_dir

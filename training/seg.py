@@ -72,10 +72,7 @@ class SegConfig(TrainConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.train_crop is not None and min(self.train_crop) < 1:
-            raise ConfigError(f"train_crop: expected positive (h, w), got {self.train_crop}")
-        if self.model != "enet":
-            raise ConfigError(f"model: the seg trainer trains 'enet', got {self.model!r}")
+        common.check_trainer_config(self, trainer="seg", model="enet")
         if self.encoder_epochs < 0:
             raise ConfigError(f"encoder_epochs: expected >= 0, got {self.encoder_epochs}")
         if self.class_weight_samples < 1:
@@ -170,21 +167,6 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
         model_config=cfg.model_config,
         extra=extra,
     )
-    common.load_best_weights(model, run_dir)
-    history = common.read_history(run_dir)
-    metrics = common.best_row(history, cfg.best_metric, cfg.best_mode)
-    common.finalize_run(
-        run_dir,
-        model.cpu(),
-        kind="seg",
-        cfg=cfg,
-        model_name="enet",
-        model_config=cfg.model_config,
-        metrics=metrics,
-        data_summary=common.describe_data(cfg.data),
-        command=command,
-        export=cfg.export,
-        example_size=cfg.data.size,
-        extra_card={"class_weights": weights.tolist(), "class_counts": counts.tolist()},
+    return common.finish_run(
+        run_dir, model, cfg, kind="seg", model_name="enet", command=command, extra_card=extra
     )
-    return run_dir

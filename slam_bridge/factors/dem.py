@@ -26,10 +26,8 @@ from typing import Protocol
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite, check_shape
-from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.factors.single_camera import SingleCameraFactor
+from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 
@@ -150,7 +148,7 @@ def dem_residuals(
     return r, J
 
 
-class DEMFactor:
+class DEMFactor(SingleCameraFactor):
     """Terrain-elevation constraint on some cameras, one scalar row per camera.
 
     Args:
@@ -172,8 +170,8 @@ class DEMFactor:
         kernel: str | RobustKernel | None = None,
         name: str = "dem",
     ) -> None:
-        self.cameras = np.asarray(cameras, dtype=np.int64).reshape(-1)
-        M = self.cameras.size
+        cameras = np.asarray(cameras, dtype=np.int64).reshape(-1)
+        M = cameras.size
         if not (hasattr(terrain, "altitude_at") and hasattr(terrain, "gradient_at")):
             raise GeosegError("terrain: expected an object with altitude_at and gradient_at")
         self.terrain = terrain
@@ -181,35 +179,8 @@ class DEMFactor:
             np.asarray(camera_height, dtype=np.float64), (M,)
         ).copy()
         check_finite("camera_height", self.camera_height)
-        w = np.ones(M) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
-        check_shape("weights", w, (M,))
-        if not np.all(np.isfinite(w)) or np.any(w < 0):
-            raise GeosegError("weights: expected finite non-negative DEM weights")
-        self.sqrt_weights = np.sqrt(w)
-        self.kernel = get_kernel(kernel)
-        self.name = name
+        super().__init__(cameras, weights, kernel=kernel, name=name, weight_label="DEM")
 
-    def _check(self, state: BAState) -> None:
-        if self.cameras.size and (
-            self.cameras.max() >= state.num_cameras or self.cameras.min() < 0
-        ):
-            raise SlamError(f"{self.name}: camera index out of range for {state.num_cameras}")
-
-    def evaluate(self, state: BAState) -> FactorBlock:
-        """Rows ``(M, 1)``, ``a = 1``."""
-        self._check(state)
-        r, J = dem_residuals(
-            state.t_wc[self.cameras], self.terrain, self.camera_height, self.sqrt_weights
-        )
-        return FactorBlock(
-            residuals=r,
-            cameras=self.cameras[:, None],
-            J_cameras=J[:, None],
-            kernel=self.kernel,
-            name=self.name,
-        )
-
-    def cost(self, state: BAState) -> float:
-        """``sum_i rho(w_i (T_i,z - h(T_i,xy) - h_cam)^2)``."""
-        r = self.evaluate(state).residuals
-        return float(np.sum(self.kernel.rho(r[:, 0] ** 2)))
+    def _residuals(self, t_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``(M, 1)``: ``sqrt(w_i) (T_i,z - h(T_i,xy) - h_cam)`` (:func:`dem_residuals`)."""
+        return dem_residuals(t_wc, self.terrain, self.camera_height, self.sqrt_weights)

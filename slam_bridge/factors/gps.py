@@ -24,9 +24,9 @@ import numpy as np
 
 from geoseg.errors import check_shape
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
+from slam_bridge.factors.single_camera import SingleCameraFactor, check_weights
 from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 
@@ -64,12 +64,7 @@ def clean_gps_fixes(
     if xy_gps.ndim == 1:
         xy_gps = xy_gps[None, :]
     check_shape("xy_gps", xy_gps, (cameras.shape[0], 2))
-    if weights is None:
-        weights = np.ones(cameras.shape[0])
-    weights = np.asarray(weights, dtype=np.float64).reshape(-1)
-    check_shape("weights", weights, (cameras.shape[0],))
-    if not np.all(np.isfinite(weights)) or np.any(weights < 0):
-        raise GPSFixError("weights: expected finite non-negative GPS weights")
+    weights = check_weights(weights, cameras.shape[0], "GPS", error=GPSFixError)
     if np.any(np.isinf(xy_gps)):
         raise GPSFixError("xy_gps: contains infinite values")
     missing = np.isnan(xy_gps).any(axis=1)
@@ -105,7 +100,7 @@ def gps_residuals(
     return r, J
 
 
-class GPSFactor:
+class GPSFactor(SingleCameraFactor):
     """GPS fixes on the horizontal positions of some cameras (eq. B.7), one row per fix.
 
     Args:
@@ -132,12 +127,12 @@ class GPSFactor:
         kernel: str | RobustKernel | None = None,
         name: str = "gps",
     ) -> None:
-        self.cameras, self.xy_gps, w = clean_gps_fixes(
+        cameras, self.xy_gps, w = clean_gps_fixes(
             cameras, xy_gps, weights, skip_missing=skip_missing
         )
-        self.sqrt_weights = np.sqrt(w)
-        self.kernel = get_kernel(kernel)
-        self.name = name
+        super().__init__(
+            cameras, w, kernel=kernel, name=name, weight_label="GPS", error=GPSFixError
+        )
 
     @classmethod
     def most_recent(
@@ -160,26 +155,6 @@ class GPSFactor:
         xy = np.asarray(xy_gps, dtype=np.float64).reshape(1, 2)
         return cls(np.array([free[-1]]), xy, np.array([weight]), **kwargs)
 
-    def _check(self, state: BAState) -> None:
-        if self.cameras.size and (
-            self.cameras.max() >= state.num_cameras or self.cameras.min() < 0
-        ):
-            raise SlamError(f"{self.name}: camera index out of range for {state.num_cameras}")
-
-    def evaluate(self, state: BAState) -> FactorBlock:
-        """Rows ``(M, 2)``, ``a = 1``."""
-        self._check(state)
-        r, J = gps_residuals(state.t_wc[self.cameras], self.xy_gps, self.sqrt_weights)
-        return FactorBlock(
-            residuals=r,
-            cameras=self.cameras[:, None],
-            J_cameras=J[:, None],
-            kernel=self.kernel,
-            name=self.name,
-        )
-
-    def cost(self, state: BAState) -> float:
-        """``sum_i rho(w_i ||T_i[:2] - x_gps,i||^2)``."""
-        self._check(state)
-        r = self.sqrt_weights[:, None] * (state.t_wc[self.cameras, :2] - self.xy_gps)
-        return float(np.sum(self.kernel.rho(np.einsum("mk,mk->m", r, r))))
+    def _residuals(self, t_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``(M, 2)``: ``r_i = sqrt(w_i) (T_i[:2] - x_gps,i)`` (:func:`gps_residuals`)."""
+        return gps_residuals(t_wc, self.xy_gps, self.sqrt_weights)

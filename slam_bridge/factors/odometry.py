@@ -20,10 +20,8 @@ import logging
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite, check_shape
-from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.factors.single_camera import SingleCameraFactor
+from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 
@@ -92,7 +90,7 @@ def odometry_residuals(
     return r, J
 
 
-class OdometryFactor:
+class OdometryFactor(SingleCameraFactor):
     """Camera positions tied to dead-reckoned odometry positions, one row per constrained camera.
 
     Args:
@@ -116,8 +114,8 @@ class OdometryFactor:
         kernel: str | RobustKernel | None = None,
         name: str = "odometry",
     ) -> None:
-        self.cameras = np.asarray(cameras, dtype=np.int64).reshape(-1)
-        M = self.cameras.size
+        cameras = np.asarray(cameras, dtype=np.int64).reshape(-1)
+        M = cameras.size
         self.x_odo_w = np.asarray(x_odo_w, dtype=np.float64)
         if (
             self.x_odo_w.ndim != 2
@@ -132,34 +130,8 @@ class OdometryFactor:
                 f"x_odo_w: expected shape ({M}, 2) or ({M}, 3), got {self.x_odo_w.shape}"
             )
         check_finite("x_odo_w", self.x_odo_w)
-        w = np.ones(M) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
-        check_shape("weights", w, (M,))
-        if not np.all(np.isfinite(w)) or np.any(w < 0):
-            raise GeosegError("weights: expected finite non-negative odometry weights")
-        self.sqrt_weights = np.sqrt(w)
-        self.kernel = get_kernel(kernel)
-        self.name = name
+        super().__init__(cameras, weights, kernel=kernel, name=name, weight_label="odometry")
 
-    def _check(self, state: BAState) -> None:
-        if self.cameras.size and (
-            self.cameras.max() >= state.num_cameras or self.cameras.min() < 0
-        ):
-            raise SlamError(f"{self.name}: camera index out of range for {state.num_cameras}")
-
-    def evaluate(self, state: BAState) -> FactorBlock:
-        """Rows ``(M, D)``, ``a = 1``."""
-        self._check(state)
-        r, J = odometry_residuals(state.t_wc[self.cameras], self.x_odo_w, self.sqrt_weights)
-        return FactorBlock(
-            residuals=r,
-            cameras=self.cameras[:, None],
-            J_cameras=J[:, None],
-            kernel=self.kernel,
-            name=self.name,
-        )
-
-    def cost(self, state: BAState) -> float:
-        """``sum_i rho(w_i ||S T_i - x_odo,i||^2)``."""
-        self._check(state)
-        r, _ = odometry_residuals(state.t_wc[self.cameras], self.x_odo_w, self.sqrt_weights)
-        return float(np.sum(self.kernel.rho(np.einsum("mk,mk->m", r, r))))
+    def _residuals(self, t_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Rows ``(M, D)``: ``r_i = sqrt(w_i) (S T_i - x_odo,i)`` (:func:`odometry_residuals`)."""
+        return odometry_residuals(t_wc, self.x_odo_w, self.sqrt_weights)
