@@ -6,6 +6,8 @@ Examples::
     geoseg train normals --config configs/normals.yaml --set enet_checkpoint=runs/seg
     geoseg train naive --config configs/naive.yaml --device cpu --set epochs=2
     geoseg train dirichlet --config configs/dirichlet.yaml --set naive_checkpoint=runs/naive
+    geoseg train reloc --config configs/reloc.yaml --set trunk_checkpoint=runs/seg
+    geoseg train relpose --config configs/relpose.yaml --set trunk_checkpoint=runs/seg
     geoseg train seg --config configs/seg.yaml --resume        # continue after a crash
     torchrun --nproc_per_node=2 -m geoseg.cli train seg ...    # data-parallel
 
@@ -25,8 +27,8 @@ TRAINERS: dict[str, str | None] = {
     "normals": "training.normals",
     "naive": "training.naive",
     "dirichlet": "training.dirichlet_fit",
-    "reloc": None,  # issue 5
-    "relpose": None,  # issue 5
+    "reloc": "training.reloc",
+    "relpose": "training.relpose",
 }
 
 

@@ -279,11 +279,6 @@ def test_cli_bad_config_key_exits_2_naming_it(capsys):
     assert "no_such_key" in capsys.readouterr().err
 
 
-def test_cli_reloc_is_not_implemented_yet(capsys):
-    assert cli_main(["train", "reloc"]) == 2
-    assert "issue 5" in capsys.readouterr().err
-
-
 def test_cli_dataset_in_the_wrong_layout_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "images").mkdir()
     code = cli_main(

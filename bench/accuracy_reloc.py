@@ -1,0 +1,474 @@
+"""Relocalisation accuracy on a held-out city (thesis §5.1, issue 5).
+
+Database = one traversal (``summer_day``), queries = another (``winter``) of the same tram route
+in the held-out evaluation city 1000 (never seen by the trunk nor the heads), ~5 km with a
+keyframe every 11.7 m (428 keyframes, like the thesis's sequences); the query traversal runs
+3 m further along the track with a +-3 degree yaw jitter, so no query is pixel-aligned with a
+database image. Measured:
+
+* retrieval, for the raw layer-21 matching of §5.1.1 (flattened features, L2) and the learned
+  embedding (eq. 5.1 head): Recall@1 and Recall@3 over the whole base, and Recall@1 with the
+  search restricted to a GPS window (query GPS = true position + N(0, 2 m) per axis, radius
+  25 m). A base image is correct when its camera is within 5 m and 30 degrees of the query's;
+* triplet accuracy on held-out triplets (ref = query, match = positive, other >= 25 m away);
+* relative pose on held-out pairs (baseline 0.5-10 m, axes within 30 degrees): median rotation
+  and translation-direction errors of the head, beside the essential-matrix baseline (ORB and
+  SIFT -> ``findEssentialMat`` + ``recoverPose``) on the same pairs, separately for
+  same-condition and cross-condition pairs (the baseline's medians are over the pairs where it
+  returns a pose; its failure share is reported);
+* absolute position of each query from its top-``k`` retrieved base images (learned embedding,
+  GPS window) by robust ray intersection of the head's directions: median horizontal error over
+  the non-degenerate queries and the degenerate share (also with the true directions: the
+  geometric limit of a tram line, where base cameras are nearly collinear with the query);
+* figures: a t-SNE of the layer-21 features (adaptive-average-pooled to 8x10 before PCA) and of
+  the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
+  (query | top-3, green = correct).
+
+Weights: ``--trunk`` (default ``runs/seg``), ``--reloc`` (``runs/reloc``), ``--relpose``
+(``runs/relpose``); the word ``random`` asks for random weights. A missing one is replaced by random weights, and then the results JSON is
+**refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
+
+Usage: ``python bench/accuracy_reloc.py [--quick] [--allow-untrained] [--out DIR]``. Prints a
+Markdown table and writes ``<out>/accuracy_reloc.json`` (default ``bench/results``) with the PNGs
+beside it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm.auto import tqdm
+
+ROOT = Path(__file__).resolve().parents[1]
+NAME = "accuracy_reloc"
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument(
+        "--trunk", type=Path, default=None, help="ENet/joint model (default runs/seg; 'random')"
+    )
+    p.add_argument("--reloc", type=Path, default=None, help="embedding head (runs/reloc)")
+    p.add_argument("--relpose", type=Path, default=None, help="relative-pose head (runs/relpose)")
+    p.add_argument("--quick", action="store_true", help="tiny smoke run (tiny city, 64x48)")
+    p.add_argument(
+        "--allow-untrained", action="store_true", help="write the JSON even with random weights"
+    )
+    p.add_argument("--out", type=Path, default=ROOT / "bench" / "results", help="output folder")
+    p.add_argument("--cache-dir", type=Path, default=ROOT / "runs" / "cache" / "traversals")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--pairs", type=int, default=None, help="relative-pose pairs per group")
+    p.add_argument("--triplets", type=int, default=None, help="held-out triplets")
+    p.add_argument("--top-k", type=int, default=5, help="base images per absolute position")
+    p.add_argument("--gps-radius", type=float, default=25.0, help="GPS window radius, m")
+    p.add_argument("--gps-sigma", type=float, default=2.0, help="GPS noise per axis, m")
+    p.add_argument("--seed", type=int, default=0)
+    return p.parse_args(argv)
+
+
+def eval_route(quick: bool) -> Any:
+    from geoseg.data.traversals import RouteSpec
+
+    if quick:
+        return RouteSpec(
+            seed=1000,
+            world={"blocks_x": 2, "blocks_y": 2},
+            length_m=60.0,
+            spacing_m=6.0,
+            size=(48, 64),
+            offset_m=3.0,
+            yaw_jitter_deg=3.0,
+        )
+    return RouteSpec(
+        seed=1000,
+        world={"blocks_x": 6, "blocks_y": 5},
+        length_m=5000.0,
+        spacing_m=11.7,
+        conditions=["summer_day", "winter"],
+        size=(240, 320),
+        offset_m=3.0,
+        yaw_jitter_deg=3.0,
+    )
+
+
+# ----------------------------------------------------------------------------- weights
+def _default(path: Path | None, run: str) -> Path | None:
+    """The weights to load: ``path``, else ``runs/<run>`` when present; None = random weights
+    (also when ``path`` is the word ``random``)."""
+    if path is not None:
+        return None if str(path) == "random" else path
+    candidate = ROOT / "runs" / run
+    return candidate if candidate.exists() else None
+
+
+def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, torch.nn.Module, list]:
+    """(trunk extractor, reloc head, relpose head, names of the untrained ones)."""
+    from geoseg.data.traversals import TrunkFeatureExtractor
+    from geoseg.models.registry import get_model
+    from training import common
+    from training.reloc import load_trunk
+
+    untrained = []
+    trunk_path = _default(args.trunk, "seg")
+    if trunk_path is None:
+        untrained.append("trunk")
+        torch.manual_seed(args.seed)
+        extractor = TrunkFeatureExtractor(get_model("enet"), device=args.device)
+    else:
+        extractor = load_trunk(trunk_path, device=args.device)
+    heads = []
+    for name, path in (("reloc", args.reloc), ("relpose", args.relpose)):
+        path = _default(path, name)
+        if path is None:
+            untrained.append(name)
+            torch.manual_seed(args.seed)
+            heads.append(get_model(name))
+            continue
+        state, ckpt = common.load_state(path, expected_model=name)
+        head = get_model(name, **dict(ckpt.get("model_config") or {}))
+        head.load_state_dict(state)
+        heads.append(head)
+    return extractor, heads[0].eval(), heads[1].eval(), untrained
+
+
+# ----------------------------------------------------------------------------- measurements
+def _median(x: np.ndarray) -> float:
+    x = np.asarray(x, dtype=np.float64)
+    x = x[np.isfinite(x)]
+    return float(np.median(x)) if x.size else float("nan")
+
+
+def relpose_predictions(head: torch.nn.Module, fa: torch.Tensor, fb: torch.Tensor) -> tuple:
+    """Head outputs as NumPy ``(R_ab (n, 3, 3), t_dir (n, 3))`` for feature pairs."""
+    from geoseg.models.relpose import so3_exp
+
+    rots, dirs = [], []
+    with torch.no_grad():
+        for s in range(0, fa.shape[0], 64):
+            out = head(fa[s : s + 64].float(), fb[s : s + 64].float())
+            rots.append(so3_exp(out["rotation"].double()).numpy())
+            dirs.append(out["direction"].double().numpy())
+    return np.concatenate(rots), np.concatenate(dirs)
+
+
+def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
+    """Recall@1/3 (whole base), Recall@1 (GPS window), for each embedding; returns indices."""
+    from geoseg.data.pairs import truth_sets
+    from geoseg.localize import RetrievalIndex, evaluate_retrieval
+
+    truth = truth_sets(db.poses, qr.poses, max_distance_m=5.0, max_angle_deg=30.0)
+    keep = np.array([len(t) > 0 for t in truth])
+    res["queries"] = int(keep.sum())
+    res["queries_without_positive"] = int((~keep).sum())
+    sets = [t for t, k in zip(truth, keep) if k]
+    rng = np.random.default_rng(args.seed)
+    gps = qr.t_wc[:, :2] + rng.normal(0.0, args.gps_sigma, size=(len(qr), 2))
+    indices = {}
+    for name, (e_db, e_q) in emb.items():
+        index = RetrievalIndex(e_db, R_wc=db.R_wc, t_wc=db.t_wc)
+        whole = evaluate_retrieval(index, e_q[keep], sets, ks=(1, 3))
+        window = evaluate_retrieval(
+            index, e_q[keep], sets, ks=(1,), gps=gps[keep], radius_m=args.gps_radius
+        )
+        suffix = "" if name == "learned" else "_raw_layer21"
+        res[f"recall_at_1{suffix}"] = whole["recall@1"]
+        res[f"recall_at_3{suffix}"] = whole["recall@3"]
+        res[f"recall_at_1_gps_window{suffix}"] = window["recall@1"]
+        indices[name] = index
+    return {"truth": truth, "keep": keep, "gps": gps, "index": indices}
+
+
+def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
+    """Head vs essential-matrix baseline on same- and cross-condition held-out pairs."""
+    from geoseg.data.pairs import sample_relpose_pairs
+    from geoseg.essential_baseline import (
+        direction_error_deg,
+        estimate_relative_pose,
+        rotation_error_deg,
+    )
+
+    groups = {"same": [(0, 0), (1, 1)], "cross": [(0, 1), (1, 0)]}
+    all_err: dict[str, list] = {}
+    for group, combos in groups.items():
+        errs: dict[str, list] = {}
+        for k, (i, j) in enumerate(combos):
+            n = n_pairs // 2 + (k < n_pairs % 2)
+            pairs = sample_relpose_pairs(
+                travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
+            )
+            fa, fb = feats[i][pairs.idx_a], feats[j][pairs.idx_b]
+            R, t = relpose_predictions(head, fa, fb)
+            errs.setdefault("head_rot", []).append(rotation_error_deg(R, pairs.R_ab))
+            errs.setdefault("head_dir", []).append(direction_error_deg(t, pairs.t_dir_ab))
+            for method in ("orb", "sift"):
+                rot, dirn = [], []
+                rows = zip(pairs.idx_a, pairs.idx_b, pairs.R_ab, pairs.t_dir_ab)
+                desc = f"{method} {group} {travs[i].condition}/{travs[j].condition}"
+                for a, b, Rg, tg in tqdm(rows, total=len(pairs), desc=desc, leave=False):
+                    est = estimate_relative_pose(
+                        travs[i].images[a], travs[j].images[b], travs[i].K, method=method
+                    )
+                    rot.append(rotation_error_deg(est.R_ab, Rg) if est.ok else np.nan)
+                    dirn.append(direction_error_deg(est.t_dir_ab, tg) if est.ok else np.nan)
+                errs.setdefault(f"{method}_rot", []).append(np.asarray(rot))
+                errs.setdefault(f"{method}_dir", []).append(np.asarray(dirn))
+        for key, parts in errs.items():
+            arr = np.concatenate(parts)
+            all_err.setdefault(key, []).append(arr)
+            who, what = key.split("_")
+            prefix = "relpose" if who == "head" else f"essential_{who}"
+            res[f"{prefix}_{what}_median_deg_{group}"] = _median(arr)
+            if who != "head" and what == "rot":
+                res[f"essential_{who}_failure_share_{group}"] = float(np.mean(~np.isfinite(arr)))
+    for key, parts in all_err.items():
+        who, what = key.split("_")
+        prefix = "relpose" if who == "head" else f"essential_{who}"
+        res[f"{prefix}_{what}_median_deg"] = _median(np.concatenate(parts))
+        if who != "head" and what == "rot":
+            res[f"essential_{who}_failure_share"] = float(
+                np.mean(~np.isfinite(np.concatenate(parts)))
+            )
+    # the required flat keys: the better classical method (SIFT) stands for the baseline
+    res["essential_rot_median_deg"] = res["essential_sift_rot_median_deg"]
+    res["essential_dir_median_deg"] = res["essential_sift_dir_median_deg"]
+
+
+def measure_abs_position(res: dict, db, qr, f_db, f_q, head, retrieval: dict, args) -> None:
+    """Absolute position from the top-k retrieved base images (learned, GPS window)."""
+    from geoseg.localize import absolute_position
+    from geoseg.models.relpose import relative_pose_labels
+
+    keep = np.flatnonzero(retrieval["keep"])
+    index = retrieval["index"]["learned"]
+    q_emb = retrieval["q_learned"]
+    ranked, _ = index.query(
+        q_emb[keep], k=args.top_k, gps=retrieval["gps"][keep], radius_m=args.gps_radius
+    )
+    errors, degenerate, errors_true, degenerate_true = [], 0, [], 0
+    for q, row in zip(keep, ranked):
+        base = row[row >= 0]
+        if base.size < 2:
+            degenerate += 1
+            degenerate_true += 1
+            continue
+        _, dirs = relpose_predictions(
+            head, f_db[base], f_q[q : q + 1].expand(base.size, -1, -1, -1)
+        )
+        sol = absolute_position(db.R_wc[base], db.t_wc[base], dirs)
+        if sol.degenerate:
+            degenerate += 1
+        else:
+            errors.append(float(np.linalg.norm(sol.point[:2] - qr.t_wc[q, :2])))
+        dist = np.linalg.norm(db.t_wc[base] - qr.t_wc[q], axis=1)
+        if (dist < 1e-6).any():
+            degenerate_true += 1
+            continue
+        _, t_true = relative_pose_labels(
+            db.R_wc[base], db.t_wc[base], np.repeat(qr.R_wc[q : q + 1], base.size, 0),
+            np.repeat(qr.t_wc[q : q + 1], base.size, 0),
+        )  # fmt: skip
+        sol_true = absolute_position(db.R_wc[base], db.t_wc[base], t_true)
+        if sol_true.degenerate:
+            degenerate_true += 1
+        else:
+            errors_true.append(float(np.linalg.norm(sol_true.point[:2] - qr.t_wc[q, :2])))
+    n = max(len(keep), 1)
+    res["abs_position_median_m"] = _median(np.asarray(errors))
+    res["abs_position_degenerate_share"] = degenerate / n
+    res["abs_position_median_m_true_directions"] = _median(np.asarray(errors_true))
+    res["abs_position_degenerate_share_true_directions"] = degenerate_true / n
+    res["abs_position_top_k"] = args.top_k
+
+
+# ----------------------------------------------------------------------------- figures
+def plot_tsne(path: Path, raw: tuple, learned: tuple, conditions: list[str], seed: int) -> None:
+    """Two t-SNE panels (layer-21 features | learned embeddings), coloured by traversal."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from sklearn.decomposition import PCA
+    from sklearn.manifold import TSNE
+
+    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
+    for ax, (title, (a, b)) in zip(
+        axes, (("ENet layer-21 features", raw), ("learned embedding (eq. 5.1)", learned))
+    ):
+        x = np.concatenate([a, b]).astype(np.float64)
+        n = x.shape[0]
+        dims = min(50, n - 1, x.shape[1])
+        if x.shape[1] > dims:
+            x = PCA(n_components=dims, random_state=seed).fit_transform(x)
+        perplexity = float(min(30.0, max(2.0, (n - 1) / 3.0)))
+        y = TSNE(
+            n_components=2, perplexity=perplexity, init="pca", random_state=seed
+        ).fit_transform(x)
+        ax.scatter(y[: len(a), 0], y[: len(a), 1], s=6, label=f"database ({conditions[0]})")
+        ax.scatter(y[len(a) :, 0], y[len(a) :, 1], s=6, label=f"queries ({conditions[1]})")
+        ax.set_title(title)
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.legend(loc="best", fontsize=8)
+    fig.suptitle("t-SNE of the two traversals (thesis fig. 5.4)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_panel(path: Path, db, qr, retrieval: dict, rows: int = 4) -> None:
+    """Query | top-3 database images (learned embedding, whole base); green = correct."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keep = np.flatnonzero(retrieval["keep"])
+    picks = keep[np.linspace(0, len(keep) - 1, min(rows, len(keep))).round().astype(int)]
+    ranked, _ = retrieval["index"]["learned"].query(retrieval["q_learned"][picks], k=3)
+    fig, axes = plt.subplots(len(picks), 4, figsize=(12, 2.4 * len(picks)), squeeze=False)
+    for r, (q, row) in enumerate(zip(picks, ranked)):
+        truth = set(retrieval["truth"][q].tolist())
+        axes[r, 0].imshow(qr.images[q])
+        axes[r, 0].set_title(f"query {q} ({qr.condition})", fontsize=8)
+        for c, m in enumerate(row, start=1):
+            ax = axes[r, c]
+            if m < 0:
+                ax.axis("off")
+                continue
+            ax.imshow(db.images[m])
+            ok = int(m) in truth
+            for spine in ax.spines.values():
+                spine.set_edgecolor("green" if ok else "red")
+                spine.set_linewidth(3)
+            ax.set_title(f"#{c}: base {m} ({'ok' if ok else 'wrong'})", fontsize=8)
+        for ax in axes[r]:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# ----------------------------------------------------------------------------- main
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    from geoseg.data.pairs import sample_triplets
+    from geoseg.data.traversals import render_route, traversal_features
+    from geoseg.localize import triplet_accuracy
+    from geoseg.models.reloc import RawFeatureEmbedder
+    from training.reloc import embed_features
+
+    extractor, reloc, relpose, untrained = load_models(args)
+    if untrained and not args.allow_untrained:
+        print(
+            f"accuracy_reloc: no trained weights for {', '.join(untrained)} (give --trunk, "
+            "--reloc, --relpose or train them into runs/); refusing to produce figures from "
+            "random weights. Pass --allow-untrained for a smoke run.",
+            file=sys.stderr,
+        )
+        return 2
+    torch.set_grad_enabled(False)
+    spec = eval_route(args.quick)
+    n_pairs = args.pairs if args.pairs is not None else (8 if args.quick else 200)
+    n_triplets = args.triplets if args.triplets is not None else (32 if args.quick else 2000)
+    load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    res: dict[str, Any] = {}
+
+    t0 = time.perf_counter()
+    travs = render_route(spec, cache_dir=args.cache_dir, progress=True)
+    render_s = time.perf_counter() - t0
+    n_frames = sum(len(t) for t in travs)
+    rendered = not all(t.from_cache for t in travs)
+    res["render_s_per_keyframe"] = render_s / n_frames if rendered else None
+    t0 = time.perf_counter()
+    feats = [
+        torch.from_numpy(traversal_features(t, extractor, cache_dir=args.cache_dir)).float()
+        for t in travs
+    ]
+    res["features_s_per_keyframe"] = (time.perf_counter() - t0) / n_frames
+    db, qr = travs[0], travs[1]
+    f_db, f_q = feats
+    res.update(
+        keyframes_per_traversal=len(db),
+        route_length_m=spec.length_m,
+        keyframe_spacing_m=spec.spacing_m,
+        conditions=f"{db.condition} (database) / {qr.condition} (queries)",
+        image_size_hw=list(spec.size),
+    )
+
+    raw_embedder = RawFeatureEmbedder()
+    raw = {k: raw_embedder(f)["embedding"].numpy() for k, f in (("db", f_db), ("q", f_q))}
+    learned = {k: embed_features(reloc, f).numpy() for k, f in (("db", f_db), ("q", f_q))}
+    retrieval = measure_retrieval(
+        res, db, qr, {"learned": (learned["db"], learned["q"]), "raw": (raw["db"], raw["q"])}, args
+    )
+    retrieval["q_learned"] = learned["q"]
+    res["recall_at_1_gain_over_raw"] = res["recall_at_1"] - res["recall_at_1_raw_layer21"]
+
+    ref, match, other = sample_triplets(db.poses, qr.poses, n_triplets, rng=args.seed + 7)
+    res["triplet_accuracy"] = triplet_accuracy(
+        learned["q"][ref], learned["db"][match], learned["db"][other]
+    )
+    # same definition as triplet_accuracy, from the (Q, M) distance matrix: the raw vectors
+    # are large (C h w floats each) and would be copied three times per triplet
+    d_raw = torch.cdist(torch.from_numpy(raw["q"]).double(), torch.from_numpy(raw["db"]).double())
+    res["triplet_accuracy_raw_layer21"] = float(
+        (d_raw[ref, match] < d_raw[ref, other]).double().mean()
+    )
+    res["triplets"] = n_triplets
+
+    t0 = time.perf_counter()
+    measure_relpose(res, travs, feats, relpose, args, n_pairs)
+    res["relpose_pairs_per_group"] = n_pairs
+    res["relpose_eval_s"] = time.perf_counter() - t0
+    measure_abs_position(res, db, qr, f_db, f_q, relpose, retrieval, args)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    pooled = torch.nn.functional.adaptive_avg_pool2d
+    raw_small = tuple(pooled(f, (8, 10)).flatten(1).numpy() for f in (f_db, f_q))
+    tsne_png = args.out / f"{NAME}_tsne.png"
+    panel_png = args.out / f"{NAME}_panel.png"
+    plot_tsne(
+        tsne_png, raw_small, (learned["db"], learned["q"]), [db.condition, qr.condition], args.seed
+    )
+    plot_panel(panel_png, db, qr, retrieval)
+    res["figures"] = [tsne_png.name, panel_png.name]
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    res["untrained"] = untrained
+    res["quick"] = bool(args.quick)
+    res["machine"] = (
+        f"{platform.machine()} {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
+        f"Python {platform.python_version()}, torch {torch.__version__}, 1-min load average "
+        f"{load_start:.1f} -> {load:.1f}"
+    )
+    res["command"] = " ".join(["python bench/accuracy_reloc.py", *(argv or sys.argv[1:])]).strip()
+    if untrained:
+        res["warning"] = f"random weights for {', '.join(untrained)}: a smoke run, not figures"
+
+    print("| figure | value |")
+    print("|---|---|")
+    for key, value in res.items():
+        text = f"{value:.4f}" if isinstance(value, float) else str(value)
+        print(f"| {key} | {text} |")
+    out = args.out / f"{NAME}.json"
+    clean = {
+        k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in res.items()
+    }
+    out.write_text(json.dumps(clean, indent=2) + "\n")
+    print(f"\nwritten {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,325 @@
+"""The relocalisation and relative-pose trainers and the reloc benchmark on tiny configs:
+end to end (checkpoints, metrics, ONNX, model card), loss decrease on a fixed batch, hard
+negatives, the ``geoseg train reloc|relpose`` errors and ``bench/accuracy_reloc.py --quick``."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from geoseg.cli import main as cli_main
+from geoseg.config import load_config
+from geoseg.data.pairs import positive_mask
+from geoseg.errors import GeosegError
+from geoseg.infer import save_model_checkpoint
+from geoseg.models.registry import get_model
+from geoseg.models.relpose import relative_pose_labels, so3_exp
+from training import reloc as reloc_trainer
+from training import relpose as relpose_trainer
+
+ROOT = Path(__file__).resolve().parents[2]
+RUN_FILES = (
+    "config.yaml",
+    "last.pt",
+    "best.pt",
+    "metrics.csv",
+    "metrics.json",
+    "model.pt",
+    "model.onnx",
+    "model_card.json",
+    "model_card.md",
+)
+
+
+@pytest.fixture(autouse=True)
+def _restore_torch_determinism():
+    enabled = torch.are_deterministic_algorithms_enabled()
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    yield
+    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
+
+
+@pytest.fixture(scope="module")
+def shared(tmp_path_factory) -> dict:
+    root = tmp_path_factory.mktemp("reloc")
+    torch.manual_seed(0)
+    save_model_checkpoint(get_model("enet"), root / "trunk.pt", model_name="enet")
+    return {"root": root, "trunk": root / "trunk.pt", "cache": root / "cache"}
+
+
+def _overrides(shared: dict, out: Path, **kw) -> dict:
+    routes = {
+        "world": {"blocks_x": 2, "blocks_y": 2},
+        "size": [48, 64],
+        "cache_dir": str(shared["cache"]),
+        "train_seeds": [1],
+        "val_seeds": [13],
+        "conditions_per_route": 2,
+        "length_m": 36.0,
+        "val_length_m": 30.0,
+        "spacing_m": 6.0,
+    }
+    base = {
+        "trunk_checkpoint": str(shared["trunk"]),
+        "routes": routes,
+        "epochs": 1,
+        "batch_size": 4,
+        "device": "cpu",
+        "progress": False,
+        "plots": False,
+        "out_dir": str(out),
+    }
+    base.update(kw)
+    return base
+
+
+def _onnx_run(path: Path, inputs: list[np.ndarray]) -> list[np.ndarray]:
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    names = [i.name for i in sess.get_inputs()]
+    return sess.run(None, dict(zip(names, inputs)))
+
+
+# ----------------------------------------------------------------------------- end to end
+def test_reloc_main_end_to_end(shared, tmp_path):
+    cfg = load_config(
+        reloc_trainer.RelocConfig,
+        None,
+        overrides=_overrides(
+            shared,
+            tmp_path / "run",
+            triplets_per_epoch=8,
+            val_triplets=8,
+            min_negative_distance_m=12.0,
+            hard_start_epoch=0,
+        ),
+    )
+    run = reloc_trainer.main(cfg, command="pytest reloc")
+    for name in RUN_FILES:
+        assert (run / name).is_file(), name
+    rows = json.loads((run / "metrics.json").read_text())
+    assert len(rows) == 1 and 0.0 <= rows[0]["val_triplet_accuracy"] <= 1.0
+    card = json.loads((run / "model_card.json").read_text())
+    assert card["trainer"] == "reloc" and card["files"]["onnx"] == "model.onnx"
+    assert card["command"] == "pytest reloc"
+    # model.pt is the head alone, loadable from the registry; ONNX matches torch
+    ckpt = torch.load(run / "model.pt", weights_only=True)
+    head = get_model("reloc", **ckpt["model_config"])
+    head.load_state_dict(ckpt["state_dict"])
+    x = torch.randn(2, 128, 6, 8)
+    with torch.no_grad():
+        ref = head.eval()(x)["embedding"].numpy()
+    (got,) = _onnx_run(run / "model.onnx", [x.numpy()])
+    np.testing.assert_allclose(got, ref, atol=1e-4)
+
+
+def test_relpose_main_end_to_end(shared, tmp_path):
+    cfg = load_config(
+        relpose_trainer.RelPoseConfig,
+        None,
+        overrides=_overrides(shared, tmp_path / "run", pairs_per_epoch=8, val_pairs=8),
+    )
+    run = relpose_trainer.main(cfg)
+    for name in RUN_FILES:
+        assert (run / name).is_file(), name
+    row = json.loads((run / "metrics.json").read_text())[0]
+    assert {"val_loss", "val_rot_median_deg", "val_dir_median_deg"} <= set(row)
+    ckpt = torch.load(run / "model.pt", weights_only=True)
+    head = get_model("relpose", **ckpt["model_config"])
+    head.load_state_dict(ckpt["state_dict"])
+    a, b = torch.randn(2, 128, 6, 8), torch.randn(2, 128, 6, 8)
+    with torch.no_grad():
+        ref = head.eval()(a, b)
+    outs = _onnx_run(run / "model.onnx", [a.numpy(), b.numpy()])
+    np.testing.assert_allclose(outs[0], ref["rotation"].numpy(), atol=1e-4)
+    np.testing.assert_allclose(outs[1], ref["direction"].numpy(), atol=1e-4)
+
+
+def test_reloc_resume_continues_with_the_next_epochs_triplets(shared, tmp_path):
+    kw = {"triplets_per_epoch": 8, "val_triplets": 8, "min_negative_distance_m": 12.0}
+    over = _overrides(shared, tmp_path / "run", export=False, **kw)
+    reloc_trainer.main(load_config(reloc_trainer.RelocConfig, None, overrides=over))
+    over.update(epochs=2, resume=True)
+    cfg = load_config(reloc_trainer.RelocConfig, None, overrides=over)
+    assert reloc_trainer.resume_epoch(cfg) == 1
+    run = reloc_trainer.main(cfg)
+    rows = json.loads((run / "metrics.json").read_text())
+    assert [r["epoch"] for r in rows] == [1, 2]
+    assert not (run / "model.onnx").exists()
+
+
+def test_missing_trunk_is_a_clear_error(shared, tmp_path):
+    cfg = load_config(
+        reloc_trainer.RelocConfig,
+        None,
+        overrides=_overrides(shared, tmp_path / "run", trunk_checkpoint=None),
+    )
+    with pytest.raises(GeosegError, match="trunk_checkpoint"):
+        reloc_trainer.main(cfg)
+
+
+# ----------------------------------------------------------------------------- fixed batches
+def test_triplet_loss_decreases_on_a_fixed_batch():
+    torch.manual_seed(0)
+    model = reloc_trainer.TripletEmbedder(get_model("reloc", embedding_dim=16))
+    x = torch.randn(8, 3, 128, 4, 5)
+    x[:, 1] = x[:, 0] + 0.3 * torch.randn(8, 128, 4, 5)  # matches near their refs
+    loss_fn = reloc_trainer.TripletLoss()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(15):
+        loss = loss_fn(model(x), {})
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.7 * losses[0]
+
+
+def test_relpose_loss_decreases_on_a_fixed_batch():
+    torch.manual_seed(0)
+    model = relpose_trainer.PairRegressor(get_model("relpose", hidden_channels=16, fc_dim=32))
+    x = torch.randn(8, 2, 128, 4, 5)
+    R = so3_exp(0.2 * torch.randn(8, 3))
+    t = torch.nn.functional.normalize(torch.randn(8, 3), dim=1)
+    batch = {"R_ab": R, "t_dir_ab": t}
+    loss_fn = relpose_trainer.RelPoseLoss()
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(15):
+        loss = loss_fn(model(x), batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.7 * losses[0]
+
+
+def test_relpose_meter_medians_and_shares():
+    meter = relpose_trainer.RelPoseMeter()
+    R_gt = torch.eye(3).expand(4, 3, 3)
+    angles = torch.tensor([0.0, 1.0, 3.0, 20.0])
+    rot = torch.zeros(4, 3)
+    rot[:, 2] = torch.deg2rad(angles)
+    t_gt = torch.tensor([[1.0, 0.0, 0.0]]).expand(4, 3)
+    meter.update({"rotation": rot, "direction": t_gt}, {"R_ab": R_gt, "t_dir_ab": t_gt})
+    out = meter.compute()
+    assert 0.95 <= out["rot_median_deg"] <= 3.05  # lower median, 0.05-degree bins
+    assert out["rot_within_2deg"] == pytest.approx(0.5)
+    assert out["dir_median_deg"] < 0.1 and out["dir_within_10deg"] == 1.0
+
+
+def test_hard_negatives_are_true_negatives_and_resampling_is_seeded(shared):
+    from geoseg.data.traversals import RouteSpec, TrunkFeatureExtractor, route_features
+
+    torch.manual_seed(0)
+    spec = RouteSpec(
+        seed=1, world={"blocks_x": 2, "blocks_y": 2}, length_m=36.0, spacing_m=6.0, size=(48, 64)
+    )
+    rf = route_features(spec, TrunkFeatureExtractor(get_model("enet")), progress=False)
+    head = get_model("reloc")
+    kw = {"max_distance_m": 5.0, "max_angle_deg": 30.0, "min_negative_distance_m": 12.0}
+    ts = reloc_trainer.TripletSet(
+        [rf], 20, seed=3, hard_head=head, hard_k=2, hard_start_epoch=0, **kw
+    )
+    first = ts.index.copy()
+    for _r, q, d, a, p, n in ts.index:
+        tq, td = rf.traversals[q], rf.traversals[d]
+        assert positive_mask(td.poses, tq.poses)[a, p]
+        assert np.linalg.norm(tq.t_wc[a] - td.t_wc[n]) > 12.0
+    ts.resample(1)
+    again = reloc_trainer.TripletSet(
+        [rf], 20, seed=3, hard_head=head, hard_k=2, hard_start_epoch=0, **kw
+    )
+    np.testing.assert_array_equal(again.index, first)  # same seed and head: same triplets
+    uniform = reloc_trainer.TripletSet([rf], 20, seed=3, **kw)
+    assert uniform.index.shape == first.shape
+    item = ts[0]
+    assert item["image"].shape == (3, 128, 6, 8) and item["image"].dtype == torch.float32
+    pairs = relpose_trainer.PairSet([rf], 10, seed=0, min_baseline_m=0.5, max_baseline_m=10.0)
+    _r, i, j, a, b = pairs.index[0]
+    R, t = relative_pose_labels(
+        rf.traversals[i].R_wc[a], rf.traversals[i].t_wc[a], rf.traversals[j].R_wc[b],
+        rf.traversals[j].t_wc[b],
+    )  # fmt: skip
+    np.testing.assert_allclose(pairs[0]["R_ab"].numpy(), R, atol=1e-5)
+    np.testing.assert_allclose(pairs[0]["t_dir_ab"].numpy(), t, atol=1e-5)
+
+
+# ----------------------------------------------------------------------------- the command
+@pytest.mark.parametrize("trainer", ["reloc", "relpose"])
+def test_cli_bad_config_key_exits_2_naming_it(trainer, capsys):
+    code = cli_main(["train", trainer, "--set", "no_such_key=1"])
+    assert code == 2
+    assert "no_such_key" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- the benchmark
+def _bench():
+    spec = importlib.util.spec_from_file_location(
+        "accuracy_reloc", ROOT / "bench" / "accuracy_reloc.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_bench_refuses_untrained_weights(tmp_path, capsys):
+    bench = _bench()
+    random = ["--trunk", "random", "--reloc", "random", "--relpose", "random"]
+    code = bench.main(["--quick", "--out", str(tmp_path), *random])
+    assert code == 2  # refused before any work
+    assert "--allow-untrained" in capsys.readouterr().err
+    assert not (tmp_path / "accuracy_reloc.json").exists()
+
+
+def test_bench_quick_runs_end_to_end(shared, tmp_path):
+    bench = _bench()
+    out = tmp_path / "results"
+    code = bench.main(
+        [
+            "--quick",
+            "--allow-untrained",
+            "--out",
+            str(out),
+            "--cache-dir",
+            str(shared["cache"]),
+            "--trunk",
+            str(shared["trunk"]),
+            "--reloc",
+            "random",
+            "--relpose",
+            "random",
+            "--pairs",
+            "4",
+            "--triplets",
+            "8",
+        ]
+    )
+    assert code == 0
+    res = json.loads((out / "accuracy_reloc.json").read_text())
+    for key in (
+        "recall_at_1",
+        "recall_at_3",
+        "recall_at_1_gps_window",
+        "recall_at_1_raw_layer21",
+        "triplet_accuracy",
+        "relpose_rot_median_deg",
+        "relpose_dir_median_deg",
+        "essential_rot_median_deg",
+        "essential_dir_median_deg",
+        "abs_position_median_m",
+        "abs_position_degenerate_share",
+        "machine",
+        "command",
+    ):
+        assert key in res, key
+    assert 0.0 <= res["recall_at_1"] <= res["recall_at_3"] <= 1.0
+    assert res["untrained"] == ["reloc", "relpose"] and "warning" in res
+    assert (out / "accuracy_reloc_tsne.png").stat().st_size > 0
+    assert (out / "accuracy_reloc_panel.png").stat().st_size > 0
+    # the geometry itself is exact: true directions give the true position
+    assert res["abs_position_median_m_true_directions"] in (None, pytest.approx(0.0, abs=1e-6))
