@@ -36,8 +36,6 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
-import zipfile
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -51,6 +49,7 @@ from tqdm.auto import tqdm
 
 from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
 from geoseg.config import from_dict, to_dict
+from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
 
 logger = logging.getLogger(__name__)
@@ -379,7 +378,7 @@ class SyntheticDataset(Dataset):
             "normal_valid": np.ascontiguousarray(frame.normal_valid, dtype=bool),
         }
         if path is not None:
-            _write_entry(path, arrays)
+            write_npz(path, arrays)
         return arrays
 
     def __getitem__(self, index: int) -> dict[str, Any]:
@@ -407,9 +406,10 @@ def _read_entry(path: Path, size: tuple[int, int]) -> dict[str, np.ndarray] | No
     """A cache entry's arrays, or None (logged) when it is unreadable or malformed."""
     h, w = size
     expected = {"rgb": (h, w, 3), "labels": (h, w), "normals": (3, h, w), "normal_valid": (h, w)}
+    arrays = read_npz(path, _CACHE_FIELDS)
+    if arrays is None:
+        return None
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in _CACHE_FIELDS}
         for key, shape in expected.items():
             if arrays[key].shape != shape:
                 raise ValueError(f"{key} has shape {arrays[key].shape}, expected {shape}")
@@ -422,26 +422,9 @@ def _read_entry(path: Path, size: tuple[int, int]) -> dict[str, np.ndarray] | No
             "normals": arrays["normals"].astype(np.float16, copy=False),
             "normal_valid": arrays["normal_valid"].astype(bool, copy=False),
         }
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        logger.warning("cache entry %s is unreadable (%s); rendering it again", path, err)
+    except ValueError as err:
+        logger.warning("cache entry %s is malformed (%s); rendering it again", path, err)
         return None
-
-
-def _write_entry(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """Write a cache entry atomically; a failure (e.g. a full disk) is logged, not raised."""
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-        os.replace(tmp, path)
-        tmp = None
-    except OSError as err:
-        logger.warning("cannot write cache entry %s (%s); continuing without it", path, err)
-    finally:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
 
 
 def prerender(

@@ -30,9 +30,7 @@ import hashlib
 import json
 import logging
 import os
-import tempfile
 import time
-import zipfile
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +42,7 @@ from torch import nn
 from tqdm.auto import tqdm
 
 from geoseg.config import from_dict, to_dict
+from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
 
 logger = logging.getLogger(__name__)
@@ -313,34 +312,6 @@ def _cache_file(cache_dir: Path | None, kind: str, key: str) -> Path | None:
     return None if cache_dir is None else Path(cache_dir) / kind / key[:2] / f"{key}.npz"
 
 
-def _atomic_savez(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """Write a compressed ``.npz`` atomically; a failure is logged, not raised."""
-    tmp = None
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as handle:
-            np.savez_compressed(handle, **arrays)
-        os.replace(tmp, path)
-        tmp = None
-    except OSError as err:
-        logger.warning("cannot write cache entry %s (%s); continuing without it", path, err)
-    finally:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-
-
-def _load_npz(path: Path | None, fields: Sequence[str]) -> dict[str, np.ndarray] | None:
-    if path is None or not path.is_file():
-        return None
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in fields}
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as err:
-        logger.warning("cache entry %s is unreadable (%s); recomputing it", path, err)
-        return None
-
-
 def render_route(
     spec: RouteSpec,
     *,
@@ -366,7 +337,7 @@ def render_route(
     missing = []
     for k, cond in enumerate(spec.conditions):
         key = spec.traversal_key(k)
-        data = _load_npz(_cache_file(cache, "frames", key), _FRAME_FIELDS)
+        data = read_npz(_cache_file(cache, "frames", key), _FRAME_FIELDS)
         if data is not None and data["images"].shape != (n, h, w, 3):
             logger.warning("cache entry for %s has shape %s; rendering again", key, data["images"])
             data = None
@@ -405,7 +376,7 @@ def render_route(
             trav = RouteTraversal(cond, spec.traversal_key(k), images=images, **p)
             path = _cache_file(cache, "frames", trav.key)
             if path is not None:
-                _atomic_savez(path, {f: getattr(trav, f) for f in _FRAME_FIELDS})
+                write_npz(path, {f: getattr(trav, f) for f in _FRAME_FIELDS})
             out[k] = trav
     return [t for t in out if t is not None]
 
@@ -526,7 +497,7 @@ def traversal_features(
         f"{traversal.key}|{extractor.fingerprint}|{FEATURE_VERSION}".encode()
     ).hexdigest()
     path = _cache_file(None if cache_dir is None else Path(cache_dir), "features", key)
-    data = _load_npz(path, ("features",))
+    data = read_npz(path, ("features",))
     if data is not None and data["features"].shape[0] == len(traversal):
         return data["features"]
     t0 = time.perf_counter()
@@ -546,7 +517,7 @@ def traversal_features(
         (time.perf_counter() - t0) / len(traversal),
     )
     if path is not None:
-        _atomic_savez(path, {"features": feats})
+        write_npz(path, {"features": feats})
     return feats
 
 
