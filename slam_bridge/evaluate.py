@@ -1,0 +1,572 @@
+"""Metrics, tables and plots of the chapter-3 experiment (thesis §3.7, Tables 3.1-3.3, fig. 3.7).
+
+* **Errors** against ground truth, per keyframe: translation ``e_T = ||T_est - T_gt||`` (metres)
+  and rotation ``e_R = ||log_SO3(R_est^T R_gt)||`` (radians, as the thesis); summarised by mean,
+  standard deviation and median (``mu``, ``sigma``, ``m`` of Table 3.1). The reconstruction is
+  compared in the world frame directly: the GPS fusion georeferences it, so no alignment is
+  applied (:func:`align_similarity` is there for unfused runs). The translation error is also
+  split into its horizontal part (what the GPS constrains) and its vertical part (the GPS
+  altitude is ignored, eq. B.7, so only vision holds the altitude).
+* **Inliers** (§3.7): a triangulated point is an inlier iff *all* its (kept) reprojection errors
+  are below 2 px; the **inlier loss** of a method is ``max(0, (N_0 - N) / N_0)`` against ``n = 0``
+  (``N_0``) under the same GPS setting (Table 3.2). Two readings are reported. ``inliers``
+  (primary): the points are re-triangulated from their kept observations with the *final*
+  camera poses (structure-only refinement, :func:`count_inliers` with ``retriangulate=True``),
+  so the count measures whether the final trajectory still satisfies the multi-view
+  constraints, whatever happened to the stored points. ``inliers_raw``: the stored points as the
+  SLAM left them. The two differ for the hybrids: a pose-graph camera keeps moving (fusion)
+  after its points left the problem, so the stored points of old keyframes go stale.
+* **Time** per fusion iteration relative to ``n = 0`` (Table 3.3): the total fusion wall time
+  over the total number of barrier iterations, divided by the same for ``n = 0``, over the
+  keyframes whose window is full (``l`` free cameras: the regime the thesis's ratio describes;
+  the start-up keyframes have small windows for every method). ``<method>_time_ratio_all``
+  uses every keyframe.
+* **Memory** (fig. 3.7): the Hessian memory of :func:`slam_bridge.pipeline.hessian_bytes`; the
+  ratio is the mean ``n = 0`` memory over the mean hybrid memory (keyframes where the hybrid's
+  pose-graph window is full).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from geoseg.errors import check_shape
+from slam_bridge.camera import project
+from slam_bridge.errors import SlamError
+from slam_bridge.lie import so3_log
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "THESIS_TABLE_3_1",
+    "THESIS_TABLE_3_2",
+    "THESIS_TABLE_3_3",
+    "rotation_errors",
+    "translation_errors",
+    "error_stats",
+    "align_similarity",
+    "count_inliers",
+    "inlier_loss",
+    "RunSummary",
+    "summarize_run",
+    "build_summary",
+    "write_json",
+    "write_markdown",
+    "plot_trajectories",
+    "plot_memory",
+]
+
+#: Table 3.1 (synthetic 640 m sequence): (method, sigma_b) -> (mu_R, sigma_R, m_R, mu_T,
+#: sigma_T, m_T, #inliers); "ba" = fusion BA/GPS (n = 0), "dpc"/"mpc" = hybrids (n = 30)
+THESIS_TABLE_3_1: dict[tuple[str, float], tuple[float, ...]] = {
+    ("ba", 0.0): (0.15, 0.01, 0.16, 0.15, 0.02, 0.16, 10427),
+    ("ba", 0.75): (0.09, 0.04, 0.09, 0.68, 0.45, 0.80, 10422),
+    ("ba", 1.5): (0.40, 0.24, 0.09, 0.45, 0.23, 0.40, 10462),
+    ("dpc", 0.0): (0.09, 0.17, 0.04, 0.15, 0.02, 0.16, 10415),
+    ("dpc", 0.75): (0.12, 0.18, 0.06, 0.63, 0.43, 0.54, 10282),
+    ("dpc", 1.5): (0.42, 0.26, 0.41, 0.59, 0.9, 0.49, 10409),
+    ("mpc", 0.0): (0.05, 0.04, 0.04, 0.15, 0.02, 0.16, 10369),
+    ("mpc", 0.75): (0.29, 0.19, 0.27, 0.78, 0.50, 0.69, 10360),
+    ("mpc", 1.5): (0.15, 0.19, 0.08, 1.26, 0.87, 1.02, 10439),
+}
+#: Table 3.2 (synthetic sequence): inlier loss (%) vs n = 0
+THESIS_TABLE_3_2: dict[tuple[str, float], float] = {
+    ("dpc", 0.0): 0.11,
+    ("dpc", 0.75): 1.34,
+    ("dpc", 1.5): 0.50,
+    ("mpc", 0.0): 0.55,
+    ("mpc", 0.75): 0.59,
+    ("mpc", 1.5): 0.21,
+}
+#: Table 3.3 (simulations): time per iteration relative to n = 0
+THESIS_TABLE_3_3: dict[str, float] = {"dpc": 0.40, "mpc": 0.66}
+#: targets of the issue (the thesis's figures)
+TARGETS = {"dpc_time_ratio": 0.40, "mpc_time_ratio": 0.66, "memory_ratio": 3.0, "inlier_loss": 0.01}
+METHOD_LABEL = {"ba": "BA/GPS (n = 0)", "dpc": "hybrid DPC (n = 30)", "mpc": "hybrid MPC (n = 30)"}
+
+
+def rotation_errors(R_est: np.ndarray, R_gt: np.ndarray) -> np.ndarray:
+    """Angles of ``R_est^T R_gt``.
+
+    Args:
+        R_est: ``(N, 3, 3)`` estimated rotations.
+        R_gt: ``(N, 3, 3)`` true rotations.
+
+    Returns:
+        ``(N,)`` radians in ``[0, pi]``.
+    """
+    R_est = np.asarray(R_est, dtype=np.float64)
+    R_gt = np.asarray(R_gt, dtype=np.float64)
+    check_shape("R_est", R_est, (None, 3, 3))
+    check_shape("R_gt", R_gt, (R_est.shape[0], 3, 3))
+    if R_est.shape[0] == 0:
+        return np.zeros(0)
+    return np.linalg.norm(so3_log(np.swapaxes(R_est, 1, 2) @ R_gt), axis=-1).reshape(-1)
+
+
+def translation_errors(t_est: np.ndarray, t_gt: np.ndarray) -> np.ndarray:
+    """``||t_est - t_gt||`` per row: ``(N, 3)``, ``(N, 3)`` -> ``(N,)`` metres."""
+    t_est = np.asarray(t_est, dtype=np.float64)
+    t_gt = np.asarray(t_gt, dtype=np.float64)
+    check_shape("t_est", t_est, (None, 3))
+    check_shape("t_gt", t_gt, (t_est.shape[0], 3))
+    return np.linalg.norm(t_est - t_gt, axis=1)
+
+
+def error_stats(e: np.ndarray) -> dict[str, float]:
+    """``{"mean", "std", "median", "max"}`` of ``e (N,)``; raises on NaN (never silent)."""
+    e = np.asarray(e, dtype=np.float64).reshape(-1)
+    if e.size == 0:
+        raise SlamError("error_stats: no error to summarise")
+    if not np.all(np.isfinite(e)):
+        raise SlamError("error_stats: non-finite errors (a NaN trajectory?)")
+    return {
+        "mean": float(e.mean()),
+        "std": float(e.std()),
+        "median": float(np.median(e)),
+        "max": float(e.max()),
+    }
+
+
+def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` (Umeyama 1991).
+
+    Args:
+        src: ``(N, 3)`` points (N >= 3, not collinear).
+        dst: ``(N, 3)`` points.
+
+    Returns:
+        ``s``, ``R (3, 3)``, ``t (3,)``.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    check_shape("src", src, (None, 3))
+    check_shape("dst", dst, (src.shape[0], 3))
+    if src.shape[0] < 3:
+        raise SlamError("align_similarity: needs at least 3 points")
+    ms, md = src.mean(0), dst.mean(0)
+    xs, xd = src - ms, dst - md
+    Sigma = xd.T @ xs / src.shape[0]
+    U, D, Vt = np.linalg.svd(Sigma)
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    var = np.mean(np.sum(xs**2, axis=1))
+    if var <= 0:
+        raise SlamError("align_similarity: the source points coincide")
+    s = float(np.trace(np.diag(D) @ S) / var)
+    return s, R, md - s * R @ ms
+
+
+def count_inliers(
+    K: np.ndarray,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    X_w: np.ndarray,
+    obs_keyframe: np.ndarray,
+    obs_point: np.ndarray,
+    uv: np.ndarray,
+    *,
+    used: np.ndarray | None = None,
+    triangulated: np.ndarray | None = None,
+    threshold_px: float = 2.0,
+    retriangulate: bool = False,
+) -> int:
+    """Points whose reprojection errors are all below ``threshold_px`` (§3.7).
+
+    Args:
+        K: ``(3, 3)``.
+        R_wc: ``(C, 3, 3)`` keyframe rotations.
+        t_wc: ``(C, 3)`` optical centres.
+        X_w: ``(P, 3)`` points (NaN rows = not reconstructed).
+        obs_keyframe: ``(M,)`` keyframe of each observation.
+        obs_point: ``(M,)`` point of each observation.
+        uv: ``(M, 2)`` measured pixels.
+        used: ``(M,)`` bool, observations the reconstruction kept (default all).
+        triangulated: ``(P,)`` bool (default: finite rows of ``X_w``).
+        threshold_px: the inlier threshold.
+        retriangulate: re-estimate the points from their kept observations with the given
+            poses (DLT + Gauss-Newton, no parallax requirement) before the test.
+
+    Returns:
+        The number of inlier points (points with at least one kept observation).
+    """
+    X_w = np.asarray(X_w, dtype=np.float64)
+    P = X_w.shape[0]
+    tri = np.all(np.isfinite(X_w), axis=1) if triangulated is None else np.asarray(triangulated)
+    keep = np.ones(len(obs_keyframe), dtype=bool) if used is None else np.asarray(used, bool)
+    keep = keep & tri[obs_point] & (obs_keyframe < R_wc.shape[0])
+    kf, pt = obs_keyframe[keep], obs_point[keep]
+    if retriangulate and kf.size:
+        from slam_bridge.geometry import triangulate
+
+        res = triangulate(
+            K, R_wc, t_wc, kf, pt, uv[keep], num_points=P, min_parallax_deg=0.0,
+            refine_iterations=5,
+        )  # fmt: skip
+        X_w = np.where(tri[:, None], res.X_w, np.nan)
+    uv_hat, _, front = project(K, R_wc[kf], t_wc[kf], np.nan_to_num(X_w[pt]))
+    err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv[keep], nan=1e9), axis=1), 1e9)
+    seen = np.bincount(pt, minlength=P) > 0
+    bad = np.bincount(pt, weights=(err >= threshold_px).astype(float), minlength=P) > 0
+    return int(np.sum(seen & ~bad))
+
+
+def inlier_loss(n_method: int, n_reference: int) -> float:
+    """``max(0, (N_0 - N) / N_0)`` (a share in ``[0, 1]``)."""
+    if n_reference <= 0:
+        raise SlamError("inlier_loss: the reference has no inlier")
+    return max(0.0, (n_reference - n_method) / n_reference)
+
+
+@dataclass
+class RunSummary:
+    """The figures of one (method, GPS setting) run.
+
+    Attributes:
+        method: ``ba``, ``dpc`` or ``mpc``.
+        setting: ``sigma=<m>`` or ``bias``.
+        rotation: stats of the rotation errors (rad).
+        translation: stats of the translation errors (m).
+        horizontal: stats of the horizontal (x, y) translation errors (m): what the GPS sees.
+        vertical: stats of ``|z_est - z_gt|`` (m): unobserved by the GPS (altitude ignored).
+        inliers: inlier points, re-triangulated with the final poses (module docstring).
+        inliers_raw: inlier points as stored by the SLAM.
+        points: triangulated points.
+        rejected_observations: observations deactivated as outliers.
+        fusion_iterations: total barrier iterations.
+        fusion_seconds: total barrier wall time.
+        seconds_per_iteration: ``fusion_seconds / fusion_iterations``.
+        fusion_seconds_full: fusion time over the full-window keyframes.
+        fusion_iterations_full: barrier iterations over the full-window keyframes.
+        hessian_bytes_mean: mean Hessian memory over the keyframes.
+        hessian_bytes_full_mean: the same over keyframes with a full window (``l`` cameras).
+        ba_seconds: total k-BA time.
+        seconds: total wall time of the run.
+        keyframes: keyframes processed.
+        gps_fused: keyframes fused with a GPS fix.
+    """
+
+    method: str
+    setting: str
+    rotation: dict
+    translation: dict
+    horizontal: dict
+    vertical: dict
+    inliers: int
+    inliers_raw: int
+    points: int
+    rejected_observations: int
+    fusion_iterations: int
+    fusion_seconds: float
+    seconds_per_iteration: float
+    fusion_seconds_full: float
+    fusion_iterations_full: int
+    hessian_bytes_mean: float
+    hessian_bytes_full_mean: float
+    ba_seconds: float
+    seconds: float
+    keyframes: int
+    gps_fused: int
+
+    def short(self) -> str:
+        """One line for logs."""
+        return (
+            f"T {self.translation['mean']:.3f}+-{self.translation['std']:.3f} m "
+            f"(xy {self.horizontal['mean']:.3f}, z {self.vertical['mean']:.3f}), "
+            f"R {self.rotation['mean']:.4f} rad, inliers {self.inliers} ({self.inliers_raw} raw), "
+            f"{1e3 * self.seconds_per_iteration:.1f} ms/it, {self.seconds:.0f} s"
+        )
+
+
+def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
+    """Evaluate a :class:`slam_bridge.pipeline.PipelineResult` against its sequence.
+
+    Args:
+        result: the run.
+        data: its :class:`slam_bridge.pipeline.SequenceData`.
+        setting: GPS setting name.
+        skip: leading keyframes left out of the error statistics (the anchors are exact).
+
+    Returns:
+        A :class:`RunSummary`.
+    """
+    C = result.t_wc.shape[0]
+    sl = slice(skip, C)
+    e_T = translation_errors(result.t_wc[sl], data.t_wc_true[:C][sl])
+    e_R = rotation_errors(result.R_wc[sl], data.R_wc_true[:C][sl])
+    obs = data.observations
+    args = (data.K, result.R_wc, result.t_wc, result.X_w, obs.keyframe, obs.point, obs.uv)
+    kw = dict(used=result.active, triangulated=result.triangulated)
+    n_in = count_inliers(*args, retriangulate=True, **kw)
+    n_raw = count_inliers(*args, **kw)
+    recs = result.records
+    it = sum(r.fusion_iterations for r in recs)
+    fs = sum(r.fusion_seconds_per_iteration * r.fusion_iterations for r in recs)
+    mem = np.array([r.hessian_bytes for r in recs], dtype=float)
+    full = np.array([r.n_cameras for r in recs])
+    full_mask = full >= (full.max() if full.size else 0)
+    return RunSummary(
+        method=result.method,
+        setting=setting,
+        rotation=error_stats(e_R),
+        translation=error_stats(e_T),
+        horizontal=error_stats(
+            np.linalg.norm(result.t_wc[sl, :2] - data.t_wc_true[:C][sl, :2], axis=1)
+        ),
+        vertical=error_stats(np.abs(result.t_wc[sl, 2] - data.t_wc_true[:C][sl, 2])),
+        inliers=n_in,
+        inliers_raw=n_raw,
+        points=int(result.triangulated.sum()),
+        rejected_observations=int((~result.active[obs.keyframe < C]).sum()),
+        fusion_iterations=int(it),
+        fusion_seconds=float(fs),
+        seconds_per_iteration=float(fs / it) if it else float("nan"),
+        fusion_seconds_full=float(
+            sum(
+                r.fusion_seconds_per_iteration * r.fusion_iterations
+                for r, f in zip(recs, full_mask)
+                if f
+            )
+        ),
+        fusion_iterations_full=int(sum(r.fusion_iterations for r, f in zip(recs, full_mask) if f)),
+        hessian_bytes_mean=float(mem.mean()) if mem.size else 0.0,
+        hessian_bytes_full_mean=float(mem[full_mask].mean()) if mem.size else 0.0,
+        ba_seconds=float(sum(r.ba_seconds for r in recs)),
+        seconds=float(result.seconds),
+        keyframes=int(C),
+        gps_fused=int(sum(r.gps_used for r in recs)),
+    )
+
+
+def _sigma_of(setting: str) -> float | None:
+    return float(setting.split("=", 1)[1]) if setting.startswith("sigma=") else None
+
+
+def build_summary(runs: list[RunSummary], methods: list[str], settings: list[str]) -> dict:
+    """The flat results object (``bench/results/fusion_ch3.json``) plus ``runs`` (nested).
+
+    Flat keys: ``<method>_<setting>_{t_mean,t_std,t_median,r_mean,r_std,r_median,inliers}``,
+    ``<method>_time_ratio`` / ``<method>_memory_ratio`` / ``<method>_inlier_loss_max`` for the
+    hybrids, and ``dpc_time_ratio``, ``mpc_time_ratio``, ``memory_ratio`` (n = 0 memory over the
+    larger hybrid memory: the worse of the two), ``inlier_loss_max`` (worst over hybrids and
+    settings).
+    """
+    by = {(r.method, r.setting): r for r in runs}
+    out: dict = {}
+    for r in runs:
+        key = f"{r.method}_{r.setting.replace('sigma=', 'sigma')}"
+        out[f"{key}_t_mean"] = r.translation["mean"]
+        out[f"{key}_t_std"] = r.translation["std"]
+        out[f"{key}_t_median"] = r.translation["median"]
+        out[f"{key}_r_mean"] = r.rotation["mean"]
+        out[f"{key}_r_std"] = r.rotation["std"]
+        out[f"{key}_r_median"] = r.rotation["median"]
+        out[f"{key}_th_mean"] = r.horizontal["mean"]
+        out[f"{key}_tz_mean"] = r.vertical["mean"]
+        out[f"{key}_inliers"] = r.inliers
+        out[f"{key}_inliers_raw"] = r.inliers_raw
+    losses, mem_ratios = [], []
+    if "ba" in methods:
+        for m in (x for x in methods if x != "ba"):
+            both = [s for s in settings if ("ba", s) in by and (m, s) in by]
+            if not both:
+                continue
+            settings_m, settings = settings, both
+            for suffix, tk, ik in (
+                ("", "fusion_seconds_full", "fusion_iterations_full"),
+                ("_all", "fusion_seconds", "fusion_iterations"),
+            ):
+                t_ba = sum(getattr(by[("ba", s)], tk) for s in settings)
+                i_ba = sum(getattr(by[("ba", s)], ik) for s in settings)
+                t_m = sum(getattr(by[(m, s)], tk) for s in settings)
+                i_m = sum(getattr(by[(m, s)], ik) for s in settings)
+                if i_ba and i_m and t_ba > 0:
+                    out[f"{m}_time_ratio{suffix}"] = (t_m / i_m) / (t_ba / i_ba)
+            mem_ba = np.mean([by[("ba", s)].hessian_bytes_full_mean for s in settings])
+            mem_m = np.mean([by[(m, s)].hessian_bytes_full_mean for s in settings])
+            out[f"{m}_memory_ratio"] = float(mem_ba / mem_m)
+            mem_ratios.append(out[f"{m}_memory_ratio"])
+            ls = []
+            for s in settings:
+                loss = inlier_loss(by[(m, s)].inliers, by[("ba", s)].inliers)
+                out[f"{m}_{s.replace('sigma=', 'sigma')}_inlier_loss"] = loss
+                ls.append(loss)
+            out[f"{m}_inlier_loss_max"] = max(ls)
+            out[f"{m}_inlier_loss_raw_max"] = max(
+                inlier_loss(by[(m, s)].inliers_raw, by[("ba", s)].inliers_raw) for s in settings
+            )
+            losses.extend(ls)
+            settings = settings_m
+    if mem_ratios:
+        out["memory_ratio"] = float(min(mem_ratios))
+    if losses:
+        out["inlier_loss_max"] = float(max(losses))
+    out["methods"] = list(methods)
+    out["settings"] = list(settings)
+    out["runs"] = [asdict(r) for r in runs]
+    return out
+
+
+def write_json(summary: dict, path: str | Path) -> Path:
+    """Write ``summary`` as indented JSON (NaN written as null)."""
+    path = Path(path)
+
+    def clean(v):
+        if isinstance(v, float) and not np.isfinite(v):
+            return None
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items()}
+        if isinstance(v, list):
+            return [clean(x) for x in v]
+        if isinstance(v, np.generic):
+            return clean(v.item())
+        return v
+
+    path.write_text(json.dumps(clean(summary), indent=2, sort_keys=False) + "\n")
+    return path
+
+
+def _f(x, nd: int = 2) -> str:
+    return "-" if x is None or (isinstance(x, float) and not np.isfinite(x)) else f"{x:.{nd}f}"
+
+
+def markdown_tables(summary: dict) -> str:
+    """Tables 3.1-3.3 and the memory ratio as Markdown, the thesis's figures beside ours."""
+    runs = summary["runs"]
+    lines = [
+        "### Table 3.1: errors against ground truth (rotation rad, translation m)",
+        "",
+        "| method | GPS | mu_R | sigma_R | m_R | mu_T | sigma_T | m_T | mu_T xy | mu_T z | #inliers "
+        "| thesis mu_R / mu_T / m_T | mu_T no worse than thesis |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in runs:
+        sig = _sigma_of(r["setting"])
+        th = THESIS_TABLE_3_1.get((r["method"], sig)) if sig is not None else None
+        ref = f"{th[0]:.2f} / {th[3]:.2f} / {th[5]:.2f}" if th else "-"
+        ok = ("yes" if r["translation"]["mean"] <= th[3] else "no") if th else "-"
+        lines.append(
+            f"| {METHOD_LABEL[r['method']]} | {r['setting']} | {_f(r['rotation']['mean'], 3)} | "
+            f"{_f(r['rotation']['std'], 3)} | {_f(r['rotation']['median'], 3)} | "
+            f"{_f(r['translation']['mean'])} | {_f(r['translation']['std'])} | "
+            f"{_f(r['translation']['median'])} | {_f(r['horizontal']['mean'])} | "
+            f"{_f(r['vertical']['mean'])} | {r['inliers']} | {ref} | {ok} |"
+        )
+    lines += [
+        "",
+        "### Table 3.2: inlier loss vs n = 0 (%) (re-triangulated with the final poses; stored)",
+        "",
+        "| method | GPS | ours | ours (stored points) | thesis |",
+        "|---|---|---|---|---|",
+    ]
+    for m in summary["methods"]:
+        if m == "ba":
+            continue
+        for s in summary["settings"]:
+            v = summary.get(f"{m}_{s.replace('sigma=', 'sigma')}_inlier_loss")
+            rr = {(r["method"], r["setting"]): r["inliers_raw"] for r in runs}
+            raw = (
+                inlier_loss(rr[(m, s)], rr[("ba", s)]) if ("ba", s) in rr and (m, s) in rr else None
+            )
+            th = THESIS_TABLE_3_2.get((m, _sigma_of(s))) if _sigma_of(s) is not None else None
+            lines.append(
+                f"| {METHOD_LABEL[m]} | {s} | {_f(None if v is None else 100 * v)} | "
+                f"{_f(None if raw is None else 100 * raw)} | {_f(th)} |"
+            )
+    lines += [
+        "",
+        "### Table 3.3 and fig. 3.7: time per fusion iteration and Hessian memory vs n = 0",
+        "",
+        "| method | time ratio (ours) | thesis | target | memory n=0 / hybrid | target |",
+        "|---|---|---|---|---|---|",
+    ]
+    for m in summary["methods"]:
+        if m == "ba":
+            continue
+        lines.append(
+            f"| {METHOD_LABEL[m]} | {_f(summary.get(f'{m}_time_ratio'))} | "
+            f"{_f(THESIS_TABLE_3_3.get(m))} | <= {_f(TARGETS[f'{m}_time_ratio'])} | "
+            f"{_f(summary.get(f'{m}_memory_ratio'))} | >= 3 |"
+        )
+    for fail in summary.get("failures", []):
+        lines.append(f"\nFAILED: {fail['method']} / {fail['setting']}: {fail['error']}")
+    ba_runs = [r for r in runs if r["method"] == "ba"]
+    if ba_runs:
+        ms = np.mean([r["seconds_per_iteration"] for r in ba_runs]) * 1e3
+        lines += ["", f"n = 0: {ms:.1f} ms per fusion iteration (thesis: ~300 ms at 1.6 GHz)."]
+    return "\n".join(lines) + "\n"
+
+
+def write_markdown(summary: dict, path: str | Path) -> Path:
+    """Write :func:`markdown_tables` to ``path``."""
+    path = Path(path)
+    path.write_text(markdown_tables(summary))
+    return path
+
+
+def plot_trajectories(
+    path: str | Path,
+    t_true: np.ndarray,
+    estimates: dict[str, np.ndarray],
+    gps_xy: np.ndarray | None = None,
+    *,
+    title: str = "",
+) -> Path:
+    """Top view: ground truth, GPS fixes and the estimated trajectories (PNG).
+
+    Args:
+        path: output file.
+        t_true: ``(C, 3)`` true optical centres.
+        estimates: ``{name: (C', 3)}`` estimated centres.
+        gps_xy: ``(C, 2)`` GPS fixes (NaN = dropout) or None.
+        title: figure title.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    ax.plot(t_true[:, 0], t_true[:, 1], "k-", lw=2, label="ground truth")
+    if gps_xy is not None:
+        ax.plot(gps_xy[:, 0], gps_xy[:, 1], "x", color="0.5", ms=3, label="GPS")
+    for name, t in estimates.items():
+        ax.plot(t[:, 0], t[:, 1], "-", lw=1, label=METHOD_LABEL.get(name, name))
+    ax.set_aspect("equal")
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)
+
+
+def plot_memory(path: str | Path, memory: dict[str, np.ndarray]) -> Path:
+    """Hessian memory per keyframe for each method (fig. 3.7 analogue, PNG, kB)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    colors = {"ba": "red", "dpc": "green", "mpc": "blue"}
+    for name, mem in memory.items():
+        ax.plot(
+            np.asarray(mem) / 1024.0, color=colors.get(name), label=METHOD_LABEL.get(name, name)
+        )
+    ax.set_xlabel("keyframe")
+    ax.set_ylabel("Hessian memory (kB)")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return Path(path)

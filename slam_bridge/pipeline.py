@@ -1,0 +1,1019 @@
+"""The incremental keyframe loop of the chapter-3 experiment (thesis §3.7) and its stage.
+
+**Loop** (:func:`run_pipeline`), one keyframe ``k`` at a time, all data of keyframes ``> k``
+unseen:
+
+0. *Start-up*: the first ``anchor_keyframes`` (3) keyframes take their ground-truth poses and
+   stay fixed. They stand for the start-up the thesis takes for granted (§3.7 evaluates the
+   fusion, "a brick of a more general localisation system", on a SLAM already expressed in the
+   GPS's projected frame): they fix the metric scale and the georeferenced frame once; from
+   then on only the GPS fusion keeps the reconstruction georeferenced (the monocular SLAM
+   drifts in 7 DoF otherwise). The points both anchors see are triangulated.
+1. *Tracking*: pose of ``k`` by PnP (RANSAC + LM, :func:`slam_bridge.geometry.pnp`) on its
+   observations of already triangulated points, or the constant-velocity prediction refined on
+   its inliers when it explains more of them (:func:`_track`); too few inliers is an error; PnP outliers are deactivated.
+2. *Mapping*: points seen by ``k`` and not yet triangulated are triangulated from all their
+   active observations (DLT + refinement, parallax >= ``min_parallax_deg``); a point whose worst
+   observation errs by more than ``outlier_gate_px`` loses that observation and waits.
+3. *k-BA*: the hybrid window of the ``l`` latest keyframes (:mod:`slam_bridge.window`):
+   ``n = 0`` for plain BA, ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras for DPC
+   and MPC (the BA window keeps ``l - n`` cameras while fewer than ``l`` keyframes exist), and
+   ``X* = argmin zeta`` (eq. 3.4) by Levenberg-Marquardt (:func:`slam_bridge.window.
+   minimize_zeta`). For ``n = 0`` this *is* the k-BA.
+4. *Fusion*: barrier GPS fusion of the most recent camera (eq. 3.1, :func:`slam_bridge.solvers.
+   barrier.solve_barrier`) from ``X*``. A keyframe without a GPS fix (dropout, NaN) is not fused
+   (documented behaviour; it keeps ``X*``).
+5. *Gating*: active observations of the window erring by more than ``window_gate_px`` after the
+   fusion are deactivated (gross outliers that slipped through).
+
+Recorded per keyframe (:class:`KeyframeRecord`): the online pose, BA and fusion times, fusion
+iterations and time per iteration, the **Hessian memory** and window sizes.
+
+**Hessian memory** (fig. 3.7), the same definition for every method: the bytes of the blocks the
+assembled (symmetric) system of ``zeta`` stores, in float64::
+
+    bytes = 8 (36 Cf + 36 Q + 18 N_W + 9 Pf)
+
+with ``Cf`` free cameras (``U`` diagonal blocks, 6x6), ``Q`` pairs of free cameras coupled by a
+pose-graph term (off-diagonal camera blocks, 6x6, stored once), ``N_W`` distinct (free camera,
+free point) pairs with an observation (``W`` blocks, 6x3) and ``Pf`` free points (``V`` blocks,
+3x3). The GPS term only adds to one ``U`` block and the barrier's rank-1 term is never formed
+(Sherman-Morrison), so neither changes the count.
+
+**Stage** (:func:`run_experiment`, DESIGN §3.1): config in, directory out, skipped when the
+directory already holds the results of the same config.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from geoseg.errors import check_finite, check_shape
+from slam_bridge.camera import project
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.gps import GPSFactor
+from slam_bridge.factors.pose_graph_dpc import DPCFactor
+from slam_bridge.geometry import pnp, triangulate
+from slam_bridge.landmarks import LandmarkConfig, Observations
+from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
+from slam_bridge.solvers.lm import LMConfig
+from slam_bridge.window import (
+    HybridWindowConfig,
+    WindowError,
+    build_hybrid_problem,
+    minimize_zeta,
+)
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "METHODS",
+    "PipelineConfig",
+    "SequenceData",
+    "KeyframeRecord",
+    "PipelineResult",
+    "SequenceConfig",
+    "ExperimentConfig",
+    "BaselineLengthFactor",
+    "hessian_bytes",
+    "run_pipeline",
+    "make_sequence",
+    "gps_for_setting",
+    "run_experiment",
+]
+
+#: method name -> (pose-graph kind, uses the pose-graph window)
+METHODS = {"ba": ("dpc", False), "dpc": ("dpc", True), "mpc": ("mpc", True)}
+
+
+@dataclass
+class PipelineConfig:
+    """Settings of the keyframe loop (module docstring; thesis §3.7: ``l = 40``, ``n = 30``).
+
+    Attributes:
+        l: optimised keyframes.
+        n: pose-graph cameras for the hybrid methods (``ba`` always uses 0).
+        ba_iterations: Levenberg-Marquardt iterations of the k-BA (``X*``).
+        fusion_iterations: barrier iterations.
+        gamma_rel: relative barrier weight (:class:`BarrierConfig`).
+        t_ratio: ``t = t_ratio zeta(X*)``.
+        gps_weight: weight of the GPS term.
+        fuse: run the GPS fusion (False: vision only).
+        anchor_keyframes: first keyframes set to ground truth and held fixed.
+        pnp_threshold_px: PnP RANSAC threshold.
+        outlier_gate_px: an observation erring more than this at its PnP pose, or a new
+            point's worst observation erring more after triangulation, is a gross outlier
+            (deactivated). Moderate errors (a point triangulated with little parallax) are
+            left to the k-BA.
+        window_gate_px: observations erring more after the fusion are deactivated.
+        min_parallax_deg: triangulation parallax threshold.
+        min_tracked: fewer PnP inliers make a weak tracking (warning; no outlier gating at
+            that pose); fewer than 6 is a lost tracking (:class:`SlamError`).
+        history_keyframes: keyframes older than the window handed to the window builder (the
+            fixed older observers of its points are found among them).
+        dpc_sigma_rot_rad: DPC weight ``A = I / sigma_rot^2`` (eq. 3.16). The thesis's
+            ``D = I`` weighs a relative-pose error of 1 m like one squared pixel, which lets
+            the barrier bend the pose graph by metres for free; a sigma near the k-BA's
+            relative-pose uncertainty (~0.2 mrad, ~2 mm between keyframes 2 m apart with ~250
+            points each) makes a pose-graph link about as stiff as the reprojections it
+            replaces (softer links let the barrier bend the chain and lose inliers).
+        dpc_sigma_trans_m: DPC weight ``B = I / sigma_trans^2``.
+        mpc_sigma_px: pixel sigma of the MPC epipolar residuals (eq. 3.18).
+        mpc_length_sigma_m: MPC only: sigma of a baseline-length term
+            ``((||T_j - T_i|| - L_hat_ij) / sigma)^2`` added to zeta for every pose-graph pair
+            (:class:`BaselineLengthFactor`, ``L_hat`` from the pre-fusion poses). The epipolar
+            residual of eq. 3.18 is blind to the length of each baseline, so without it every
+            link of the chain, and the scale of the BA window behind it, is free: the barrier
+            lets the GPS slide the reconstruction along those directions at no vision cost (the
+            sequence drifts by tens of metres). ``None`` = the thesis's pure MPC.
+        mpc_match_share: MPC only: share of the points (a fixed subset, chosen by point id)
+            whose 2D correspondences between successive pose-graph keyframes enter eq. 3.18
+            (the thesis does not say how many; all of them make MPC slower than n = 0).
+        ba_scale_sigma_m: hybrids only: sigma of a baseline-length term on the first pair of
+            the BA window. With ``n > 0`` no fixed camera observes the BA window's points, so
+            its scale (about ``z_{n+1}``) costs zeta nothing and the barrier lets each GPS fix
+            rescale it, at the expense of its consistency with the pose-graph cameras' points
+            (inlier loss). ``None`` (default) = eq. 3.4 as written.
+        freeze_links: keep each pose-graph link's ``S_hat`` (eq. 3.14) from the moment it
+            entered the pose graph (the k-BA's relative pose) rather than re-taking it at every
+            keyframe from the fused poses (see :func:`_freeze_links`).
+    """
+
+    l: int = 40
+    n: int = 30
+    ba_iterations: int = 10
+    fusion_iterations: int = 10
+    gamma_rel: float = 0.01
+    t_ratio: float = 1.05
+    gps_weight: float = 1.0
+    fuse: bool = True
+    anchor_keyframes: int = 3
+    pnp_threshold_px: float = 8.0
+    outlier_gate_px: float = 20.0
+    window_gate_px: float = 8.0
+    min_parallax_deg: float = 1.0
+    min_tracked: int = 12
+    history_keyframes: int = 30
+    dpc_sigma_rot_rad: float = 2e-4
+    dpc_sigma_trans_m: float = 2e-3
+    mpc_sigma_px: float = 1.0
+    mpc_length_sigma_m: float | None = 2e-3
+    mpc_match_share: float = 0.25
+    ba_scale_sigma_m: float | None = None
+    freeze_links: bool = True
+
+    def __post_init__(self) -> None:
+        if self.anchor_keyframes < 2:
+            raise SlamError(f"anchor_keyframes: expected >= 2, got {self.anchor_keyframes}")
+        if self.l < 3:
+            raise SlamError(f"l: expected >= 3 (BA window of at least 3 cameras), got {self.l}")
+        if not 0 <= self.n <= self.l - 3:
+            raise SlamError(f"n: expected 0 <= n <= l - 3 = {self.l - 3}, got {self.n}")
+
+
+@dataclass
+class SequenceData:
+    """Everything the loop consumes (ground truth only for the anchors and the evaluation).
+
+    Attributes:
+        K: ``(3, 3)`` intrinsics.
+        image_size: ``(W, H)``.
+        timestamps: ``(C,)`` keyframe times, seconds.
+        R_wc_true: ``(C, 3, 3)`` true keyframe rotations.
+        t_wc_true: ``(C, 3)`` true optical centres.
+        observations: the keyframe observations (sorted by keyframe).
+        num_points: number of landmarks ``P`` (point ids ``0..P-1``).
+        gps_xy: ``(C, 2)`` GPS fix of each keyframe (NaN = dropout).
+    """
+
+    K: np.ndarray
+    image_size: tuple[int, int]
+    timestamps: np.ndarray
+    R_wc_true: np.ndarray
+    t_wc_true: np.ndarray
+    observations: Observations
+    num_points: int
+    gps_xy: np.ndarray
+
+    def __post_init__(self) -> None:
+        C = self.R_wc_true.shape[0]
+        check_shape("R_wc_true", self.R_wc_true, (None, 3, 3))
+        check_shape("t_wc_true", self.t_wc_true, (C, 3))
+        check_shape("gps_xy", self.gps_xy, (C, 2))
+        check_finite("uv", self.observations.uv)
+        if np.any(np.diff(self.observations.keyframe) < 0):
+            raise SlamError("observations: expected to be sorted by keyframe")
+
+    @property
+    def num_keyframes(self) -> int:
+        """``C``."""
+        return int(self.R_wc_true.shape[0])
+
+
+@dataclass
+class KeyframeRecord:
+    """What happened at one keyframe.
+
+    Attributes:
+        keyframe: its index.
+        n_pose_graph: pose-graph cameras used.
+        n_cameras: free cameras of the window.
+        n_points: free points of the window.
+        n_tracked: PnP inliers.
+        n_new_points: points triangulated at this keyframe.
+        ba_seconds: wall time of ``X* = argmin zeta``.
+        ba_iterations: its LM iterations.
+        fusion_seconds: wall time of the barrier fusion (0 if not fused).
+        fusion_iterations: barrier iterations.
+        fusion_seconds_per_iteration: mean time of a barrier iteration (assembly + solves).
+        hessian_bytes: memory of the assembled system (module docstring).
+        gps_used: whether a fix was fused.
+        zeta_star: ``zeta(X*)``.
+        zeta: ``zeta`` after the fusion.
+    """
+
+    keyframe: int
+    n_pose_graph: int = 0
+    n_cameras: int = 0
+    n_points: int = 0
+    n_tracked: int = 0
+    n_new_points: int = 0
+    ba_seconds: float = 0.0
+    ba_iterations: int = 0
+    fusion_seconds: float = 0.0
+    fusion_iterations: int = 0
+    fusion_seconds_per_iteration: float = 0.0
+    hessian_bytes: int = 0
+    gps_used: bool = False
+    zeta_star: float = 0.0
+    zeta: float = 0.0
+
+
+@dataclass
+class PipelineResult:
+    """Output of :func:`run_pipeline`.
+
+    Attributes:
+        method: ``ba``, ``dpc`` or ``mpc``.
+        R_wc: ``(C, 3, 3)`` final rotations (each keyframe's last estimate).
+        t_wc: ``(C, 3)`` final optical centres.
+        R_wc_online: ``(C, 3, 3)`` each keyframe's pose right after its own fusion.
+        t_wc_online: ``(C, 3)``.
+        X_w: ``(P, 3)`` points (NaN where never triangulated).
+        triangulated: ``(P,)`` bool.
+        active: ``(M,)`` bool, observations still used (not rejected as outliers).
+        records: one :class:`KeyframeRecord` per processed keyframe.
+        seconds: total wall time.
+    """
+
+    method: str
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    R_wc_online: np.ndarray
+    t_wc_online: np.ndarray
+    X_w: np.ndarray
+    triangulated: np.ndarray
+    active: np.ndarray
+    records: list[KeyframeRecord] = field(default_factory=list)
+    seconds: float = 0.0
+
+
+class BaselineLengthFactor:
+    """Length of the baseline between two cameras (the scale MPC's epipolar rows cannot see).
+
+    Row per pair ``(i, j)``: ``r = (||T_j - T_i|| - L_hat) / sigma`` (``k = 1``, ``a = 2``), with
+    ``dr/dT_j = u^T / sigma``, ``dr/dT_i = -u^T / sigma``, ``u = (T_j - T_i) / ||T_j - T_i||``
+    and no rotation dependence. It only fills the off-diagonal blocks of successive cameras,
+    like the pose-graph terms (fig. 3.3).
+
+    Args:
+        pairs: ``(Q, 2)`` state camera indices.
+        lengths: ``(Q,)`` reference lengths ``L_hat`` (metres).
+        sigma: metres, scalar or ``(Q,)``.
+    """
+
+    def __init__(self, pairs: np.ndarray, lengths: np.ndarray, sigma: float) -> None:
+        self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        self.lengths = np.asarray(lengths, dtype=np.float64).reshape(-1)
+        if self.lengths.shape != (self.pairs.shape[0],):
+            raise SlamError("lengths: expected one per pair")
+        if not np.all(np.asarray(sigma) > 0):
+            raise SlamError(f"sigma: expected > 0, got {sigma}")
+        self.sigma = np.asarray(sigma, dtype=np.float64)
+        self.name = "baseline_length"
+
+    @classmethod
+    def from_state(cls, state, pairs: np.ndarray, sigma: float) -> BaselineLengthFactor:
+        """``L_hat`` = the lengths at ``state`` (the pre-fusion estimate)."""
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        d = state.t_wc[pairs[:, 1]] - state.t_wc[pairs[:, 0]]
+        return cls(pairs, np.linalg.norm(d, axis=1), sigma)
+
+    def _r(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        d = state.t_wc[self.pairs[:, 1]] - state.t_wc[self.pairs[:, 0]]
+        n = np.linalg.norm(d, axis=1)
+        return (n - self.lengths) / self.sigma, d, n
+
+    def evaluate(self, state):
+        """Rows ``(Q, 1)``, ``a = 2``."""
+        from slam_bridge.factors.base import FactorBlock
+
+        r, d, n = self._r(state)
+        u = d / (np.maximum(n, 1e-12) * self.sigma)[:, None]
+        J = np.zeros((r.size, 2, 1, 6))
+        J[:, 0, 0, 3:] = -u
+        J[:, 1, 0, 3:] = u
+        return FactorBlock(r[:, None], self.pairs, J, name=self.name)
+
+    def cost(self, state) -> float:
+        """``sum r^2``."""
+        return float(np.sum(self._r(state)[0] ** 2))
+
+    def cost_and_invalid(self, state) -> tuple[float, int]:
+        """``(cost, 0)``."""
+        return self.cost(state), 0
+
+
+def hessian_bytes(problem) -> int:
+    """Memory of the assembled system of ``zeta`` for a hybrid problem (module docstring).
+
+    Args:
+        problem: a :class:`slam_bridge.window.HybridProblem` (its state's fixed masks count).
+
+    Returns:
+        ``8 (36 Cf + 36 Q + 18 N_W + 9 Pf)`` bytes.
+    """
+    st = problem.state
+    cmap, pmap = st.camera_index_map, st.point_index_map
+    Cf, Pf = int(st.free_cameras.size), int(st.free_points.size)
+    rep = problem.vision[0]
+    c, p = cmap[rep.cameras], pmap[rep.points]
+    keep = (c >= 0) & (p >= 0)
+    n_w = int(np.unique(c[keep] * max(Pf, 1) + p[keep]).size)
+    q = 0
+    if problem.window.pose_graph_pairs.shape[0]:
+        idx = {int(k): i for i, k in enumerate(problem.camera_ids)}
+        for a, b in problem.window.pose_graph_pairs:
+            if cmap[idx[int(a)]] >= 0 and cmap[idx[int(b)]] >= 0:
+                q += 1
+    return 8 * (36 * Cf + 36 * q + 18 * n_w + 9 * Pf)
+
+
+def _freeze_links(
+    problem,
+    links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    D: np.ndarray,
+    cfg: PipelineConfig,
+) -> None:
+    """Record ``S_hat`` of new pose-graph links and, when frozen, rebuild the DPC factor.
+
+    A link ``(z_i, z_{i+1})`` enters the pose graph when ``z_i`` leaves the BA window; its
+    relative pose at that moment (eq. 3.2, the k-BA's estimate, before this keyframe's fusion)
+    is stored. With ``freeze_links`` the DPC terms (and MPC's baseline lengths) of every later
+    keyframe keep that ``S_hat`` instead of re-taking it from the current, already fused, poses:
+    otherwise each fusion's bend of the chain becomes the next keyframe's reference and the
+    bends accumulate over the ``n`` keyframes a camera spends in the pose graph.
+    """
+    pg = problem.window.pose_graph_pairs
+    for a, b in pg:
+        key = (int(a), int(b))
+        if key not in links:
+            links[key] = (R_wc[a].T @ R_wc[b], R_wc[a].T @ (t_wc[b] - t_wc[a]))
+    if not cfg.freeze_links or not pg.size:
+        return
+    for i, f in enumerate(problem.vision):
+        if isinstance(f, DPCFactor):
+            R_h = np.stack([links[(int(a), int(b))][0] for a, b in pg])
+            t_h = np.stack([links[(int(a), int(b))][1] for a, b in pg])
+            problem.vision[i] = DPCFactor(f.pairs, R_h, t_h, D)
+
+
+def _add_length_terms(
+    problem,
+    kind: str,
+    cfg: PipelineConfig,
+    links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
+) -> None:
+    """Append the :class:`BaselineLengthFactor` terms of ``mpc_length_sigma_m`` (pose-graph
+    pairs, MPC) and ``ba_scale_sigma_m`` (first BA-window pair) to ``problem.vision``."""
+    st = problem.state
+    pairs, sig, lengths = [], [], []
+    if kind == "mpc" and cfg.mpc_length_sigma_m:
+        for a, b in problem.window.pose_graph_pairs:
+            i, j = problem.camera_index(a), problem.camera_index(b)
+            pairs.append((i, j))
+            sig.append(cfg.mpc_length_sigma_m)
+            if cfg.freeze_links:
+                lengths.append(float(np.linalg.norm(links[(int(a), int(b))][1])))
+            else:
+                lengths.append(float(np.linalg.norm(st.t_wc[j] - st.t_wc[i])))
+    ba = problem.window.ba_cameras
+    if cfg.ba_scale_sigma_m and ba.size >= 2:
+        i, j = problem.camera_index(ba[0]), problem.camera_index(ba[1])
+        pairs.append((i, j))
+        sig.append(cfg.ba_scale_sigma_m)
+        lengths.append(float(np.linalg.norm(st.t_wc[j] - st.t_wc[i])))
+    if pairs:
+        problem.vision.append(
+            BaselineLengthFactor(np.array(pairs), np.array(lengths), np.array(sig))
+        )
+
+
+def _window_n(method: str, cfg: PipelineConfig, l_eff: int) -> int:
+    if not METHODS[method][1]:
+        return 0
+    return max(0, min(cfg.n, l_eff - (cfg.l - cfg.n)))
+
+
+def run_pipeline(
+    data: SequenceData,
+    method: str = "ba",
+    config: PipelineConfig | None = None,
+    *,
+    num_keyframes: int | None = None,
+) -> PipelineResult:
+    """Process a sequence keyframe by keyframe (module docstring).
+
+    Args:
+        data: the sequence.
+        method: ``ba`` (``n = 0``, Lhuillier's barrier BA), ``dpc`` or ``mpc`` (hybrid).
+        config: loop settings.
+        num_keyframes: process only the first keyframes (default all).
+
+    Returns:
+        A :class:`PipelineResult`.
+
+    Raises:
+        SlamError: unknown method, too few keyframes, tracking lost (too few PnP matches), a
+            non-finite estimate (never returned silently).
+    """
+    if method not in METHODS:
+        raise SlamError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
+    cfg = config or PipelineConfig()
+    t_start = time.perf_counter()
+    C = data.num_keyframes if num_keyframes is None else min(num_keyframes, data.num_keyframes)
+    if C < cfg.anchor_keyframes + 1:
+        raise SlamError(
+            f"the sequence has {C} keyframes; at least {cfg.anchor_keyframes + 1} are needed "
+            "(anchors + one tracked keyframe)"
+        )
+    obs = data.observations
+    K = data.K
+    kf_obs, pt_obs, uv = obs.keyframe, obs.point, obs.uv
+    starts = np.searchsorted(kf_obs, np.arange(C + 1))
+    P = int(data.num_points)
+    R_wc = np.repeat(np.eye(3)[None], data.num_keyframes, axis=0)
+    t_wc = np.zeros((data.num_keyframes, 3))
+    R_on, t_on = R_wc.copy(), t_wc.copy()
+    X_w = np.full((P, 3), np.nan)
+    tri_ok = np.zeros(P, dtype=bool)
+    active = np.ones(kf_obs.size, dtype=bool)
+    anchors = np.arange(cfg.anchor_keyframes)
+    R_wc[anchors] = data.R_wc_true[anchors]
+    t_wc[anchors] = data.t_wc_true[anchors]
+    R_on[anchors], t_on[anchors] = R_wc[anchors], t_wc[anchors]
+    kind, _ = METHODS[method]
+    D = np.concatenate(
+        [np.full(3, cfg.dpc_sigma_rot_rad**-2), np.full(3, cfg.dpc_sigma_trans_m**-2)]
+    )
+    links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    records: list[KeyframeRecord] = []
+    n0 = _triangulate_new(
+        data, cfg, R_wc, t_wc, X_w, tri_ok, active, starts, cfg.anchor_keyframes - 1
+    )
+    logger.debug("%s: %d points from the anchors", method, n0)
+    for k in range(cfg.anchor_keyframes, C):
+        rec = KeyframeRecord(keyframe=k)
+        sl = np.arange(starts[k], starts[k + 1])
+        # 1. tracking
+        trk = sl[active[sl] & tri_ok[pt_obs[sl]]]
+        if trk.size < cfg.min_tracked:
+            raise SlamError(
+                f"tracking lost at keyframe {k}: {trk.size} observations of mapped points, "
+                f"fewer than {cfg.min_tracked}"
+            )
+        R_k, t_k, n_in = _track(K, X_w[pt_obs[trk]], uv[trk], R_wc, t_wc, k, cfg)
+        if n_in < 6:
+            raise SlamError(
+                f"tracking lost at keyframe {k}: {n_in} PnP inliers among {trk.size} "
+                f"observations of mapped points (at least 6 needed)"
+            )
+        if n_in < cfg.min_tracked:  # weak: keep the pose, let the k-BA decide, gate nothing
+            logger.warning("keyframe %d: weak tracking (%d PnP inliers)", k, n_in)
+        else:
+            uv_hat, _, front = project(K, R_k, t_k, X_w[pt_obs[trk]])
+            err = np.where(
+                front, np.linalg.norm(np.nan_to_num(uv_hat - uv[trk], nan=1e9), axis=1), 1e9
+            )
+            active[trk[err > cfg.outlier_gate_px]] = False
+        rec.n_tracked = int(n_in)
+        R_wc[k], t_wc[k] = R_k, t_k
+        # 2. mapping
+        rec.n_new_points = _triangulate_new(data, cfg, R_wc, t_wc, X_w, tri_ok, active, starts, k)
+        # 3. window and X*
+        first = max(0, k + 1 - cfg.l - cfg.history_keyframes)
+        keyframes = np.arange(first, k + 1)
+        l_eff = min(cfg.l, k + 1)
+        n_eff = _window_n(method, cfg, l_eff)
+        lo = starts[first]
+        sel = lo + np.flatnonzero(active[lo : starts[k + 1]] & tri_ok[pt_obs[lo : starts[k + 1]]])
+        sel_all = sel
+        if kind == "mpc" and n_eff > 0 and cfg.mpc_match_share < 1.0:
+            # pose-graph keyframes only contribute MPC correspondences: thin them by point id
+            pg_end = k + 1 - (l_eff - n_eff)
+            in_pg = kf_obs[sel] < pg_end
+            h = (pt_obs[sel] * 2654435761) % 1000
+            thin = in_pg & (h >= 1000 * cfg.mpc_match_share)
+            # keyframes left with few observations keep them all (enough MPC matches)
+            left = np.bincount(kf_obs[sel][~thin], minlength=k + 1)
+            thin &= left[kf_obs[sel]] >= 40
+            sel_all, sel = sel, sel[~thin]
+        wcfg = HybridWindowConfig(
+            l=cfg.l, n=n_eff, pose_graph=kind, D=D, mpc_sigma=cfg.mpc_sigma_px
+        )
+        try:
+            problem = build_hybrid_problem(
+                R_wc, t_wc, X_w, K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
+            )
+        except WindowError:
+            if sel_all is sel:
+                raise
+            logger.debug("keyframe %d: MPC window without thinning", k)
+            sel = sel_all
+            problem = build_hybrid_problem(
+                R_wc, t_wc, X_w, K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
+            )
+        st = problem.state
+        st.camera_fixed[np.isin(problem.camera_ids, anchors)] = True
+        if n_eff > 0:
+            _freeze_links(problem, links, R_wc, t_wc, D, cfg)
+            _add_length_terms(problem, kind, cfg, links)
+        if st.free_cameras.size == 0:
+            raise SlamError(f"keyframe {k}: the window has no free camera")
+        rec.n_pose_graph = n_eff
+        rec.n_cameras = int(st.free_cameras.size)
+        rec.n_points = int(st.free_points.size)
+        rec.hessian_bytes = hessian_bytes(problem)
+        t0 = time.perf_counter()
+        problem, lm = minimize_zeta(problem, LMConfig(max_iterations=cfg.ba_iterations))
+        rec.ba_seconds = time.perf_counter() - t0
+        rec.ba_iterations = int(lm.iterations)
+        state = problem.state
+        # 4. fusion
+        gps = data.gps_xy[k]
+        if cfg.fuse and np.all(np.isfinite(gps)):
+            factor = GPSFactor.most_recent(state, gps, weight=cfg.gps_weight)
+            bcfg = BarrierConfig(
+                t_ratio=cfg.t_ratio, gamma_rel=cfg.gamma_rel, max_iterations=cfg.fusion_iterations
+            )
+            t0 = time.perf_counter()
+            fused = solve_barrier(problem.vision, [factor], state, bcfg)
+            rec.fusion_seconds = time.perf_counter() - t0
+            rec.fusion_iterations = int(fused.iterations)
+            rec.fusion_seconds_per_iteration = float(fused.seconds_per_iteration)
+            rec.zeta_star, rec.zeta = float(fused.zeta_star), float(fused.zeta)
+            rec.gps_used = True
+            state = fused.state
+        elif cfg.fuse:
+            logger.debug("keyframe %d: no GPS fix (dropout), not fused", k)
+        problem.write_back(state, R_wc, t_wc, X_w)
+        if not (np.all(np.isfinite(t_wc[: k + 1])) and np.all(np.isfinite(R_wc[: k + 1]))):
+            raise SlamError(f"keyframe {k}: non-finite pose estimate")
+        R_on[k], t_on[k] = R_wc[k], t_wc[k]
+        # 5. gating
+        w = problem.window.observations
+        o = sel[w]
+        uv_hat, _, front = project(K, R_wc[kf_obs[o]], t_wc[kf_obs[o]], X_w[pt_obs[o]])
+        err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv[o], nan=1e9), axis=1), 1e9)
+        bad = o[err > cfg.window_gate_px]
+        active[bad] = False
+        records.append(rec)
+        if k % 25 == 0:
+            logger.info(
+                "%s kf %d/%d: %d cams, %d pts, BA %.0f ms, fusion %d it %.0f ms",
+                method,
+                k,
+                C - 1,
+                rec.n_cameras,
+                rec.n_points,
+                1e3 * rec.ba_seconds,
+                rec.fusion_iterations,
+                1e3 * rec.fusion_seconds,
+            )
+    return PipelineResult(
+        method=method,
+        R_wc=R_wc[:C],
+        t_wc=t_wc[:C],
+        R_wc_online=R_on[:C],
+        t_wc_online=t_on[:C],
+        X_w=X_w,
+        triangulated=tri_ok,
+        active=active,
+        records=records,
+        seconds=time.perf_counter() - t_start,
+    )
+
+
+def _track(
+    K: np.ndarray,
+    X_w: np.ndarray,
+    uv: np.ndarray,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    k: int,
+    cfg: PipelineConfig,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Pose of keyframe ``k`` from 2D-3D matches: PnP, or the constant-velocity prediction
+    ``(R_{k-1} R_{k-2}^T R_{k-1}, T_{k-1} + R_{k-1} R_{k-2}^T (T_{k-1} - T_{k-2}))`` refined by
+    PnP's LM when RANSAC finds no consensus; the candidate with more inliers (error <
+    ``pnp_threshold_px``) wins.
+
+    Returns:
+        ``R_wc (3, 3)``, ``t_wc (3,)``, number of inliers.
+    """
+    import cv2
+
+    dR = R_wc[k - 1] @ R_wc[k - 2].T
+    cands = [(dR @ R_wc[k - 1], t_wc[k - 1] + dR @ (t_wc[k - 1] - t_wc[k - 2]))]
+    try:
+        res = pnp(K, X_w, uv, threshold_px=cfg.pnp_threshold_px, seed=k)
+        cands.append((res.R_wc, res.t_wc))
+    except SlamError as exc:
+        logger.debug("keyframe %d: PnP RANSAC failed (%s); motion model", k, exc)
+    best = None
+    for R, t in cands:
+        for _ in range(2):  # score, then refine on the inliers (OpenCV LM)
+            uv_hat, _, front = project(K, R, t, X_w)
+            err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv, nan=1e9), axis=1), 1e9)
+            inl = err < cfg.pnp_threshold_px
+            if inl.sum() < 6:
+                break
+            rvec = cv2.Rodrigues(np.ascontiguousarray(R.T))[0].reshape(3, 1)
+            tvec = np.ascontiguousarray(-(R.T @ t)).reshape(3, 1)
+            rvec, tvec = cv2.solvePnPRefineLM(
+                np.ascontiguousarray(X_w[inl]), np.ascontiguousarray(uv[inl]), K, None, rvec, tvec
+            )
+            R_cw, _ = cv2.Rodrigues(rvec)
+            R, t = R_cw.T, -(R_cw.T @ tvec.reshape(3))
+        uv_hat, _, front = project(K, R, t, X_w)
+        err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv, nan=1e9), axis=1), 1e9)
+        n_in = int(np.sum(err < cfg.pnp_threshold_px))
+        if best is None or n_in > best[2]:
+            best = (R, t, n_in)
+    return best
+
+
+def _triangulate_new(
+    data: SequenceData,
+    cfg: PipelineConfig,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    X_w: np.ndarray,
+    tri_ok: np.ndarray,
+    active: np.ndarray,
+    starts: np.ndarray,
+    k: int,
+) -> int:
+    """Triangulate the untriangulated points seen by keyframe ``k`` (in place); returns count."""
+    obs = data.observations
+    sl = np.arange(starts[k], starts[k + 1])
+    cand = np.unique(obs.point[sl][active[sl] & ~tri_ok[obs.point[sl]]])
+    if cand.size == 0:
+        return 0
+    upto = np.arange(starts[k + 1])
+    o = upto[active[upto] & np.isin(obs.point[upto], cand)]
+    counts = np.bincount(obs.point[o], minlength=X_w.shape[0])
+    o = o[counts[obs.point[o]] >= 2]
+    if o.size == 0:
+        return 0
+    pts_u, local = np.unique(obs.point[o], return_inverse=True)
+    res = triangulate(
+        data.K,
+        R_wc,
+        t_wc,
+        obs.keyframe[o],
+        local,
+        obs.uv[o],
+        num_points=pts_u.size,
+        min_parallax_deg=cfg.min_parallax_deg,
+    )
+    Xo = np.where(res.valid[:, None], res.X_w, 0.0)[local]
+    uv_hat, _, front = project(data.K, R_wc[obs.keyframe[o]], t_wc[obs.keyframe[o]], Xo)
+    err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - obs.uv[o], nan=1e9), axis=1), 1e9)
+    worst = np.zeros(pts_u.size)
+    np.maximum.at(worst, local, err)
+    good = res.valid & (worst <= cfg.outlier_gate_px)
+    # a valid point with one bad observation: drop its worst observation, retry later
+    bad_pt = res.valid & ~good
+    if np.any(bad_pt):
+        is_worst = bad_pt[local] & (err >= worst[local]) & (err > cfg.outlier_gate_px)
+        active[o[is_worst]] = False
+    X_w[pts_u[good]] = res.X_w[good]
+    tri_ok[pts_u[good]] = True
+    return int(good.sum())
+
+
+# ------------------------------------------------------------------------------- experiment
+@dataclass
+class SequenceConfig:
+    """The synthetic drive.
+
+    Attributes:
+        rig: ``car`` or ``tram``.
+        length_m: distance driven (the thesis's synthetic sequence: 640 m).
+        speed_mps: cruise speed (None: the rig's default).
+        fps: frame rate of the drive.
+        seed: route seed.
+        image_size: ``(W, H)``.
+        keyframe_spacing_m: a keyframe every this many metres driven.
+    """
+
+    rig: str = "car"
+    length_m: float = 640.0
+    speed_mps: float | None = None
+    fps: float = 10.0
+    seed: int = 0
+    image_size: tuple[int, int] = (640, 480)
+    keyframe_spacing_m: float = 2.0
+
+
+def _default_world():
+    from geoseg.synth.world import WorldConfig
+
+    return WorldConfig()
+
+
+@dataclass
+class ExperimentConfig:
+    """The chapter-3 experiment (``configs/slam_ch3.yaml``).
+
+    Attributes:
+        world: :class:`geoseg.synth.WorldConfig`.
+        sequence: the drive.
+        landmarks: points and measurement model.
+        pipeline: the keyframe loop.
+        methods: among ``ba``, ``dpc``, ``mpc``.
+        gps_sigmas: sigma_b values (m) of the thesis's noise-only GPS (Table 3.1).
+        gps_bias: add a run with :func:`geoseg.synth.gps.simulate_gps`'s locally constant bias,
+            noise and dropouts (``gps`` settings).
+        gps: the bias model of that run (``rate_hz`` is replaced by the frame rate).
+        quick_length_m: sequence length of the default (non ``--full``) run.
+        quick_sigmas: sigma_b values of the default run.
+        quick_bias: whether the default run includes the bias setting.
+        seed: seed of landmarks, noise and GPS.
+    """
+
+    world: object = field(default_factory=_default_world)
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
+    landmarks: LandmarkConfig = field(default_factory=LandmarkConfig)
+    pipeline: PipelineConfig = field(default_factory=PipelineConfig)
+    methods: list[str] = field(default_factory=lambda: ["ba", "dpc", "mpc"])
+    gps_sigmas: list[float] = field(default_factory=lambda: [0.0, 0.75, 1.5])
+    gps_bias: bool = True
+    gps: object = None
+    quick_length_m: float = 160.0
+    quick_sigmas: list[float] = field(default_factory=lambda: [0.75])
+    quick_bias: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        from geoseg.config import from_dict
+        from geoseg.synth.gps import GpsConfig
+        from geoseg.synth.world import WorldConfig
+
+        if isinstance(self.world, dict):
+            self.world = from_dict(WorldConfig, self.world, where="world")
+        if self.gps is None:
+            self.gps = GpsConfig()
+        elif isinstance(self.gps, dict):
+            self.gps = from_dict(GpsConfig, self.gps, where="gps")
+        unknown = sorted(set(self.methods) - set(METHODS))
+        if unknown or not self.methods:
+            raise SlamError(f"methods: expected some of {sorted(METHODS)}, got {self.methods}")
+        if any(s < 0 for s in self.gps_sigmas):
+            raise SlamError(f"gps_sigmas: expected values >= 0, got {self.gps_sigmas}")
+
+    def quick(self) -> ExperimentConfig:
+        """The default (short) run: ``quick_length_m`` and the quick GPS settings."""
+        seq = dataclasses.replace(self.sequence, length_m=self.quick_length_m)
+        return dataclasses.replace(
+            self, sequence=seq, gps_sigmas=list(self.quick_sigmas), gps_bias=self.quick_bias
+        )
+
+    def settings(self) -> list[str]:
+        """GPS setting names: ``sigma=0.75`` ... and ``bias``."""
+        out = [f"sigma={s:g}" for s in self.gps_sigmas]
+        return out + (["bias"] if self.gps_bias else [])
+
+
+@dataclass
+class Sequence:
+    """A prepared sequence plus its scene (for plots).
+
+    Attributes:
+        data: the loop's input (``gps_xy`` is NaN: set per GPS setting).
+        frames: ``(C,)`` trajectory frame index of each keyframe.
+        trajectory: the full :class:`geoseg.synth.Trajectory`.
+        num_outliers: gross outliers planted.
+    """
+
+    data: SequenceData
+    frames: np.ndarray
+    trajectory: object
+    num_outliers: int
+
+
+def make_sequence(cfg: ExperimentConfig) -> Sequence:
+    """World, drive, keyframes, landmarks and observations of the experiment.
+
+    Returns:
+        A :class:`Sequence` (GPS not yet set).
+    """
+    from geoseg.synth import build_world, drive
+    from slam_bridge.landmarks import (
+        SceneCaster,
+        sample_landmarks,
+        simulate_observations,
+        visible_observations,
+    )
+
+    world = build_world(cfg.world)
+    s = cfg.sequence
+    traj = drive(
+        world,
+        rig=s.rig,
+        length_m=s.length_m,
+        speed_mps=s.speed_mps,
+        fps=s.fps,
+        seed=s.seed,
+        image_size=tuple(s.image_size),
+    )
+    step = np.linalg.norm(np.diff(traj.t_wc, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(step)])
+    targets = np.arange(0.0, arc[-1] + 1e-9, s.keyframe_spacing_m)
+    frames = np.unique(np.searchsorted(arc, targets))
+    frames = frames[frames < len(traj)]
+    lm = sample_landmarks(world, traj.t_wc[:, :2], cfg.landmarks, seed=cfg.seed)
+    caster = SceneCaster.from_world(world)
+    kf, pt, uv_true = visible_observations(
+        caster, lm, traj.K, traj.R_wc[frames], traj.t_wc[frames], traj.image_size, cfg.landmarks
+    )
+    obs = simulate_observations(kf, pt, uv_true, traj.image_size, cfg.landmarks, seed=cfg.seed)
+    C = frames.size
+    data = SequenceData(
+        K=traj.K,
+        image_size=traj.image_size,
+        timestamps=traj.timestamps[frames],
+        R_wc_true=traj.R_wc[frames],
+        t_wc_true=traj.t_wc[frames],
+        observations=obs,
+        num_points=len(lm),
+        gps_xy=np.full((C, 2), np.nan),
+    )
+    logger.info(
+        "sequence: %.0f m, %d keyframes, %d landmarks, %d observations (%.0f per keyframe, "
+        "%d outliers)",
+        arc[-1],
+        C,
+        len(lm),
+        len(obs),
+        len(obs) / max(C, 1),
+        int(obs.is_outlier.sum()),
+    )
+    return Sequence(data, frames, traj, int(obs.is_outlier.sum()))
+
+
+def gps_for_setting(cfg: ExperimentConfig, seq: Sequence, setting: str) -> np.ndarray:
+    """GPS fixes of every keyframe for one setting.
+
+    ``sigma=s``: the thesis's model for its synthetic sequence (§3.7.1.1): the true camera
+    position plus ``N(0, s^2)`` per axis, no bias, no dropout. ``bias``: the locally constant bias
+    + noise + dropouts of :func:`geoseg.synth.gps.simulate_gps` (``cfg.gps``), sampled at the
+    frame rate so that every frame, hence every keyframe, has its fix (or a dropout).
+
+    Returns:
+        ``(C, 2)`` fixes, NaN for dropouts.
+    """
+    from geoseg.synth.gps import GpsConfig, simulate_gps
+
+    traj = seq.trajectory
+    if setting == "bias":
+        gcfg = dataclasses.replace(cfg.gps, rate_hz=cfg.sequence.fps)
+    elif setting.startswith("sigma="):
+        sigma = float(setting.split("=", 1)[1])
+        gcfg = GpsConfig(
+            rate_hz=cfg.sequence.fps,
+            bias_max_m=0.0,
+            bias_std_m=0.0,
+            noise_std_m=sigma,
+            dropout_share=0.0,
+        )
+    else:
+        raise SlamError(f"GPS setting: expected 'sigma=<m>' or 'bias', got {setting!r}")
+    log = simulate_gps(traj.timestamps, traj.t_wc, gcfg, seed=cfg.seed + 17)
+    idx = np.clip(
+        np.round((traj.timestamps[seq.frames] - log.timestamps[0]) * gcfg.rate_hz), 0, len(log) - 1
+    )
+    return log.xy[idx.astype(np.int64)].copy()
+
+
+def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, *, force: bool = False) -> Path:
+    """Run every (method, GPS setting) and write the tables, JSON and plots (a stage).
+
+    Args:
+        cfg: the experiment.
+        out_dir: output directory (created).
+        force: rerun even when ``out_dir`` holds results of the same config.
+
+    Returns:
+        ``out_dir``, holding ``fusion_ch3.md``, ``fusion_ch3.json``, ``trajectory.png``,
+        ``memory.png``, ``config.json`` and ``runs/<method>_<setting>.npz`` (per-keyframe
+        final and online poses, ground truth, GPS, Hessian bytes, fusion timings).
+    """
+    from geoseg.config import to_dict
+    from slam_bridge import evaluate as ev
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg_json = json.dumps(to_dict(cfg), sort_keys=True, default=str)
+    done = out / "fusion_ch3.json"
+    if not force and done.is_file() and (out / "config.json").is_file():
+        if (out / "config.json").read_text() == cfg_json:
+            logger.info("%s already holds the results of this config; skipped", out)
+            return out
+    t0 = time.perf_counter()
+    seq = make_sequence(cfg)
+    (out / "runs").mkdir(exist_ok=True)
+    runs: list[ev.RunSummary] = []
+    results: dict[tuple[str, str], PipelineResult] = {}
+    gps_of: dict[str, np.ndarray] = {}
+    failures: list[dict] = []
+    for setting in cfg.settings():
+        gps_xy = gps_for_setting(cfg, seq, setting)
+        gps_of[setting] = gps_xy
+        data = dataclasses.replace(seq.data, gps_xy=gps_xy)
+        for method in cfg.methods:
+            try:
+                res = run_pipeline(data, method, cfg.pipeline)
+            except SlamError as exc:  # one failed run does not sink the grid: reported
+                logger.error("%s / %s failed: %s", method, setting, exc)
+                failures.append({"method": method, "setting": setting, "error": str(exc)})
+                continue
+            results[(method, setting)] = res
+            np.savez_compressed(
+                out / "runs" / f"{method}_{setting.replace('=', '')}.npz",
+                R_wc=res.R_wc,
+                t_wc=res.t_wc,
+                R_wc_online=res.R_wc_online,
+                t_wc_online=res.t_wc_online,
+                t_wc_true=data.t_wc_true,
+                R_wc_true=data.R_wc_true,
+                gps_xy=gps_xy,
+                hessian_bytes=np.array([r.hessian_bytes for r in res.records]),
+                fusion_seconds_per_iteration=np.array(
+                    [r.fusion_seconds_per_iteration for r in res.records]
+                ),
+                fusion_iterations=np.array([r.fusion_iterations for r in res.records]),
+            )
+            runs.append(ev.summarize_run(res, data, setting))
+            logger.info("%s / %s: %s", method, setting, runs[-1].short())
+    if not runs:
+        raise SlamError(f"every run failed: {failures}")
+    summary = ev.build_summary(runs, cfg.methods, cfg.settings())
+    summary["failures"] = failures
+    summary["sequence_length_m"] = float(
+        np.sum(np.linalg.norm(np.diff(seq.data.t_wc_true, axis=0), axis=1))
+    )
+    summary["keyframes"] = seq.data.num_keyframes
+    summary["observations"] = len(seq.data.observations)
+    summary["outliers_planted"] = seq.num_outliers
+    summary["wall_seconds"] = time.perf_counter() - t0
+    ev.write_json(summary, done)
+    ev.write_markdown(summary, out / "fusion_ch3.md")
+    first = cfg.settings()[-1]
+    ev.plot_trajectories(
+        out / "trajectory.png",
+        seq.data.t_wc_true,
+        {m: results[(m, first)].t_wc for m in cfg.methods if (m, first) in results},
+        gps_of[first],
+        title=f"trajectory vs GPS ({first}) vs ground truth",
+    )
+    ev.plot_memory(
+        out / "memory.png",
+        {
+            m: np.array([r.hessian_bytes for r in results[(m, first)].records])
+            for m in cfg.methods
+            if (m, first) in results
+        },
+    )
+    (out / "config.json").write_text(cfg_json)
+    return out

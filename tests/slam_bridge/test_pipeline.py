@@ -1,0 +1,177 @@
+"""The chapter-3 keyframe loop on a tiny synthetic drive."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from geoseg.synth.world import TerrainConfig, WorldConfig
+from slam_bridge.errors import SlamError
+from slam_bridge.landmarks import LandmarkConfig
+from slam_bridge.pipeline import (
+    BaselineLengthFactor,
+    ExperimentConfig,
+    PipelineConfig,
+    SequenceConfig,
+    gps_for_setting,
+    make_sequence,
+    run_pipeline,
+)
+from slam_bridge.problem import BAState
+
+TINY_WORLD = dict(
+    seed=5,
+    preset="light",
+    blocks_x=2,
+    blocks_y=2,
+    block_size=70.0,
+    node_jitter=4.0,
+    removed_street_share=0.0,
+    terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
+)
+SMALL = PipelineConfig(l=8, n=4, ba_iterations=8, fusion_iterations=8)
+
+
+def tiny_experiment(noise_px: float = 1.0, outliers: float = 0.03, length_m: float = 40.0):
+    return ExperimentConfig(
+        world=WorldConfig(**TINY_WORLD),
+        sequence=SequenceConfig(length_m=length_m, fps=10.0, seed=1, image_size=(640, 480)),
+        landmarks=LandmarkConfig(noise_px=noise_px, outlier_share=outliers),
+        pipeline=SMALL,
+    )
+
+
+@pytest.fixture(scope="module")
+def noiseless():
+    cfg = tiny_experiment(noise_px=0.0, outliers=0.0)
+    seq = make_sequence(cfg)
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0"))
+    return cfg, data
+
+
+@pytest.fixture(scope="module")
+def noisy():
+    cfg = tiny_experiment(length_m=60.0)
+    seq = make_sequence(cfg)
+    return cfg, seq
+
+
+@pytest.mark.parametrize("method", ["ba", "dpc", "mpc"])
+def test_noiseless_poses_equal_ground_truth(noiseless, method):
+    cfg, data = noiseless
+    res = run_pipeline(data, method, cfg.pipeline)
+    assert data.num_keyframes >= 15
+    assert max(r.n_pose_graph for r in res.records) == (cfg.pipeline.n if method != "ba" else 0)
+    e_t = np.linalg.norm(res.t_wc - data.t_wc_true, axis=1)
+    cos = (np.einsum("kij,kij->k", res.R_wc, data.R_wc_true) - 1.0) / 2.0
+    e_r = np.arccos(np.clip(cos, -1.0, 1.0))
+    assert e_t.max() < 2e-3
+    assert e_r.max() < 2e-4
+    assert np.all(np.isfinite(res.X_w[res.triangulated]))
+
+
+def test_gps_fusion_pulls_latest_camera_toward_gps(noisy):
+    """n = 0: with a bias-free (noise-free) GPS, the fused online poses are closer to truth."""
+    cfg, seq = noisy
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0"))
+    fused = run_pipeline(data, "ba", cfg.pipeline)
+    vision = run_pipeline(data, "ba", dataclasses.replace(cfg.pipeline, fuse=False))
+    err = lambda r: np.linalg.norm(r.t_wc_online[2:, :2] - data.t_wc_true[2:, :2], axis=1)  # noqa: E731
+    assert err(fused).mean() < 0.7 * err(vision).mean()
+    assert all(r.gps_used and r.fusion_iterations > 0 for r in fused.records)
+    assert not any(r.gps_used for r in vision.records)
+    # the barrier never lets zeta reach t = 1.05 zeta*
+    assert all(r.zeta < 1.05 * r.zeta_star + 1e-9 for r in fused.records if r.zeta_star > 0)
+
+
+def test_hybrid_uses_less_hessian_memory(noisy):
+    cfg, seq = noisy
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
+    ba = run_pipeline(data, "ba", cfg.pipeline)
+    dpc = run_pipeline(data, "dpc", cfg.pipeline)
+    full = [i for i, r in enumerate(ba.records) if r.n_cameras == cfg.pipeline.l]
+    assert full
+    m_ba = np.mean([ba.records[i].hessian_bytes for i in full])
+    m_dpc = np.mean([dpc.records[i].hessian_bytes for i in full])
+    assert m_ba > 1.5 * m_dpc
+    assert np.all(np.isfinite(dpc.t_wc))
+    # planted outliers are rejected: almost none of them survives among the used observations
+    obs = data.observations
+    used_out = ba.active & obs.is_outlier & ba.triangulated[obs.point]
+    assert used_out.sum() <= 0.1 * obs.is_outlier.sum()
+
+
+def test_gps_dropout_is_skipped_not_nan(noisy):
+    cfg, seq = noisy
+    gps = gps_for_setting(cfg, seq, "sigma=0.75")
+    gps[5:9] = np.nan  # dropouts
+    data = dataclasses.replace(seq.data, gps_xy=gps)
+    res = run_pipeline(data, "dpc", cfg.pipeline, num_keyframes=12)
+    used = {r.keyframe: r.gps_used for r in res.records}
+    assert not any(used[k] for k in range(5, 9))
+    assert used[10] and used[11]
+    assert np.all(np.isfinite(res.t_wc)) and np.all(np.isfinite(res.R_wc))
+
+
+def test_bias_setting_has_dropouts_and_bias(noisy):
+    cfg, seq = noisy
+    cfg = dataclasses.replace(
+        cfg, gps=dataclasses.replace(cfg.gps, dropout_share=0.5, dropout_burst_s=0.3)
+    )
+    gps = gps_for_setting(cfg, seq, "bias")
+    assert gps.shape == (seq.data.num_keyframes, 2)
+    assert np.isnan(gps).any() and np.isfinite(gps).any()
+    with pytest.raises(SlamError):
+        gps_for_setting(cfg, seq, "nonsense")
+
+
+def test_bad_inputs(noiseless):
+    cfg, data = noiseless
+    with pytest.raises(SlamError, match="method"):
+        run_pipeline(data, "ekf", cfg.pipeline)
+    with pytest.raises(SlamError, match="keyframes"):
+        run_pipeline(data, "ba", cfg.pipeline, num_keyframes=2)
+    with pytest.raises(SlamError):
+        PipelineConfig(l=8, n=6)  # fewer than 3 BA-window cameras
+    # tracking lost: keyframe 2 observes nothing
+    obs = data.observations
+    keep = obs.keyframe != 2
+    lost = dataclasses.replace(
+        data,
+        observations=dataclasses.replace(
+            obs,
+            keyframe=obs.keyframe[keep],
+            point=obs.point[keep],
+            uv=obs.uv[keep],
+            uv_true=obs.uv_true[keep],
+            is_outlier=obs.is_outlier[keep],
+        ),
+    )
+    with pytest.raises(SlamError, match="tracking lost"):
+        run_pipeline(lost, "ba", cfg.pipeline)
+
+
+def test_baseline_length_factor_jacobian():
+    rng = np.random.default_rng(0)
+    R = np.repeat(np.eye(3)[None], 3, axis=0)
+    t = rng.normal(size=(3, 3))
+    st = BAState(R, t, np.zeros((0, 3)))
+    f = BaselineLengthFactor(np.array([[0, 1], [1, 2]]), np.array([1.0, 2.0]), 0.1)
+    blk = f.evaluate(st)
+    eps = 1e-6
+    for cam in range(3):
+        for k in range(3, 6):
+            d = np.zeros((3, 6))
+            d[cam, k] = eps
+            rp = f.evaluate(st.retract(d, np.zeros((0, 3)))).residuals
+            rm = f.evaluate(st.retract(-d, np.zeros((0, 3)))).residuals
+            num = (rp - rm)[:, 0] / (2 * eps)
+            ana = np.zeros(2)
+            for row in range(2):
+                for slot in range(2):
+                    if blk.cameras[row, slot] == cam:
+                        ana[row] += blk.J_cameras[row, slot, 0, k]
+            np.testing.assert_allclose(ana, num, atol=1e-6)
+    assert f.cost(st) == pytest.approx(float(np.sum(blk.residuals**2)))
