@@ -96,6 +96,8 @@ class TrainConfig:
     batch_size: int = 4
     val_batch_size: int | None = None  # None = batch_size
     device: str = "auto"  # "auto" (CUDA when present), "cpu", "cuda", "cuda:1"
+    # torch intra-op threads on the CPU; None = the cores left per process after data workers.
+    cpu_threads: int | None = None
     amp: bool = False  # mixed precision (CUDA only)
     out_dir: Path = Path("runs/run")
     seed: int = 0
@@ -120,6 +122,8 @@ class TrainConfig:
             raise ConfigError(f"val_batch_size: expected >= 1, got {self.val_batch_size}")
         if self.seed < 0:
             raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        if self.cpu_threads is not None and self.cpu_threads < 1:
+            raise ConfigError(f"cpu_threads: expected >= 1, got {self.cpu_threads}")
         if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
             raise ConfigError(f"device: expected auto, cpu, cuda or cuda:N, got {self.device!r}")
         self.out_dir = Path(self.out_dir)

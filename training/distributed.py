@@ -158,6 +158,20 @@ def barrier() -> None:
         dist.barrier()
 
 
+def cpu_threads_per_process(requested: int | None, num_workers: int) -> int:
+    """torch intra-op threads for one training process on the CPU.
+
+    ``requested`` wins when given; otherwise the cores are shared between the processes of the
+    job and each process's data workers (at least one thread). Oversubscribed OpenMP threads
+    busy-wait on each other: on a 2-core machine with one renderer worker, 2 threads made an
+    ENet step ~5x slower than 1 (``bench/train_speed.py``).
+    """
+    if requested is not None:
+        return int(requested)
+    cores = os.cpu_count() or 1
+    return max(1, cores // get_world_size() - num_workers)
+
+
 def wrap_model(
     model: nn.Module, device: torch.device, *, find_unused_parameters: bool = False
 ) -> nn.Module:

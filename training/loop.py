@@ -408,6 +408,8 @@ def fit(
         set_deterministic(cfg.deterministic)
     else:
         seed_everything(cfg.seed, deterministic=cfg.deterministic)
+    if device.type == "cpu":
+        torch.set_num_threads(dd.cpu_threads_per_process(cfg.cpu_threads, cfg.data.num_workers))
     model.to(device)
     net = dd.wrap_model(model, device, find_unused_parameters=cfg.find_unused_parameters)
     optimizer = optimizer or build_optimizer(model, cfg.optim)

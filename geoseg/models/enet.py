@@ -31,6 +31,16 @@ Input sizes: the three stride-2 stages need sides that are multiples of 8. Other
 on the bottom and right with *replicate* padding (reflect padding fails on images smaller than the
 pad) and the logits are cropped back to ``(H, W)``. The ``features`` output is the layer-21 map of
 the padded input, ``(B, 128, ceil(H / 8), ceil(W / 8))``.
+
+Training speed on the CPU (profiled with ``torch.profiler``, torch 2.14, 320x240, batch 8; see
+``bench/train_speed.py``): no layer is pathologically slow, so the layers keep their plain torch
+form. Dilated 3x3 convolutions and their backward go through oneDNN like the regular ones (no
+``slow_conv_dilated2d``), asymmetric convolutions, max-unpooling (a gather in backward) and
+``Dropout2d`` are cheap. PReLU's backward costs ~7x its forward (~15 % of a step); the exact
+``torch.where(x >= 0, x, a * x)`` / ``relu(x) - a * relu(-x)`` forms measured no faster. The slow
+steps came from runtime settings instead: two busy-waiting OpenMP threads on a shared 2-core
+machine (the step 4-6x slower than with one thread) and deterministic mode's NaN-fill of every fresh
+tensor (``torch.utils.deterministic.fill_uninitialized_memory``).
 """
 
 from __future__ import annotations
