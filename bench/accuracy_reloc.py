@@ -362,12 +362,6 @@ def plot_panel(path: Path, db, qr, retrieval: dict, rows: int = 4) -> None:
 # ----------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    from geoseg.data.pairs import sample_triplets
-    from geoseg.data.traversals import render_route, traversal_features
-    from geoseg.localize import triplet_accuracy
-    from geoseg.models.reloc import RawFeatureEmbedder
-    from training.reloc import embed_features
-
     extractor, reloc, relpose, untrained = load_models(args)
     if untrained and not args.allow_untrained:
         print(
@@ -377,7 +371,19 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    torch.set_grad_enabled(False)
+    # Scoped, not global: tests import and run main() in-process.
+    with torch.no_grad():
+        return _measure(args, argv, extractor, reloc, relpose, untrained)
+
+
+def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untrained: list) -> int:
+    """Render the routes, extract features and write the figures (gradients off)."""
+    from geoseg.data.pairs import sample_triplets
+    from geoseg.data.traversals import render_route, traversal_features
+    from geoseg.localize import triplet_accuracy
+    from geoseg.models.reloc import RawFeatureEmbedder
+    from training.reloc import embed_features
+
     spec = eval_route(args.quick)
     n_pairs = args.pairs if args.pairs is not None else (8 if args.quick else 200)
     n_triplets = args.triplets if args.triplets is not None else (32 if args.quick else 2000)

@@ -21,9 +21,10 @@ Validation: eq. 5.1 and triplet accuracy on fixed validation triplets (uniform n
 The run directory holds the usual files (:mod:`training.common`); ``model.pt`` and
 ``model.onnx`` are the head alone: ``(B, 128, h, w)`` features -> ``{"embedding": (B, D)}``.
 
-This module also holds what :mod:`training.relpose` shares: :class:`RoutesConfig`,
-:func:`load_trunk`, :func:`prepare_routes`, :class:`ResamplingLoader` and
-:func:`finalize_head_run`.
+What :mod:`training.relpose` shares (:class:`RoutesConfig`, :func:`load_trunk`,
+:func:`prepare_routes`, :class:`ResamplingLoader`, :func:`finalize_head_run`, the config base and
+the start and end of a run) lives in :mod:`training.heads`; the public names stay importable
+from here.
 
 Usage::
 
@@ -33,11 +34,10 @@ Usage::
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -45,17 +45,28 @@ from torch import nn
 from torch.utils.data import Dataset
 
 from geoseg.data.pairs import sample_triplets
-from geoseg.data.synthetic import TRAIN_CONDITIONS, VAL_SEEDS
-from geoseg.data.traversals import RouteFeatures, TrunkFeatureExtractor, route_features, route_specs
+from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.localize import triplet_accuracy
 from geoseg.models.registry import get_model
 from geoseg.models.reloc import triplet_loss
 from training import common
-from training import distributed as dd
-from training.checkpoint import LAST, load_checkpoint
-from training.config import TrainConfig
-from training.loop import fit
+from training.heads import (
+    HeadTrainConfig,
+    ResamplingLoader,
+    RoutesConfig,
+    feature_shape,
+    finalize_head_run,
+    finish_head_run,
+    fit_head,
+    load_trunk,
+    prepare_head_features,
+    prepare_routes,
+    split_count,
+)
+from training.heads import describe_routes as describe_routes  # re-exported
+from training.heads import feature_loader as feature_loader  # re-exported
+from training.heads import resume_epoch as resume_epoch  # re-exported
 from training.metrics import Meter
 
 logger = logging.getLogger(__name__)
@@ -76,261 +87,15 @@ __all__ = [
 ]
 
 
-# ============================================================================ shared config
+# ============================================================================ config
 
 
 @dataclass
-class RoutesConfig:
-    """The routes the heads train and validate on (:mod:`geoseg.data.traversals`).
+class RelocConfig(HeadTrainConfig):
+    """Embedding-head training run (fields beyond :class:`~training.heads.HeadTrainConfig`:
+    ``trunk_checkpoint``, ``routes``, ``feature_batch_size``, ``export``).
 
     Attributes:
-        world: ``WorldConfig`` keys shared by every city (bigger cities than the default).
-        size: ``(H, W)`` of the rendered keyframes (the trunk's training scale).
-        hfov_deg: horizontal field of view (None: the tram rig's 70 degrees).
-        cache_dir: cache of rendered traversals and features (None: no cache).
-        train_seeds: training cities.
-        val_seeds: validation cities (not the evaluation city).
-        conditions: condition pool (the held-out ``sun_low`` is not in it by default).
-        conditions_per_route: traversals per route.
-        length_m: track length of each training route, metres.
-        val_length_m: track length of each validation route, metres.
-        spacing_m: keyframe spacing, metres.
-        offset_m: along-track shift between consecutive traversals, metres.
-        yaw_jitter_deg: yaw jitter of traversals after the first, +- degrees.
-        draw_seed: seeds the conditions and routes of the cities.
-    """
-
-    world: dict[str, Any] = field(default_factory=lambda: {"blocks_x": 6, "blocks_y": 5})
-    size: tuple[int, int] = (240, 320)
-    hfov_deg: float | None = None
-    cache_dir: Path | None = Path("runs/cache/traversals")
-    train_seeds: list[int] = field(default_factory=lambda: [1, 2, 3, 4, 5, 6])
-    val_seeds: list[int] = field(default_factory=lambda: list(VAL_SEEDS))
-    conditions: list[str] = field(default_factory=lambda: list(TRAIN_CONDITIONS))
-    conditions_per_route: int = 3
-    length_m: float = 2000.0
-    val_length_m: float = 1000.0
-    spacing_m: float = 8.0
-    offset_m: float = 3.0
-    yaw_jitter_deg: float = 5.0
-    draw_seed: int = 0
-
-    def __post_init__(self) -> None:
-        from geoseg.data.synthetic import EVAL_SEEDS, HELDOUT_CONDITIONS
-
-        if not self.train_seeds or not self.val_seeds:
-            raise ConfigError("routes.train_seeds / routes.val_seeds: expected at least one city")
-        held = sorted(set(self.train_seeds + self.val_seeds) & set(EVAL_SEEDS))
-        if held:
-            raise ConfigError(f"routes: {held} are held-out evaluation cities")
-        conds = sorted(set(self.conditions) & set(HELDOUT_CONDITIONS))
-        if conds:
-            raise ConfigError(f"routes.conditions: {conds} are held-out conditions")
-        if not 1 <= self.conditions_per_route <= len(self.conditions):
-            raise ConfigError(
-                f"routes.conditions_per_route: expected 1..{len(self.conditions)}, got "
-                f"{self.conditions_per_route}"
-            )
-        if self.cache_dir is not None:
-            self.cache_dir = Path(self.cache_dir)
-        self.specs("train")  # validate the world keys and lengths now
-
-    def specs(self, split: str) -> list[Any]:
-        """The :class:`~geoseg.data.traversals.RouteSpec` list of ``split`` (train or val)."""
-        if split not in ("train", "val"):
-            raise GeosegError(f"split: expected train or val, got {split!r}")
-        train = split == "train"
-        return route_specs(
-            self.train_seeds if train else self.val_seeds,
-            conditions=self.conditions,
-            conditions_per_route=self.conditions_per_route,
-            draw_seed=self.draw_seed if train else self.draw_seed + 1,
-            world=dict(self.world),
-            size=tuple(self.size),
-            hfov_deg=self.hfov_deg,
-            length_m=self.length_m if train else self.val_length_m,
-            spacing_m=self.spacing_m,
-            offset_m=self.offset_m,
-            yaw_jitter_deg=self.yaw_jitter_deg,
-        )
-
-
-def load_trunk(
-    path: str | os.PathLike | None, *, device: str = "cpu", batch_size: int = 16
-) -> TrunkFeatureExtractor:
-    """The frozen trunk of a trained ``enet``/``joint`` model (file or run directory).
-
-    Raises:
-        GeosegError: no path, or a checkpoint of another architecture.
-    """
-    if path is None:
-        raise GeosegError(
-            "trunk_checkpoint: the heads sit on a trained ENet trunk; set it to a seg run "
-            "directory or model file (e.g. --set trunk_checkpoint=runs/seg)"
-        )
-    state, ckpt = common.load_state(path)
-    name = ckpt.get("model_name")
-    if name not in ("enet", "joint"):
-        raise GeosegError(f"{path}: holds a {name!r} model; the trunk comes from enet or joint")
-    model = get_model(name, **dict(ckpt.get("model_config") or {}))
-    model.load_state_dict(state)
-    return TrunkFeatureExtractor(
-        model,
-        normalization=ckpt.get("normalization"),
-        device=dd.resolve_device(device, 0),
-        batch_size=batch_size,
-    )
-
-
-def prepare_routes(
-    routes: RoutesConfig,
-    split: str,
-    extractor: TrunkFeatureExtractor,
-    *,
-    progress: bool = True,
-) -> list[RouteFeatures]:
-    """Render (or read) the routes of ``split`` and their layer-21 features (images dropped)."""
-    return [
-        route_features(
-            spec, extractor, cache_dir=routes.cache_dir, progress=progress, keep_images=False
-        )
-        for spec in routes.specs(split)
-    ]
-
-
-def feature_shape(routes: Sequence[RouteFeatures]) -> tuple[int, int, int]:
-    """The common ``(C, h, w)`` of the routes' features.
-
-    Raises:
-        GeosegError: feature maps of mismatched sizes.
-    """
-    shapes = {tuple(f.shape[1:]) for r in routes for f in r.features}
-    if len(shapes) != 1:
-        raise GeosegError(f"feature maps of mismatched sizes across routes: {sorted(shapes)}")
-    return shapes.pop()
-
-
-def traversal_pairs(route: RouteFeatures) -> list[tuple[int, int]]:
-    """Ordered ``(query, database)`` traversal pairs of a route: every cross-condition pair,
-    or ``(0, 0)`` when the route has one traversal."""
-    n = len(route.traversals)
-    return [(0, 0)] if n == 1 else [(i, j) for i in range(n) for j in range(n) if i != j]
-
-
-def split_count(total: int, parts: int) -> list[int]:
-    """``total`` spread over ``parts`` as evenly as possible."""
-    base, rest = divmod(int(total), int(parts))
-    return [base + (1 if i < rest else 0) for i in range(parts)]
-
-
-class ResamplingLoader:
-    """A DataLoader over a dataset that is resampled at the start of every epoch.
-
-    ``dataset.resample(epoch)`` runs at each ``iter()`` (epoch 0, 1, ...; ``start_epoch`` when
-    resuming), then the batches of the inner loader follow. Attributes that
-    :func:`training.loop.fit` reads for shuffling and resume (``sampler``, ``batch_sampler``,
-    ``generator``) are the inner loader's.
-
-    Args:
-        dataset: a dataset with ``resample(epoch: int)`` and a fixed length.
-        loader: the inner DataLoader over ``dataset``.
-        start_epoch: index of the first epoch iterated.
-    """
-
-    def __init__(self, dataset: Any, loader: Any, *, start_epoch: int = 0) -> None:
-        self.dataset = dataset
-        self.loader = loader
-        self.epoch = int(start_epoch)
-        self.sampler = getattr(loader, "sampler", None)
-        self.batch_sampler = getattr(loader, "batch_sampler", None)
-        self.generator = getattr(loader, "generator", None)
-
-    def __len__(self) -> int:
-        return len(self.loader)
-
-    def __iter__(self):
-        self.dataset.resample(self.epoch)
-        self.epoch += 1
-        return iter(self.loader)
-
-
-def resume_epoch(cfg: TrainConfig) -> int:
-    """The epoch a run resumes at (0 for a fresh run)."""
-    last = Path(cfg.out_dir) / LAST
-    if cfg.resume and last.is_file():
-        return int(load_checkpoint(last).get("epoch", 0))
-    return 0
-
-
-def finalize_head_run(
-    run_dir: Path,
-    head: nn.Module,
-    *,
-    kind: str,
-    cfg: Any,
-    model_name: str,
-    model_config: dict[str, Any],
-    metrics: dict[str, Any],
-    data_summary: dict[str, Any],
-    example_inputs: Sequence[torch.Tensor],
-    command: str | None,
-    export: bool,
-    extra_card: dict[str, Any] | None = None,
-) -> Path:
-    """``model.pt`` (the head), ``model.onnx`` (feature inputs) and the model card.
-
-    :func:`training.common.finalize_run` exports image networks; the heads take feature maps,
-    so the export is done here with ``example_inputs`` and the card's ``files`` updated.
-    """
-    files = {"checkpoint": common.MODEL_FILE}
-    if export and dd.is_main_process():
-        from geoseg.export import export_onnx
-
-        export_onnx(
-            head,
-            run_dir / common.ONNX_FILE,
-            example_inputs=tuple(example_inputs),
-            metadata={"model_name": model_name, "model_config": model_config},
-        )
-        files["onnx"] = common.ONNX_FILE
-    return common.finalize_run(
-        run_dir,
-        head,
-        kind=kind,
-        cfg=cfg,
-        model_name=model_name,
-        model_config=model_config,
-        metrics=metrics,
-        data_summary=data_summary,
-        command=command,
-        export=False,
-        extra_card={"files": files, **(extra_card or {})},
-    )
-
-
-def describe_routes(routes: RoutesConfig, extractor: TrunkFeatureExtractor) -> dict[str, Any]:
-    """Plain-data summary of the routes and trunk of a run (model cards)."""
-    from geoseg.config import to_dict
-
-    return {
-        "source": "synth traversals (geoseg.data.traversals)",
-        "train_routes": [to_dict(s) for s in routes.specs("train")],
-        "val_routes": [to_dict(s) for s in routes.specs("val")],
-        "trunk_fingerprint": extractor.fingerprint,
-    }
-
-
-# ============================================================================ reloc config
-
-
-@dataclass
-class RelocConfig(TrainConfig):
-    """Embedding-head training run (fields beyond :class:`~training.config.TrainConfig`;
-    ``data`` is unused: the traversals come from ``routes``).
-
-    Attributes:
-        trunk_checkpoint: the trained ENet (or joint) model: file or run directory (required).
-        routes: the training and validation routes.
         triplets_per_epoch: fresh triplets drawn each epoch.
         val_triplets: fixed validation triplets.
         max_distance_m, max_angle_deg: same place (positives, :func:`positive_mask`).
@@ -339,17 +104,15 @@ class RelocConfig(TrainConfig):
         hard_k: hard-negative pool size per ref.
         hard_start_epoch: first epoch (0-based) with hard negatives (the head needs a start).
         loss_scale: inverse temperature of eq. 5.1 (1 = the thesis).
-        feature_batch_size: images per trunk forward pass when extracting features.
-        export: export ``model.onnx`` at the end.
     """
+
+    trainer: ClassVar[str] = "reloc"
+    count_keys: ClassVar[tuple[str, ...]] = ("triplets_per_epoch", "val_triplets", "hard_k")
 
     model: str = "reloc"
     out_dir: Path = Path("runs/reloc")
-    batch_size: int = 32
     best_metric: str = "val_triplet_accuracy"
     best_mode: Literal["min", "max"] = "max"
-    trunk_checkpoint: Path | None = None
-    routes: RoutesConfig = field(default_factory=RoutesConfig)
     triplets_per_epoch: int = 4000
     val_triplets: int = 1000
     max_distance_m: float = 5.0
@@ -359,24 +122,15 @@ class RelocConfig(TrainConfig):
     hard_k: int = 10
     hard_start_epoch: int = 1
     loss_scale: float = 1.0
-    feature_batch_size: int = 16
-    export: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.model != "reloc":
-            raise ConfigError(f"model: the reloc trainer trains 'reloc', got {self.model!r}")
-        for key in ("triplets_per_epoch", "val_triplets", "hard_k", "feature_batch_size"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"{key}: expected >= 1, got {getattr(self, key)}")
         if self.hard_start_epoch < 0:
             raise ConfigError(f"hard_start_epoch: expected >= 0, got {self.hard_start_epoch}")
         if not self.loss_scale > 0:
             raise ConfigError(f"loss_scale: expected > 0, got {self.loss_scale}")
         if self.min_negative_distance_m < self.max_distance_m:
             raise ConfigError("min_negative_distance_m: expected >= max_distance_m")
-        if self.trunk_checkpoint is not None:
-            self.trunk_checkpoint = Path(self.trunk_checkpoint)
 
 
 CONFIG_CLASS = RelocConfig
@@ -445,6 +199,13 @@ class TripletAccuracyMeter(Meter):
 
 
 # ============================================================================ data
+
+
+def traversal_pairs(route: RouteFeatures) -> list[tuple[int, int]]:
+    """Ordered ``(query, database)`` traversal pairs of a route: every cross-condition pair,
+    or ``(0, 0)`` when the route has one traversal."""
+    n = len(route.traversals)
+    return [(0, 0)] if n == 1 else [(i, j) for i in range(n) for j in range(n) if i != j]
 
 
 def embed_features(
@@ -567,18 +328,6 @@ class TripletSet(Dataset):
 # ============================================================================ main
 
 
-def feature_loader(cfg: TrainConfig, dataset: Dataset, *, shuffle: bool, batch_size: int) -> Any:
-    """A seeded in-process loader over a feature dataset (:func:`training.distributed.make_loader`)."""
-    return dd.make_loader(
-        dataset,
-        batch_size=batch_size,
-        shuffle=shuffle,
-        seed=cfg.seed,
-        num_workers=0,
-        drop_last=shuffle and len(dataset) > batch_size,
-    )
-
-
 def main(cfg: RelocConfig, *, command: str | None = None) -> Path:
     """Train the embedding head as ``cfg`` says; returns the run directory.
 
@@ -586,12 +335,8 @@ def main(cfg: RelocConfig, *, command: str | None = None) -> Path:
         GeosegError: no ``trunk_checkpoint`` or one of another architecture, routes without
             triplets, an existing run without ``resume``/``overwrite``.
     """
-    extractor = load_trunk(
-        cfg.trunk_checkpoint, device=cfg.device, batch_size=cfg.feature_batch_size
-    )
-    train_routes = prepare_routes(cfg.routes, "train", extractor, progress=cfg.progress)
-    val_routes = prepare_routes(cfg.routes, "val", extractor, progress=cfg.progress)
-    c, h, w = feature_shape(train_routes + val_routes)
+    data = prepare_head_features(cfg)
+    c = data.shape[0]
     if c != int(cfg.model_config.get("in_channels", 128)):
         raise GeosegError(
             f"model_config.in_channels: the trunk's features have {c} channels, the head expects "
@@ -606,7 +351,7 @@ def main(cfg: RelocConfig, *, command: str | None = None) -> Path:
         "min_negative_distance_m": cfg.min_negative_distance_m,
     }
     train_set = TripletSet(
-        train_routes,
+        data.train,
         cfg.triplets_per_epoch,
         seed=cfg.seed,
         hard_head=head if cfg.hard_negatives else None,
@@ -614,46 +359,25 @@ def main(cfg: RelocConfig, *, command: str | None = None) -> Path:
         hard_start_epoch=cfg.hard_start_epoch,
         **thresholds,
     )
-    val_set = TripletSet(val_routes, cfg.val_triplets, seed=cfg.seed + 10_000, **thresholds)
-    train_loader = ResamplingLoader(
-        train_set,
-        feature_loader(cfg, train_set, shuffle=True, batch_size=cfg.batch_size),
-        start_epoch=resume_epoch(cfg),
-    )
-    val_loader = feature_loader(
-        cfg, val_set, shuffle=False, batch_size=cfg.val_batch_size or cfg.batch_size
-    )
-    run_dir = fit(
+    val_set = TripletSet(data.val, cfg.val_triplets, seed=cfg.seed + 10_000, **thresholds)
+    run_dir = fit_head(
         cfg,
         model,
-        train_loader,
-        val_loader,
+        train_set,
+        val_set,
         TripletLoss(cfg.loss_scale),
         TripletAccuracyMeter(),
         model_name="reloc_triplet",
-        model_config=cfg.model_config,
-        extra={"trunk_checkpoint": str(cfg.trunk_checkpoint)},
     )
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
-    # the best weights, checked with the library metric on the validation triplets
-    metrics["val_triplet_accuracy_final"] = triplet_accuracy(*triplet_embeddings(head, val_set))
-    finalize_head_run(
+    return finish_head_run(
         run_dir,
-        head.cpu().eval(),
+        model,
+        cfg,
+        data,
         kind="reloc",
-        cfg=cfg,
-        model_name="reloc",
-        model_config=dict(cfg.model_config),
-        metrics=metrics,
-        data_summary=describe_routes(cfg.routes, extractor),
-        example_inputs=(torch.zeros(1, c, h, w),),
         command=command,
-        export=cfg.export,
-        extra_card={
-            "trunk_checkpoint": str(cfg.trunk_checkpoint),
-            "frozen": "trunk (features precomputed)",
-            "input": f"(B, {c}, h, w) ENet layer-21 features; trained at h, w = {h}, {w}",
+        # the best weights, checked with the library metric on the validation triplets
+        extra_metrics=lambda head: {
+            "val_triplet_accuracy_final": triplet_accuracy(*triplet_embeddings(head, val_set))
         },
     )
-    return run_dir

@@ -1,8 +1,8 @@
 """Train the relative-pose head on frozen ENet layer-21 features (thesis §5.1.2, eq. 5.2).
 
-Same data path as :mod:`training.reloc`: the trunk of ``trunk_checkpoint`` is frozen and its
-features are computed once per traversal (cached), then the head
-(:func:`geoseg.models.relpose.relpose_head`) trains on feature pairs only.
+Same data path as :mod:`training.reloc` (shared in :mod:`training.heads`): the trunk of
+``trunk_checkpoint`` is frozen and its features are computed once per traversal (cached), then
+the head (:func:`geoseg.models.relpose.relpose_head`) trains on feature pairs only.
 
 Pairs (:func:`geoseg.data.pairs.sample_relpose_pairs`): keyframes ``a`` and ``b`` of one route,
 from the same traversal (same condition) or from two traversals (cross-condition), with a
@@ -28,9 +28,9 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -43,21 +43,15 @@ from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
 from geoseg.models.relpose import relpose_loss, so3_exp
 from training import common
-from training.config import TrainConfig
-from training.loop import fit
-from training.metrics import Meter
-from training.reloc import (
-    ResamplingLoader,
-    RoutesConfig,
-    describe_routes,
-    feature_loader,
+from training.heads import (
+    HeadTrainConfig,
     feature_shape,
-    finalize_head_run,
-    load_trunk,
-    prepare_routes,
-    resume_epoch,
+    finish_head_run,
+    fit_head,
+    prepare_head_features,
     split_count,
 )
+from training.metrics import Meter
 
 logger = logging.getLogger(__name__)
 
@@ -73,51 +67,38 @@ __all__ = [
 
 
 @dataclass
-class RelPoseConfig(TrainConfig):
-    """Relative-pose head training run (fields beyond :class:`~training.config.TrainConfig`;
-    ``data`` is unused: the traversals come from ``routes``).
+class RelPoseConfig(HeadTrainConfig):
+    """Relative-pose head training run (fields beyond :class:`~training.heads.HeadTrainConfig`:
+    ``trunk_checkpoint``, ``routes``, ``feature_batch_size``, ``export``).
 
     Attributes:
-        trunk_checkpoint: the trained ENet (or joint) model: file or run directory (required).
-        routes: the training and validation routes.
         pairs_per_epoch: fresh pairs drawn each epoch.
         val_pairs: fixed validation pairs.
         min_baseline_m, max_baseline_m: baseline range of a pair, metres.
         max_angle_deg: largest angle between the two optical axes.
         lam: weight of the direction term of eq. 5.2.
-        feature_batch_size: images per trunk forward pass when extracting features.
-        export: export ``model.onnx`` at the end.
     """
+
+    trainer: ClassVar[str] = "relpose"
+    count_keys: ClassVar[tuple[str, ...]] = ("pairs_per_epoch", "val_pairs")
 
     model: str = "relpose"
     out_dir: Path = Path("runs/relpose")
-    batch_size: int = 32
     best_metric: str = "val_loss"
     best_mode: Literal["min", "max"] = "min"
-    trunk_checkpoint: Path | None = None
-    routes: RoutesConfig = field(default_factory=RoutesConfig)
     pairs_per_epoch: int = 4000
     val_pairs: int = 500
     min_baseline_m: float = 0.5
     max_baseline_m: float = 10.0
     max_angle_deg: float = 30.0
     lam: float = 1.0
-    feature_batch_size: int = 16
-    export: bool = True
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if self.model != "relpose":
-            raise ConfigError(f"model: the relpose trainer trains 'relpose', got {self.model!r}")
-        for key in ("pairs_per_epoch", "val_pairs", "feature_batch_size"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"{key}: expected >= 1, got {getattr(self, key)}")
         if not 0 < self.min_baseline_m <= self.max_baseline_m:
             raise ConfigError("min_baseline_m, max_baseline_m: expected 0 < min <= max")
         if not self.lam > 0:
             raise ConfigError(f"lam: expected > 0, got {self.lam}")
-        if self.trunk_checkpoint is not None:
-            self.trunk_checkpoint = Path(self.trunk_checkpoint)
 
 
 CONFIG_CLASS = RelPoseConfig
@@ -282,12 +263,7 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         GeosegError: no ``trunk_checkpoint`` or one of another architecture, routes without
             eligible pairs, an existing run without ``resume``/``overwrite``.
     """
-    extractor = load_trunk(
-        cfg.trunk_checkpoint, device=cfg.device, batch_size=cfg.feature_batch_size
-    )
-    train_routes = prepare_routes(cfg.routes, "train", extractor, progress=cfg.progress)
-    val_routes = prepare_routes(cfg.routes, "val", extractor, progress=cfg.progress)
-    c, h, w = feature_shape(train_routes + val_routes)
+    data = prepare_head_features(cfg)
     common.seed_model_init(cfg.seed)
     head = get_model("relpose", **cfg.model_config)
     model = PairRegressor(head)
@@ -296,48 +272,24 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         "max_baseline_m": cfg.max_baseline_m,
         "max_angle_deg": cfg.max_angle_deg,
     }
-    train_set = PairSet(train_routes, cfg.pairs_per_epoch, seed=cfg.seed, **thresholds)
-    val_set = PairSet(val_routes, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)
-    train_loader = ResamplingLoader(
-        train_set,
-        feature_loader(cfg, train_set, shuffle=True, batch_size=cfg.batch_size),
-        start_epoch=resume_epoch(cfg),
-    )
-    val_loader = feature_loader(
-        cfg, val_set, shuffle=False, batch_size=cfg.val_batch_size or cfg.batch_size
-    )
-    run_dir = fit(
+    train_set = PairSet(data.train, cfg.pairs_per_epoch, seed=cfg.seed, **thresholds)
+    val_set = PairSet(data.val, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)
+    run_dir = fit_head(
         cfg,
         model,
-        train_loader,
-        val_loader,
+        train_set,
+        val_set,
         RelPoseLoss(cfg.lam),
         RelPoseMeter(),
         model_name="relpose_pair",
-        model_config=cfg.model_config,
-        extra={"trunk_checkpoint": str(cfg.trunk_checkpoint)},
     )
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
-    example = torch.zeros(1, c, h, w)
-    finalize_head_run(
+    return finish_head_run(
         run_dir,
-        head.cpu().eval(),
+        model,
+        cfg,
+        data,
         kind="relpose",
-        cfg=cfg,
-        model_name="relpose",
-        model_config=dict(cfg.model_config),
-        metrics=metrics,
-        data_summary=describe_routes(cfg.routes, extractor),
-        example_inputs=(example, example.clone()),
+        input_names=("feat_a", "feat_b"),
         command=command,
-        export=cfg.export,
-        extra_card={
-            "trunk_checkpoint": str(cfg.trunk_checkpoint),
-            "frozen": "trunk (features precomputed)",
-            "input": f"feat_a, feat_b: (B, {c}, h, w) ENet layer-21 features; trained at "
-            f"h, w = {h}, {w}",
-            "conventions": "R_ab = R_wc_a^T R_wc_b; direction a -> b in camera a's frame",
-        },
+        extra_card={"conventions": "R_ab = R_wc_a^T R_wc_b; direction a -> b in camera a's frame"},
     )
-    return run_dir

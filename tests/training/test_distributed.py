@@ -21,16 +21,6 @@ from training.distributed import (
     resolve_device,
 )
 
-
-@pytest.fixture(autouse=True)
-def _restore_torch_determinism():
-    """fit() switches torch to deterministic mode; do not leak that into other tests."""
-    enabled = torch.are_deterministic_algorithms_enabled()
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    yield
-    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
-
-
 # Shared by the torchrun workers and the single-process reference run.
 COMMON = textwrap.dedent(
     """

@@ -18,15 +18,6 @@ from training.loop import evaluate, fit, train_one_epoch
 from training.metrics import SegmentationMeter
 
 
-@pytest.fixture(autouse=True)
-def _restore_torch_determinism():
-    """fit() switches torch to deterministic mode; do not leak that into other tests."""
-    enabled = torch.are_deterministic_algorithms_enabled()
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    yield
-    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
-
-
 class TinySeg(nn.Module):
     """A stand-in for the real networks: dict output, dropout to exercise the RNG."""
 

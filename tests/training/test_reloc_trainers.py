@@ -22,25 +22,6 @@ from training import reloc as reloc_trainer
 from training import relpose as relpose_trainer
 
 ROOT = Path(__file__).resolve().parents[2]
-RUN_FILES = (
-    "config.yaml",
-    "last.pt",
-    "best.pt",
-    "metrics.csv",
-    "metrics.json",
-    "model.pt",
-    "model.onnx",
-    "model_card.json",
-    "model_card.md",
-)
-
-
-@pytest.fixture(autouse=True)
-def _restore_torch_determinism():
-    enabled = torch.are_deterministic_algorithms_enabled()
-    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
-    yield
-    torch.use_deterministic_algorithms(enabled, warn_only=warn_only)
 
 
 @pytest.fixture(scope="module")
@@ -84,7 +65,7 @@ def _onnx_run(path: Path, inputs: list[np.ndarray]) -> list[np.ndarray]:
 
 
 # ----------------------------------------------------------------------------- end to end
-def test_reloc_main_end_to_end(shared, tmp_path):
+def test_reloc_main_end_to_end(shared, tmp_path, run_files):
     cfg = load_config(
         reloc_trainer.RelocConfig,
         None,
@@ -98,7 +79,7 @@ def test_reloc_main_end_to_end(shared, tmp_path):
         ),
     )
     run = reloc_trainer.main(cfg, command="pytest reloc")
-    for name in RUN_FILES:
+    for name in run_files:
         assert (run / name).is_file(), name
     rows = json.loads((run / "metrics.json").read_text())
     assert len(rows) == 1 and 0.0 <= rows[0]["val_triplet_accuracy"] <= 1.0
@@ -116,14 +97,14 @@ def test_reloc_main_end_to_end(shared, tmp_path):
     np.testing.assert_allclose(got, ref, atol=1e-4)
 
 
-def test_relpose_main_end_to_end(shared, tmp_path):
+def test_relpose_main_end_to_end(shared, tmp_path, run_files):
     cfg = load_config(
         relpose_trainer.RelPoseConfig,
         None,
         overrides=_overrides(shared, tmp_path / "run", pairs_per_epoch=8, val_pairs=8),
     )
     run = relpose_trainer.main(cfg)
-    for name in RUN_FILES:
+    for name in run_files:
         assert (run / name).is_file(), name
     row = json.loads((run / "metrics.json").read_text())[0]
     assert {"val_loss", "val_rot_median_deg", "val_dir_median_deg"} <= set(row)
@@ -162,20 +143,26 @@ def test_missing_trunk_is_a_clear_error(shared, tmp_path):
 
 
 # ----------------------------------------------------------------------------- fixed batches
+def _adam_losses(model, loss_fn, x, batch, steps=15) -> list[float]:
+    """The loss at each of ``steps`` Adam steps (lr 1e-3) on the fixed input ``x``."""
+    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
+    losses = []
+    for _ in range(steps):
+        loss = loss_fn(model(x), batch)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    return losses
+
+
 def test_triplet_loss_decreases_on_a_fixed_batch():
     torch.manual_seed(0)
     model = reloc_trainer.TripletEmbedder(get_model("reloc", embedding_dim=16))
     x = torch.randn(8, 3, 128, 4, 5)
     x[:, 1] = x[:, 0] + 0.3 * torch.randn(8, 128, 4, 5)  # matches near their refs
     loss_fn = reloc_trainer.TripletLoss()
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(15):
-        loss = loss_fn(model(x), {})
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
+    losses = _adam_losses(model, loss_fn, x, {})
     assert losses[-1] < 0.7 * losses[0]
 
 
@@ -187,14 +174,7 @@ def test_relpose_loss_decreases_on_a_fixed_batch():
     t = torch.nn.functional.normalize(torch.randn(8, 3), dim=1)
     batch = {"R_ab": R, "t_dir_ab": t}
     loss_fn = relpose_trainer.RelPoseLoss()
-    opt = torch.optim.Adam(model.parameters(), lr=1e-3)
-    losses = []
-    for _ in range(15):
-        loss = loss_fn(model(x), batch)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        losses.append(float(loss.detach()))
+    losses = _adam_losses(model, loss_fn, x, batch)
     assert losses[-1] < 0.7 * losses[0]
 
 
