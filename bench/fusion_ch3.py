@@ -4,7 +4,8 @@ Runs :func:`slam_bridge.pipeline.run_experiment` on ``configs/slam_ch3.yaml``: b
 short run (``quick_length_m`` metres, ``quick_sigmas`` and the bias setting), with ``--full``
 the whole grid (n = 0, DPC, MPC x sigma_b in {0, 0.75, 1.5} m + a locally constant bias) on the
 640 m sequence. Prints the Markdown tables (ours beside the thesis's) and writes the flat
-figures to ``bench/results/fusion_ch3.json``: ``dpc_time_ratio``, ``mpc_time_ratio``,
+figures to ``bench/results/fusion_ch3.json`` (``--full`` only: that file always holds the full
+grid; the short run writes ``bench/results/fusion_ch3_quick.json`` instead): ``dpc_time_ratio``, ``mpc_time_ratio``,
 ``memory_ratio`` (n = 0 memory / hybrid memory), ``inlier_loss_max`` (0-1), the error figures
 ``<method>_<setting>_{t,r}_{mean,std,median}``, plus ``machine`` and ``command``.
 
@@ -55,7 +56,8 @@ def main(argv: list[str] | None = None) -> int:
     flat["command"] = " ".join(
         ["python", "bench/fusion_ch3.py", *(argv if argv is not None else sys.argv[1:])]
     )
-    results = ROOT / "bench" / "results" / "fusion_ch3.json"
+    name = "fusion_ch3.json" if args.full else "fusion_ch3_quick.json"
+    results = ROOT / "bench" / "results" / name
     results.parent.mkdir(parents=True, exist_ok=True)
     results.write_text(json.dumps(flat, indent=2) + "\n")
     print((out / "fusion_ch3.md").read_text())

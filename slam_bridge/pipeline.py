@@ -15,16 +15,30 @@ unseen:
 2. *Mapping*: points seen by ``k`` and not yet triangulated are triangulated from all their
    active observations (DLT + refinement, parallax >= ``min_parallax_deg``); a point whose worst
    observation errs by more than ``outlier_gate_px`` loses that observation and waits.
-3. *k-BA*: the hybrid window of the ``l`` latest keyframes (:mod:`slam_bridge.window`):
-   ``n = 0`` for plain BA, ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras for DPC
-   and MPC (the BA window keeps ``l - n`` cameras while fewer than ``l`` keyframes exist), and
-   ``X* = argmin zeta`` (eq. 3.4) by Levenberg-Marquardt (:func:`slam_bridge.window.
-   minimize_zeta`). For ``n = 0`` this *is* the k-BA.
+3. *k-BA* (the SLAM's own, unconstrained): the plain ``n = 0`` window of the ``l`` latest
+   keyframes, all their observations, older observers fixed (:mod:`slam_bridge.window`), by
+   Levenberg-Marquardt, **for every method**. For ``n = 0`` its result is ``X*``.
+3b. *Hybrid zeta* (DPC, MPC): the hybrid window of eq. 3.4 is built on the k-BA's output, with
+   ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras (the BA window keeps ``l - n``
+   cameras while fewer than ``l`` keyframes exist); ``S_hat`` (eq. 3.14) = the relative poses
+   after this k-BA, i.e. "before the fusion" as §3.5.0.1 says; ``X* = argmin zeta`` by a few LM
+   iterations from there (:func:`slam_bridge.window.minimize_zeta`). Eq. 3.4 defines the
+   fusion's ``zeta`` (§3.1: the fusion is initialised at ``argmin zeta``, ``t = 1.05 zeta(X*)``);
+   the SLAM that feeds it keeps its k-BA (§3.7: the fusion is "a brick of a more general
+   localisation system"). Reading eq. 3.4 as the SLAM's only BA (``kba_window="hybrid"``, the
+   former behaviour) throws the BA window's pose-graph observations away for good: the ``l - n``
+   BA cameras then carry the scale alone (scale drift, 1.7 m vs 0.2 m vision-only on 160 m),
+   points leave the map unrefined, and the hybrids lost 16-54 % of the inliers.
 4. *Fusion*: barrier GPS fusion of the most recent camera (eq. 3.1, :func:`slam_bridge.solvers.
-   barrier.solve_barrier`) from ``X*``. A keyframe without a GPS fix (dropout, NaN) is not fused
-   (documented behaviour; it keeps ``X*``).
-5. *Gating*: active observations of the window erring by more than ``window_gate_px`` after the
-   fusion are deactivated (gross outliers that slipped through).
+   barrier.solve_barrier`) from ``X*`` over the fusion's ``zeta`` (plain reprojection for
+   ``n = 0``, eq. 3.4 for the hybrids; its Hessian is the one the memory and time per iteration
+   measure). A keyframe without a GPS fix (dropout, NaN) is not fused (documented behaviour;
+   it keeps ``X*``).
+5. *Gating*: active observations of the fusion window erring by more than ``window_gate_px``
+   after the fusion are deactivated (gross outliers that slipped through). The hybrids' pose-graph
+   observations are not gated there (the fusion moved their cameras but not the points only
+   they see; the next k-BA reconciles them); every observation was gated while its camera was
+   in the BA window.
 
 Recorded per keyframe (:class:`KeyframeRecord`): the online pose, BA and fusion times, fusion
 iterations and time per iteration, the **Hessian memory** and window sizes.
@@ -120,10 +134,12 @@ class PipelineConfig:
             fixed older observers of its points are found among them).
         dpc_sigma_rot_rad: DPC weight ``A = I / sigma_rot^2`` (eq. 3.16). The thesis's
             ``D = I`` weighs a relative-pose error of 1 m like one squared pixel, which lets
-            the barrier bend the pose graph by metres for free; a sigma near the k-BA's
-            relative-pose uncertainty (~0.2 mrad, ~2 mm between keyframes 2 m apart with ~250
-            points each) makes a pose-graph link about as stiff as the reprojections it
-            replaces (softer links let the barrier bend the chain and lose inliers).
+            the barrier bend the pose graph by metres for free (measured: 4-5 m errors). A
+            link replaces the reprojection rows of every point its two cameras share; with
+            0.1 mrad / 1 mm (160 m run, sigma_b = 0.75 and 1.5 m) the hybrid keeps the n = 0
+            inlier count, while 0.2 mrad / 2 mm let the fusion bend the chain at the BA /
+            pose-graph junction (4.5 % inlier loss) and 0.05 mrad / 0.5 mm make the chain so
+            stiff that the GPS moves the cameras less (xy error x2).
         dpc_sigma_trans_m: DPC weight ``B = I / sigma_trans^2``.
         mpc_sigma_px: pixel sigma of the MPC epipolar residuals (eq. 3.18).
         mpc_length_sigma_m: MPC only: sigma of a baseline-length term
@@ -133,17 +149,32 @@ class PipelineConfig:
             link of the chain, and the scale of the BA window behind it, is free: the barrier
             lets the GPS slide the reconstruction along those directions at no vision cost (the
             sequence drifts by tens of metres). ``None`` = the thesis's pure MPC.
-        mpc_match_share: MPC only: share of the points (a fixed subset, chosen by point id)
-            whose 2D correspondences between successive pose-graph keyframes enter eq. 3.18
-            (the thesis does not say how many; all of them make MPC slower than n = 0).
+        mpc_match_share: MPC only: share ``s`` of the points (a fixed subset, chosen by point
+            id) whose 2D correspondences between successive pose-graph keyframes enter eq. 3.18
+            (the thesis does not say how many; all of them make MPC slower than n = 0); their
+            rows are weighted by ``1 / s`` (:func:`_hybrid_problem`).
         ba_scale_sigma_m: hybrids only: sigma of a baseline-length term on the first pair of
             the BA window. With ``n > 0`` no fixed camera observes the BA window's points, so
             its scale (about ``z_{n+1}``) costs zeta nothing and the barrier lets each GPS fix
             rescale it, at the expense of its consistency with the pose-graph cameras' points
             (inlier loss). ``None`` (default) = eq. 3.4 as written.
         freeze_links: keep each pose-graph link's ``S_hat`` (eq. 3.14) from the moment it
-            entered the pose graph (the k-BA's relative pose) rather than re-taking it at every
-            keyframe from the fused poses (see :func:`_freeze_links`).
+            entered the pose graph rather than the thesis's relative pose *before this
+            keyframe's fusion* (after its k-BA). Off by default: with the plain k-BA
+            (``kba_window="plain"``) the k-BA re-estimates the pose-graph cameras at every
+            keyframe, and a frozen ``S_hat`` would fight it.
+        kba_window: ``"plain"`` (default): the SLAM's k-BA at every keyframe is the plain
+            ``n = 0`` window of the ``l`` latest keyframes (all their observations, older
+            observers fixed), for every method; the hybrid window (eq. 3.4) is only the
+            fusion's ``zeta``, built on the k-BA's output (``S_hat`` = the k-BA's relative
+            poses) and minimised (``zeta_iterations``) to get ``X*``. ``"hybrid"``: the former
+            reading, the hybrid window *is* the SLAM's k-BA (no other BA): its BA window's
+            points lose their pose-graph observations for good, so the l - n cameras carry
+            the scale alone and the map drifts (vision only, 160 m: 1.7 m vs 0.2 m for n = 0).
+        mpc_relative: MPC's epipolar distances measured from their values after the k-BA
+            (:attr:`slam_bridge.window.HybridWindowConfig.mpc_relative`).
+        zeta_iterations: LM iterations of ``X* = argmin zeta`` (hybrid ``zeta``, started from
+            the k-BA's output, so a few suffice).
     """
 
     l: int = 40
@@ -161,13 +192,16 @@ class PipelineConfig:
     min_parallax_deg: float = 1.0
     min_tracked: int = 12
     history_keyframes: int = 30
-    dpc_sigma_rot_rad: float = 2e-4
-    dpc_sigma_trans_m: float = 2e-3
+    dpc_sigma_rot_rad: float = 1e-4
+    dpc_sigma_trans_m: float = 1e-3
     mpc_sigma_px: float = 1.0
     mpc_length_sigma_m: float | None = 2e-3
     mpc_match_share: float = 0.25
     ba_scale_sigma_m: float | None = None
-    freeze_links: bool = True
+    freeze_links: bool = False
+    kba_window: str = "plain"
+    mpc_relative: bool = True
+    zeta_iterations: int = 5
 
     def __post_init__(self) -> None:
         if self.anchor_keyframes < 2:
@@ -176,6 +210,10 @@ class PipelineConfig:
             raise SlamError(f"l: expected >= 3 (BA window of at least 3 cameras), got {self.l}")
         if not 0 <= self.n <= self.l - 3:
             raise SlamError(f"n: expected 0 <= n <= l - 3 = {self.l - 3}, got {self.n}")
+        if self.kba_window not in ("plain", "ba", "hybrid"):
+            raise SlamError(
+                f"kba_window: expected 'plain', 'ba' or 'hybrid', got {self.kba_window!r}"
+            )
 
 
 @dataclass
@@ -390,10 +428,12 @@ def _freeze_links(
             links[key] = (R_wc[a].T @ R_wc[b], R_wc[a].T @ (t_wc[b] - t_wc[a]))
     if not cfg.freeze_links or not pg.size:
         return
+    ids = problem.camera_ids
     for i, f in enumerate(problem.vision):
         if isinstance(f, DPCFactor):
-            R_h = np.stack([links[(int(a), int(b))][0] for a, b in pg])
-            t_h = np.stack([links[(int(a), int(b))][1] for a, b in pg])
+            kp = [(int(ids[a]), int(ids[b])) for a, b in f.pairs]
+            R_h = np.stack([links[p][0] for p in kp])
+            t_h = np.stack([links[p][1] for p in kp])
             problem.vision[i] = DPCFactor(f.pairs, R_h, t_h, D)
 
 
@@ -426,6 +466,106 @@ def _add_length_terms(
         problem.vision.append(
             BaselineLengthFactor(np.array(pairs), np.array(lengths), np.array(sig))
         )
+
+
+def _hybrid_problem(
+    data: SequenceData,
+    cfg: PipelineConfig,
+    kind: str,
+    D: np.ndarray,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    X_w: np.ndarray,
+    keyframes: np.ndarray,
+    sel: np.ndarray,
+    l_eff: int,
+    n_eff: int,
+    k: int,
+):
+    """The hybrid window of keyframe ``k`` (eq. 3.4) over the observations ``sel``.
+
+    MPC: the pose-graph keyframes only contribute correspondences; they are thinned to the
+    ``mpc_match_share`` ``s`` of the points (by point id), keyframes left with fewer than 40
+    observations keeping them all; if the thinned window is invalid the full one is used. The
+    rows' pixel sigma becomes ``mpc_sigma_px sqrt(s)``: each kept correspondence stands for the
+    ``1 / s`` it represents, so the chain is about as stiff as with all of them (measured on
+    160 m, sigma_b = 0.75 m: 3.5 % inlier loss vs 8.8 % with sigma 1 px, same time).
+
+    Returns:
+        ``(observations used, problem)``.
+    """
+    obs = data.observations
+    kf_obs, pt_obs, uv = obs.keyframe, obs.point, obs.uv
+    sel_all = sel
+    thinned = kind == "mpc" and cfg.mpc_match_share < 1.0
+    if thinned:
+        pg_end = k + 1 - (l_eff - n_eff)
+        in_pg = kf_obs[sel] < pg_end
+        h = (pt_obs[sel] * 2654435761) % 1000
+        thin = in_pg & (h >= 1000 * cfg.mpc_match_share)
+        left = np.bincount(kf_obs[sel][~thin], minlength=k + 1)
+        thin &= left[kf_obs[sel]] >= 40
+        sel = sel[~thin]
+    wcfg = HybridWindowConfig(
+        l=cfg.l,
+        n=n_eff,
+        pose_graph=kind,
+        D=D,
+        mpc_sigma=cfg.mpc_sigma_px * (np.sqrt(cfg.mpc_match_share) if thinned else 1.0),
+        mpc_relative=cfg.mpc_relative,
+    )
+    try:
+        problem = build_hybrid_problem(
+            R_wc, t_wc, X_w, data.K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
+        )
+    except WindowError:
+        if sel_all is sel:
+            raise
+        logger.debug("keyframe %d: MPC window without thinning", k)
+        sel = sel_all
+        wcfg = dataclasses.replace(wcfg, mpc_sigma=cfg.mpc_sigma_px)
+        problem = build_hybrid_problem(
+            R_wc, t_wc, X_w, data.K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
+        )
+    return sel, problem
+
+
+def _carry_points(
+    obs_points: np.ndarray,
+    obs_keyframes: np.ndarray,
+    fused_points: np.ndarray,
+    pg_ids: np.ndarray,
+    R_ref: np.ndarray,
+    t_ref: np.ndarray,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    X_w: np.ndarray,
+) -> int:
+    """Move the points only the pose-graph cameras see along with their newest observer.
+
+    The hybrid fusion moves the pose-graph cameras ``pg_ids`` (from ``R_ref, t_ref``, their
+    k-BA poses, to the fused ``R_wc, t_wc``) without the points that left the problem (eq.
+    3.4): left in place they would contradict the fused cameras, and the next k-BA would pull
+    the cameras back toward them, undoing the GPS correction. Each such point is carried
+    rigidly by its newest pose-graph observer ``c``:
+    ``X <- R_c R_ref_c^T (X - t_ref_c) + t_c`` (its coordinates in that camera are kept).
+    Not in the thesis (which does not say what becomes of those points); ``n = 0`` never calls
+    it.
+
+    Returns:
+        The number of points moved (``X_w`` is updated in place).
+    """
+    in_pg = np.isin(obs_keyframes, pg_ids) & ~np.isin(obs_points, fused_points)
+    if not np.any(in_pg):
+        return 0
+    pts, kfs = obs_points[in_pg], obs_keyframes[in_pg]
+    newest = np.full(X_w.shape[0], -1, dtype=np.int64)
+    np.maximum.at(newest, pts, kfs)
+    moved = np.unique(pts)
+    c = np.searchsorted(pg_ids, newest[moved])
+    X_c = np.einsum("mba,mb->ma", R_ref[c], X_w[moved] - t_ref[c])
+    X_w[moved] = np.einsum("mab,mb->ma", R_wc[pg_ids[c]], X_c) + t_wc[pg_ids[c]]
+    return int(moved.size)
 
 
 def _window_n(method: str, cfg: PipelineConfig, l_eff: int) -> int:
@@ -519,54 +659,51 @@ def run_pipeline(
         R_wc[k], t_wc[k] = R_k, t_k
         # 2. mapping
         rec.n_new_points = _triangulate_new(data, cfg, R_wc, t_wc, X_w, tri_ok, active, starts, k)
-        # 3. window and X*
+        # 3. the SLAM's k-BA: plain (n = 0) window of the l latest keyframes, for every method
         first = max(0, k + 1 - cfg.l - cfg.history_keyframes)
         keyframes = np.arange(first, k + 1)
         l_eff = min(cfg.l, k + 1)
         n_eff = _window_n(method, cfg, l_eff)
         lo = starts[first]
         sel = lo + np.flatnonzero(active[lo : starts[k + 1]] & tri_ok[pt_obs[lo : starts[k + 1]]])
-        sel_all = sel
-        if kind == "mpc" and n_eff > 0 and cfg.mpc_match_share < 1.0:
-            # pose-graph keyframes only contribute MPC correspondences: thin them by point id
-            pg_end = k + 1 - (l_eff - n_eff)
-            in_pg = kf_obs[sel] < pg_end
-            h = (pt_obs[sel] * 2654435761) % 1000
-            thin = in_pg & (h >= 1000 * cfg.mpc_match_share)
-            # keyframes left with few observations keep them all (enough MPC matches)
-            left = np.bincount(kf_obs[sel][~thin], minlength=k + 1)
-            thin &= left[kf_obs[sel]] >= 40
-            sel_all, sel = sel, sel[~thin]
-        wcfg = HybridWindowConfig(
-            l=cfg.l, n=n_eff, pose_graph=kind, D=D, mpc_sigma=cfg.mpc_sigma_px
-        )
-        try:
-            problem = build_hybrid_problem(
-                R_wc, t_wc, X_w, K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
-            )
-        except WindowError:
-            if sel_all is sel:
-                raise
-            logger.debug("keyframe %d: MPC window without thinning", k)
-            sel = sel_all
-            problem = build_hybrid_problem(
-                R_wc, t_wc, X_w, K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
-            )
-        st = problem.state
-        st.camera_fixed[np.isin(problem.camera_ids, anchors)] = True
+        t0 = time.perf_counter()
+        kba = None
+        if n_eff == 0 or cfg.kba_window in ("plain", "ba"):
+            l_kba = cfg.l if (n_eff == 0 or cfg.kba_window == "plain") else l_eff - n_eff
+            kba = build_hybrid_problem(
+                R_wc, t_wc, X_w, K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel],
+                HybridWindowConfig(l=l_kba, n=0, pose_graph=kind, D=D),
+            )  # fmt: skip
+            kba.state.camera_fixed[np.isin(kba.camera_ids, anchors)] = True
+            if kba.state.free_cameras.size == 0:
+                raise SlamError(f"keyframe {k}: the window has no free camera")
+            kba, lm = minimize_zeta(kba, LMConfig(max_iterations=cfg.ba_iterations))
+            rec.ba_iterations = int(lm.iterations)
+            problem = kba
+            if n_eff > 0:  # S_hat (eq. 3.14) = the relative poses after this k-BA
+                kba.write_back(kba.state, R_wc, t_wc, X_w)
+        # 3b. hybrids: the fusion's zeta (eq. 3.4) and X* = argmin zeta, from the k-BA's poses
+        sel_window = sel
         if n_eff > 0:
+            pg_ids = np.arange(k + 1 - l_eff, k + 1 - l_eff + n_eff)
+            R_ref, t_ref = R_wc[pg_ids].copy(), t_wc[pg_ids].copy()
+            sel, problem = _hybrid_problem(
+                data, cfg, kind, D, R_wc, t_wc, X_w, keyframes, sel, l_eff, n_eff, k
+            )
+            problem.state.camera_fixed[np.isin(problem.camera_ids, anchors)] = True
             _freeze_links(problem, links, R_wc, t_wc, D, cfg)
             _add_length_terms(problem, kind, cfg, links)
-        if st.free_cameras.size == 0:
-            raise SlamError(f"keyframe {k}: the window has no free camera")
+            if problem.state.free_cameras.size == 0:
+                raise SlamError(f"keyframe {k}: the window has no free camera")
+            it = cfg.zeta_iterations if kba is not None else cfg.ba_iterations
+            problem, lm = minimize_zeta(problem, LMConfig(max_iterations=it))
+            rec.ba_iterations += int(lm.iterations)
+        rec.ba_seconds = time.perf_counter() - t0
+        st = problem.state
         rec.n_pose_graph = n_eff
         rec.n_cameras = int(st.free_cameras.size)
         rec.n_points = int(st.free_points.size)
         rec.hessian_bytes = hessian_bytes(problem)
-        t0 = time.perf_counter()
-        problem, lm = minimize_zeta(problem, LMConfig(max_iterations=cfg.ba_iterations))
-        rec.ba_seconds = time.perf_counter() - t0
-        rec.ba_iterations = int(lm.iterations)
         state = problem.state
         # 4. fusion
         gps = data.gps_xy[k]
@@ -586,12 +723,16 @@ def run_pipeline(
         elif cfg.fuse:
             logger.debug("keyframe %d: no GPS fix (dropout), not fused", k)
         problem.write_back(state, R_wc, t_wc, X_w)
+        if n_eff > 0:
+            _carry_points(
+                pt_obs[sel_window], kf_obs[sel_window], problem.point_ids, pg_ids, R_ref,
+                t_ref, R_wc, t_wc, X_w,
+            )  # fmt: skip
         if not (np.all(np.isfinite(t_wc[: k + 1])) and np.all(np.isfinite(R_wc[: k + 1]))):
             raise SlamError(f"keyframe {k}: non-finite pose estimate")
         R_on[k], t_on[k] = R_wc[k], t_wc[k]
-        # 5. gating
-        w = problem.window.observations
-        o = sel[w]
+        # 5. gating (the fusion window's reprojection rows)
+        o = sel[problem.window.observations]
         uv_hat, _, front = project(K, R_wc[kf_obs[o]], t_wc[kf_obs[o]], X_w[pt_obs[o]])
         err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv[o], nan=1e9), axis=1), 1e9)
         bad = o[err > cfg.window_gate_px]

@@ -79,7 +79,13 @@ class HybridWindowConfig:
         reprojection_kernel: robust kernel of the reprojection rows (None = least squares).
         reprojection_kernel_scale: its threshold.
         mpc_sigma: pixel sigma of the MPC rows.
-        mpc_min_correspondences: fewest 2D matches a pose-graph pair needs under MPC.
+        mpc_min_correspondences: fewest 2D matches a pose-graph pair needs under MPC (pairs
+            with fewer get a DPC link, :func:`_mpc_factor`).
+        mpc_relative: subtract from each MPC epipolar distance its value at the built state
+            (:meth:`MPCFactor.relative_to`), so that ``xi`` measures the change of the relative
+            poses from the pre-fusion estimate, as DPC's ``S_hat`` does (§3.5). False = eq.
+            3.18 as written: its minimiser fits the noisy pairwise epipolar geometry, not the
+            multi-view one, and moves the pose graph along its weak (bas-relief) directions.
         min_point_observations: a BA-window point keeps its place only if at least this many of
             its observations remain (BA-window + fixed older cameras): a point whose other views
             all fell in the pose-graph window would have a free depth (singular ``V`` block).
@@ -97,6 +103,7 @@ class HybridWindowConfig:
     reprojection_kernel_scale: float | None = None
     mpc_sigma: float = 1.0
     mpc_min_correspondences: int = 5
+    mpc_relative: bool = False
     min_point_observations: int = 2
 
     def __post_init__(self) -> None:
@@ -328,8 +335,8 @@ def build_hybrid_problem(
     (``HybridProblem.dropped_points``); a window where all points are is an error.
 
     Raises:
-        WindowError: invalid window; also, for MPC, a pose-graph pair with too few matches or
-            with coincident optical centres.
+        WindowError: invalid window; also, for MPC, coincident optical centres (a pair with
+            fewer than ``mpc_min_correspondences`` matches gets a DPC link instead).
         GeosegError: NaN/inf inputs or mismatched shapes.
     """
     cfg = config or HybridWindowConfig()
@@ -392,9 +399,18 @@ def build_hybrid_problem(
         if cfg.pose_graph == "dpc":
             vision.append(DPCFactor.from_state(state, pairs_state, D=cfg.D))
         else:
-            vision.append(
-                _mpc_factor(win, pairs_state, K_state, obs_cameras, obs_points, uv, cfg, state)
+            mpc, fallback = _mpc_factor(
+                win, pairs_state, K_state, obs_cameras, obs_points, uv, cfg, state
             )
+            if mpc is not None:
+                vision.append(mpc)
+            if fallback.shape[0]:  # documented departure: DPC link where MPC has too few matches
+                logger.info(
+                    "MPC: %d pose-graph pair(s) with fewer than %d shared points use a DPC link",
+                    fallback.shape[0],
+                    cfg.mpc_min_correspondences,
+                )
+                vision.append(DPCFactor.from_state(state, fallback, D=cfg.D))
     logger.debug(
         "hybrid window: l=%d n=%d, %d fixed cameras, %d points, %d observations, %d pg pairs",
         win.l,
@@ -466,22 +482,33 @@ def _mpc_factor(
     uv: np.ndarray,
     cfg: HybridWindowConfig,
     state: BAState,
-) -> MPCFactor:
-    """2D correspondences of each pose-graph pair from shared point observations."""
+) -> tuple[MPCFactor | None, np.ndarray]:
+    """2D correspondences of each pose-graph pair from shared point observations.
+
+    A pair sharing fewer than ``cfg.mpc_min_correspondences`` points (eq. 3.18 needs at least
+    5 to pin a relative pose up to scale; the thesis does not say what happens below) is not
+    an error: it is returned in the fallback list, and :func:`build_hybrid_problem` links it
+    with a DPC term (eq. 3.16) instead, so the chain never breaks.
+
+    Returns:
+        ``(MPC factor over the other pairs or None, (F, 2) fallback state pairs)``.
+    """
     ci, cj, ui, uj = [], [], [], []
+    fallback = []
     for (a, b), (sa, sb) in zip(win.pose_graph_pairs, pairs_state):
         ia = np.flatnonzero(obs_cameras == a)
         ib = np.flatnonzero(obs_cameras == b)
         common, xa, xb = np.intersect1d(obs_points[ia], obs_points[ib], return_indices=True)
         if common.size < cfg.mpc_min_correspondences:
-            raise WindowError(
-                f"MPC: keyframes {a} and {b} share {common.size} points, fewer than "
-                f"{cfg.mpc_min_correspondences}"
-            )
+            fallback.append((int(sa), int(sb)))
+            continue
         ci.append(np.full(common.size, sa))
         cj.append(np.full(common.size, sb))
         ui.append(uv[ia[xa]])
         uj.append(uv[ib[xb]])
+    fallback = np.array(fallback, dtype=np.int64).reshape(-1, 2)
+    if not ci:
+        return None, fallback
     f = MPCFactor(
         K_state,
         np.concatenate(ci),
@@ -494,7 +521,9 @@ def _mpc_factor(
         f.cost(state)
     except MPCDegenerateError as exc:
         raise WindowError(f"MPC: {exc}") from exc
-    return f
+    if cfg.mpc_relative:
+        f = f.relative_to(state)
+    return f, fallback
 
 
 def minimize_zeta(

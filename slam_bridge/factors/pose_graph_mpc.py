@@ -165,6 +165,11 @@ class MPCFactor:
         compress: with the least-squares kernel, hand the assembler one exact 13-dimensional
             row per camera pair instead of one row per correspondence (same cost, same normal
             equations, far fewer rows; see :meth:`_compressed`).
+        offset: ``(M,)`` pixels subtracted from each epipolar distance (default none: eq. 3.18
+            as written). :meth:`relative_to` sets it to the distances at a reference state, so
+            that ``xi`` measures how much the pose graph moved away from that estimate (§3.5:
+            "la fonction mesurant à quel point la pose relative est modifiée par rapport à
+            l'estimation initiale"); the Jacobians do not change.
         name: family label.
 
     Raises:
@@ -182,6 +187,7 @@ class MPCFactor:
         sigma: float = 1.0,
         kernel: str | RobustKernel | None = None,
         compress: bool = True,
+        offset: np.ndarray | None = None,
         name: str = "pose_graph_mpc",
     ) -> None:
         self.K = np.asarray(K, dtype=np.float64)
@@ -209,6 +215,12 @@ class MPCFactor:
         self.kernel = get_kernel(kernel)
         self.compress = bool(compress)
         self.name = name
+        self.offset = None
+        if offset is not None:
+            self.offset = np.asarray(offset, dtype=np.float64).reshape(-1)
+            if self.offset.shape != (M,):
+                raise SlamError(f"{name}: expected offset ({M},), got {self.offset.shape}")
+            check_finite("offset", self.offset)
         pair_keys = np.stack([self.cameras_i, self.cameras_j], axis=1)
         self._pairs, self._pair_of = np.unique(pair_keys, axis=0, return_inverse=True)
         self._pair_of = self._pair_of.reshape(-1)
@@ -248,6 +260,8 @@ class MPCFactor:
         cost and normal equations (:meth:`_compressed`).
         """
         psi, valid, J_i, J_j = epipolar_residuals(*self._args(state))
+        if self.offset is not None:
+            psi = psi - self.offset
         inv_s = 1.0 / self.sigma
         r = psi * inv_s
         J = np.concatenate([J_i, J_j], axis=1) * inv_s  # (M, 12)
@@ -300,12 +314,31 @@ class MPCFactor:
             name=self.name,
         )
 
+    def relative_to(self, state: BAState) -> MPCFactor:
+        """This factor with ``offset`` = the epipolar distances at ``state`` (then ``xi = 0``
+        and its gradient vanishes there: ``state`` is the pose graph's rest position)."""
+        psi, valid, _, _ = epipolar_residuals(*self._args(state), with_jacobians=False)
+        return MPCFactor(
+            self.K,
+            self.cameras_i,
+            self.cameras_j,
+            self.uv_i,
+            self.uv_j,
+            sigma=self.sigma,
+            kernel=self.kernel,
+            compress=self.compress,
+            offset=np.where(valid, psi, 0.0),
+            name=self.name,
+        )
+
     def cost(self, state: BAState) -> float:
-        """``sum_k rho((psi_k / sigma)^2)`` over valid rows."""
+        """``sum_k rho(((psi_k - offset_k) / sigma)^2)`` over valid rows."""
         return self.cost_and_invalid(state)[0]
 
     def cost_and_invalid(self, state: BAState) -> tuple[float, int]:
         """The cost and the number of invalid rows (points on the epipole), no Jacobians."""
         psi, valid, _, _ = epipolar_residuals(*self._args(state), with_jacobians=False)
+        if self.offset is not None:
+            psi = psi - self.offset
         s = (psi / self.sigma) ** 2
         return float(np.sum(np.where(valid, self.kernel.rho(s), 0.0))), int(np.sum(~valid))

@@ -7,6 +7,7 @@ import pytest
 
 from geoseg.errors import GeosegError
 from slam_bridge import lie
+from slam_bridge.errors import SlamError
 from slam_bridge.factors.pose_graph_dpc import DPCFactor, dpc_residuals, relative_pose
 from slam_bridge.factors.pose_graph_mpc import MPCDegenerateError, MPCFactor, epipolar_residuals
 from slam_bridge.problem import BAState, assemble
@@ -185,6 +186,29 @@ def test_mpc_compressed_rows_are_exact() -> None:
     H2, g2 = assemble([comp], moved).dense()
     np.testing.assert_allclose(H2, H1, rtol=1e-9, atol=1e-9 * np.abs(H1).max())
     np.testing.assert_allclose(g2, g1, rtol=1e-9, atol=1e-9 * np.abs(g1).max())
+
+
+@pytest.mark.parametrize("compress", [False, True])
+def test_mpc_relative_to_is_at_rest_with_the_same_jacobian(compress: bool) -> None:
+    """``relative_to(X0)``: xi(X0) = 0 with zero gradient; elsewhere rows = psi - psi(X0)."""
+    state = _state(C=5, rot=0.05)
+    f = _mpc(state, 4, per_pair=12, compress=compress)
+    moved = _perturbed(state, 8, 0.01)
+    rel = f.relative_to(moved)
+    assert rel.cost(moved) < 1e-20
+    _, g = assemble([rel], moved).dense()
+    assert np.abs(g).max() < 1e-9
+    # same Jacobian as the plain factor (a constant offset), exact against finite differences
+    H_rel, _ = assemble([rel], state).dense()
+    H, _ = assemble([f], state).dense()
+    np.testing.assert_allclose(H_rel, H, rtol=1e-9, atol=1e-9 * np.abs(H).max())
+    if not compress:  # per-correspondence rows: exact Jacobian, rows shifted by psi(X0)
+        _numeric_check(rel, _perturbed(state, 5, 0.02), rtol=1e-6)
+        r = rel.evaluate(state).residuals[:, 0]
+        r0 = f.evaluate(moved).residuals[:, 0]
+        np.testing.assert_allclose(r, f.evaluate(state).residuals[:, 0] - r0, atol=1e-12)
+    with pytest.raises(SlamError, match="offset"):
+        MPCFactor(K, [0], [1], [[1.0, 1.0]], [[2.0, 1.0]], offset=np.zeros(2))
 
 
 def test_mpc_coincident_centres_raise() -> None:

@@ -289,3 +289,38 @@ def test_points_behind_every_camera_are_dropped(scene, caplog) -> None:
             scene.uv,
             HybridWindowConfig(l=6, n=2),
         )
+
+
+def test_mpc_pair_with_too_few_matches_falls_back_to_dpc(scene) -> None:
+    """A pose-graph pair sharing < mpc_min_correspondences points gets a DPC link (no error)."""
+    oc, op = scene.obs_cameras.copy(), scene.obs_points.copy()
+    # keyframes 5 and 6 (a pose-graph pair of l = 8, n = 3) keep only 3 shared points
+    shared = np.intersect1d(op[oc == 5], op[oc == 6])
+    assert shared.size > 3
+    drop = (oc == 6) & np.isin(op, shared[3:])
+    keep = ~drop
+    cfg = HybridWindowConfig(l=8, n=3, pose_graph="mpc", mpc_min_correspondences=5)
+    hyb = build_hybrid_problem(
+        scene.R_wc,
+        scene.t_wc,
+        scene.X_w,
+        scene.K,
+        np.arange(12),
+        oc[keep],
+        op[keep],
+        scene.uv[keep],
+        cfg,
+    )
+    kinds = [type(f) for f in hyb.vision]
+    assert kinds == [ReprojectionFactor, MPCFactor, DPCFactor]
+    dpc = hyb.vision[2]
+    ids = hyb.camera_ids[dpc.pairs]
+    assert ids.tolist() == [[5, 6]]
+    mpc = hyb.vision[1]
+    ci, cj = hyb.camera_ids[mpc.cameras_i], hyb.camera_ids[mpc.cameras_j]
+    assert not np.any((ci == 5) & (cj == 6))  # no MPC rows for the fallback pair
+    assert np.any((ci == 4) & (cj == 5)) and np.any((ci == 6) & (cj == 7))
+    # the fallback link is at rest at the built state: zeta(X) is the reprojection + MPC part
+    assert dpc.cost(hyb.state) < 1e-12
+    hyb, lm = minimize_zeta(hyb, LMConfig(max_iterations=5))
+    assert np.all(np.isfinite(hyb.state.t_wc))
