@@ -4,8 +4,6 @@ Export is slowish (~10 s per ENet-sized model on 2 CPU cores): every model is ex
 at 64x48, and compared at 37x50 (sides not multiples of 8) with batch 2.
 """
 
-import importlib.util
-
 import numpy as np
 import pytest
 import torch
@@ -15,10 +13,6 @@ from geoseg.export import OnnxModel, default_example_inputs, export_onnx, prepar
 from geoseg.models import get_model, list_models
 
 H2, W2 = 37, 50  # the second size
-
-
-def _has(module: str) -> bool:
-    return importlib.util.find_spec(module) is not None
 
 
 def _export(name: str, tmp_path_factory, **cfg):
@@ -66,7 +60,6 @@ def test_image_models_parity_on_a_second_size(name: str, tmp_path_factory) -> No
     assert isinstance(tensors[scores], torch.Tensor)
 
 
-@pytest.mark.skipif(not _has("geoseg.models.reloc"), reason="geoseg.models.reloc not written yet")
 def test_reloc_head_parity(tmp_path_factory) -> None:
     model, onnx_model = _export("reloc", tmp_path_factory)
     feat = torch.randn(3, 128, 5, 7, generator=torch.Generator().manual_seed(2))
@@ -77,9 +70,6 @@ def test_reloc_head_parity(tmp_path_factory) -> None:
     assert got.shape == ref.shape and cos.min() >= 0.9999
 
 
-@pytest.mark.skipif(
-    not _has("geoseg.models.relpose"), reason="geoseg.models.relpose not written yet"
-)
 def test_relpose_head_parity(tmp_path_factory) -> None:
     model, onnx_model = _export("relpose", tmp_path_factory)
     gen = torch.Generator().manual_seed(3)

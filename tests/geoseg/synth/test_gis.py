@@ -378,7 +378,8 @@ def test_odometry_bad_inputs(tmp_path) -> None:
 
 # ---- on the world --------------------------------------------------------------------------
 def test_gis_products_on_a_tiny_world() -> None:
-    world_mod = pytest.importorskip("geoseg.synth.world")
+    import geoseg.synth.world as world_mod
+
     world = world_mod.build_world(world_mod.WorldConfig(blocks_x=1, blocks_y=1, seed=3))
     model = build_building_model(world.buildings, seed=3, streets=world.streets)
     facades = world.facades()
@@ -396,8 +397,9 @@ def test_gis_products_on_a_tiny_world() -> None:
 
 
 def test_dead_reckoning_follows_a_real_drive() -> None:
-    world_mod = pytest.importorskip("geoseg.synth.world")
-    traj_mod = pytest.importorskip("geoseg.synth.trajectory")
+    import geoseg.synth.trajectory as traj_mod
+    import geoseg.synth.world as world_mod
+
     world = world_mod.build_world(world_mod.WorldConfig(blocks_x=2, blocks_y=1, seed=1))
     traj = traj_mod.drive(world, rig="car", length_m=150.0, fps=10.0, seed=1)
     xy = traj.vehicle_xyz[:, :2]
