@@ -29,6 +29,7 @@ from torch import nn
 
 from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
 from geoseg.errors import GeosegError
+from geoseg.vectors import vector_length
 from training.metrics import class_counts, enet_class_weights
 
 logger = logging.getLogger(__name__)
@@ -146,7 +147,7 @@ class NormalsLoss(nn.Module):
                 f"normals: prediction {tuple(pred.shape)} and target {tuple(target.shape)} differ"
             )
         valid = batch.get("normal_valid")
-        valid = target.norm(dim=1) > 0.5 if valid is None else valid.bool()
+        valid = vector_length(target, 1) > 0.5 if valid is None else valid.bool()
         n = valid.sum()
         if int(n) == 0:
             zero = pred.sum() * 0.0

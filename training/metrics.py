@@ -17,6 +17,7 @@ import torch
 
 from geoseg.classes import BUILDING, CLASS_NAMES, IGNORE_INDEX, NUM_CLASSES
 from geoseg.errors import GeosegError, check_shape
+from geoseg.vectors import vector_length
 
 logger = logging.getLogger(__name__)
 
@@ -183,9 +184,9 @@ def angular_error_deg(
         raise GeosegError(f"normals: expected 3 components, got shape {tuple(pred.shape)}")
     pred = pred.double()
     target = target.double()
-    tnorm = target.norm(dim=dim)
+    tnorm = vector_length(target, dim)
     mask = tnorm > 0.5 if valid is None else valid.bool() & (tnorm > 1e-6)
-    cos = (pred * target).sum(dim) / (pred.norm(dim=dim) * tnorm).clamp_min(1e-12)
+    cos = (pred * target).sum(dim) / (vector_length(pred, dim) * tnorm).clamp_min(1e-12)
     ang = torch.rad2deg(torch.acos(cos.clamp(-1.0, 1.0)))
     return ang[mask].float()
 
@@ -375,7 +376,7 @@ class NormalsMeter(Meter):
         target = batch[self.target_key]
         valid = None
         if self.only_class is not None:
-            valid = (batch[self.labels_key] == self.only_class) & (target.norm(dim=-3) > 0.5)
+            valid = (batch[self.labels_key] == self.only_class) & (vector_length(target, -3) > 0.5)
         err = angular_error_deg(pred, target, valid)
         dev = err.device
         idx = (err / self.bin_deg).long().clamp(0, self.n_bins - 1)

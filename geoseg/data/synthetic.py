@@ -51,6 +51,7 @@ from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
 from geoseg.config import from_dict, to_dict
 from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
+from geoseg.vectors import vector_length
 
 logger = logging.getLogger(__name__)
 
@@ -397,7 +398,7 @@ class SyntheticDataset(Dataset):
         }
         if self.transform is not None:
             sample = dict(self.transform(sample))
-        sample["normal_valid"] = sample["normals"].norm(dim=0) > 0.5
+        sample["normal_valid"] = vector_length(sample["normals"], 0) > 0.5
         sample.update(index=index, seed=spec.seed, condition=spec.condition, rig=spec.rig)
         return sample
 

@@ -32,6 +32,7 @@ from torchvision.transforms.v2 import functional as F
 
 from geoseg.classes import IGNORE_INDEX
 from geoseg.errors import ConfigError, GeosegError
+from geoseg.vectors import vector_length
 
 logger = logging.getLogger(__name__)
 
@@ -67,11 +68,11 @@ def _plain(t: torch.Tensor) -> torch.Tensor:
 
 def _valid(n: torch.Tensor) -> torch.Tensor:
     """``(..., 1, H, W)`` uint8 mask of non-zero normals."""
-    return (n.norm(dim=-3, keepdim=True) > 0.5).to(torch.uint8)
+    return (vector_length(n, -3, keepdim=True) > 0.5).to(torch.uint8)
 
 
 def _renormalise(n: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    norm = n.norm(dim=-3, keepdim=True)
+    norm = vector_length(n, -3, keepdim=True)
     ok = (valid > 0) & (norm > 1e-6)
     return torch.where(ok, n / norm.clamp_min(1e-6), torch.zeros_like(n))
 
