@@ -163,6 +163,24 @@ def build_frame_dataset(
     raise GeosegError(f"data.source: expected synth or cityscapes, got {data.source!r}")
 
 
+def prerender_frames(data: DataConfig, *datasets: Dataset | None) -> None:
+    """Render the synthetic frames missing from ``data.cache_dir`` before training starts.
+
+    Only with ``data.prerender_workers > 0``, a synthetic source and a cache directory. Under
+    DDP the main process renders while the others wait at a barrier. Frames already cached are
+    only read back (~10 ms each).
+    """
+    if data.prerender_workers < 1 or data.source != "synth" or data.cache_dir is None:
+        return
+    from geoseg.data.synthetic import prerender
+
+    if dd.is_main_process():
+        for dataset in datasets:
+            if dataset is not None:
+                prerender(dataset, num_workers=data.prerender_workers)
+    dd.barrier()
+
+
 def make_loaders(cfg: TrainConfig, train_set: Dataset, val_set: Dataset | None) -> tuple[Any, Any]:
     """Seeded, shard-aware training and validation loaders (:func:`training.distributed.make_loader`)."""
     train = dd.make_loader(

@@ -99,6 +99,7 @@ def patch_datasets(cfg: NaiveConfig) -> tuple[Any, Any]:
     # frames in [0, 1] without augmentation; patches are normalised (and flipped) themselves
     train_frames = common.build_frame_dataset(cfg.data, "train", augment=False, normalize=False)
     val_frames = common.build_frame_dataset(cfg.data, "val", augment=False, normalize=False)
+    common.prerender_frames(cfg.data, train_frames, val_frames)
     train = PatchDataset(
         train_frames,
         patches_per_frame=cfg.patches_per_frame,

@@ -108,6 +108,7 @@ def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
     )
     train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
     val_set = common.build_frame_dataset(cfg.data, "val")
+    common.prerender_frames(cfg.data, train_set, val_set)
     train_loader, val_loader = common.make_loaders(cfg, train_set, val_set)
     loss_fn = NormalsLoss(angular_weight=cfg.angular_weight)
     run_dir = fit(

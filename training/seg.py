@@ -115,6 +115,7 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
     """
     train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
     val_set = common.build_frame_dataset(cfg.data, "val")
+    common.prerender_frames(cfg.data, train_set, val_set)
     weights, counts = class_weights_from_dataset(
         train_set,
         max_samples=cfg.class_weight_samples,

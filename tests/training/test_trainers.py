@@ -53,6 +53,28 @@ def _check_run(run_dir: Path, run_files: tuple[str, ...]) -> dict:
     return card
 
 
+def test_prerender_frames_fills_the_cache_before_training(tmp_path):
+    cfg = load_config(
+        seg_trainer.SegConfig,
+        _base(tmp_path / "cache", tmp_path / "run") | {"model": "enet"},
+        overrides=["data.prerender_workers=1", "data.synth.val.seeds=[2]"],
+    )
+    train = common.build_frame_dataset(cfg.data, "train")
+    val = common.build_frame_dataset(cfg.data, "val")
+    common.prerender_frames(cfg.data, train, val)
+    assert len(list((tmp_path / "cache").rglob("*.npz"))) == len(train) + len(val)
+    # without prerender_workers nothing is rendered up front
+    cfg.data.prerender_workers = 0
+    cfg.data.cache_dir = tmp_path / "cold"
+    common.prerender_frames(cfg.data, common.build_frame_dataset(cfg.data, "train"))
+    assert not (tmp_path / "cold").exists()
+
+
+def test_negative_prerender_workers_is_a_config_error():
+    with pytest.raises(ConfigError, match="prerender_workers"):
+        load_config(seg_trainer.SegConfig, None, overrides=["data.prerender_workers=-1"])
+
+
 @pytest.fixture(scope="module")
 def seg_run(tmp_path_factory, cache_dir) -> Path:
     out = tmp_path_factory.mktemp("seg") / "run"
