@@ -66,4 +66,6 @@ def check_image_tensor(name: str, x: object, *, channels: int = 3, min_size: int
         raise GeosegError(
             f"{name}: expected a non-empty batch and sides >= {min_size}, got shape {tuple(x.shape)}"
         )
+    if x.is_cuda and torch.cuda.is_current_stream_capturing():
+        return  # reading values back would break CUDA graph capture
     check_finite(name, x)
