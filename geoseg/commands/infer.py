@@ -1,5 +1,7 @@
 """``geoseg infer``: segment images (and predict normals) with a checkpoint or an ONNX file.
 
+Without ``--model`` it uses the shipped joint labels + normals network (:mod:`geoseg.pretrained`).
+
 For each input image ``NAME.ext`` it writes to ``--out``: ``NAME_labels.png`` (colour label map),
 ``NAME_overlay.png`` (labels blended over the image) and, when the model predicts normals,
 ``NAME_normals.png`` (RGB = ``(n + 1) / 2 * 255``, camera frame).
@@ -17,7 +19,11 @@ logger = logging.getLogger(__name__)
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("images", nargs="+", type=Path, help="input images (PNG, JPEG, ...)")
     parser.add_argument(
-        "--model", required=True, type=Path, help="model: .onnx file or torch checkpoint"
+        "--model",
+        type=Path,
+        default=None,
+        help="model: .onnx file or torch checkpoint (default: the shipped labels + normals "
+        "network, geoseg/weights/normals/model.onnx)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output directory")
     parser.add_argument(
@@ -39,6 +45,10 @@ def run(args: argparse.Namespace) -> int:
 
     if not 0.0 <= args.alpha <= 1.0:
         raise GeosegError(f"--alpha: expected a value in [0, 1], got {args.alpha}")
+    if args.model is None:
+        from geoseg.pretrained import pretrained_file
+
+        args.model = pretrained_file("normals", "model.onnx")
     if str(args.model).lower().endswith(".onnx"):
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
     else:

@@ -1,0 +1,103 @@
+"""The trained weights shipped inside the package, ``geoseg/weights/<name>/``.
+
+Each folder is a copy of a ``geoseg train`` run directory reduced to what inference and the
+benchmarks read (:data:`SHIPPED_FILES`): ``model.pt`` (torch checkpoint), ``model.onnx``,
+``model_card.json`` / ``.md`` (data, config, command, metrics, wall time), ``metrics.json`` /
+``.csv`` and ``config.yaml``; the Dirichlet folder holds ``dirichlet.json`` and
+``max_probability.json`` instead of a network. ``python -m training.ship RUN NAME`` copies a run
+there; the model card's ``command`` reproduces it.
+
+Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``normals`` (the joint labels + normals
+network: the ``seg`` trunk and label head with a trained normals head), ``naive`` (the 2015
+patch CNN), ``dirichlet`` (its false-positive filter), ``reloc`` and ``relpose`` (the
+relocalisation heads, when shipped).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from geoseg.errors import GeosegError
+
+WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+PRETRAINED: dict[str, str] = {
+    "seg": "ENet labels (8 classes)",
+    "normals": "joint labels + surface normals network (ENet trunk + normals head)",
+    "naive": "naive patch CNN (thesis fig. 4.5)",
+    "dirichlet": "Dirichlet false-positive filter of the naive CNN",
+    "reloc": "relocalisation embedding on the layer-21 features",
+    "relpose": "relative-pose head on the layer-21 features",
+}
+SHIPPED_FILES: tuple[str, ...] = (
+    "model.pt",
+    "model.onnx",
+    "model_card.json",
+    "model_card.md",
+    "metrics.json",
+    "metrics.csv",
+    "config.yaml",
+    "dirichlet.json",
+    "max_probability.json",
+)
+_TRAINERS = {"seg": "seg", "normals": "normals", "naive": "naive", "dirichlet": "dirichlet"}
+
+
+def pretrained_dir(name: str) -> Path:
+    """The folder of shipped weights ``name``.
+
+    Raises:
+        GeosegError: unknown name, or nothing shipped under it (the message says how to train it).
+    """
+    if name not in PRETRAINED:
+        raise GeosegError(f"pretrained: unknown name {name!r}; known {sorted(PRETRAINED)}")
+    folder = WEIGHTS_DIR / name
+    if not (folder / "model_card.json").is_file():
+        trainer = _TRAINERS.get(name, name)
+        raise GeosegError(
+            f"pretrained {name!r} ({PRETRAINED[name]}): not shipped in {folder}; train it with "
+            f"`geoseg train {trainer} --config configs/{trainer}.yaml`, then "
+            f"`python -m training.ship runs/{trainer} {name}`"
+        )
+    return folder
+
+
+def pretrained_file(name: str, file: str = "model.pt") -> Path:
+    """A file of the shipped weights ``name`` (e.g. ``model.onnx``).
+
+    Raises:
+        GeosegError: not shipped, or that file missing.
+    """
+    path = pretrained_dir(name) / file
+    if not path.is_file():
+        raise GeosegError(f"pretrained {name!r}: no {file} in {path.parent}")
+    return path
+
+
+def model_card(name: str) -> dict[str, Any]:
+    """The shipped model card of ``name`` (data, config, command, metrics)."""
+    return json.loads(pretrained_file(name, "model_card.json").read_text())
+
+
+def pretrained_segmenter(name: str = "normals", *, backend: str = "onnx", device: str = "cpu"):
+    """A :class:`geoseg.infer.Segmenter` over shipped weights.
+
+    Args:
+        name: ``normals`` (labels + normals, the default), ``seg`` or ``naive``.
+        backend: ``onnx`` (onnxruntime) or ``torch``.
+        device: ``cpu`` or ``cuda``.
+
+    Raises:
+        GeosegError: unknown backend or name, weights not shipped.
+    """
+    from geoseg.export import available_providers
+    from geoseg.infer import Segmenter
+
+    if backend == "onnx":
+        return Segmenter.from_onnx(
+            pretrained_file(name, "model.onnx"), providers=available_providers(device)
+        )
+    if backend == "torch":
+        return Segmenter.from_checkpoint(pretrained_file(name, "model.pt"), device=device)
+    raise GeosegError(f"backend: expected 'onnx' or 'torch', got {backend!r}")
