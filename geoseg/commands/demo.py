@@ -51,7 +51,7 @@ class DemoContext:
     rigs: tuple[str, ...] = RIGS
     conditions: tuple[str, ...] = ("summer_day", "winter")
     frames: int = 10
-    image_size: tuple[int, int] = (160, 120)
+    image_size: tuple[int, int] = (320, 240)
     fps: float = 1.0
     seed: int = 0
     force: bool = False
@@ -144,11 +144,87 @@ def step_map(ctx: DemoContext) -> None:
     ctx.outputs["map"] = path
 
 
+def _segmentation_scores(cm: Any) -> tuple[float, float, list[float]]:
+    """(mIoU over the classes present or predicted, pixel accuracy, per-class IoU; NaN = absent)."""
+    import numpy as np
+
+    union = cm.sum(0) + cm.sum(1) - np.diag(cm)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = np.where(union > 0, np.diag(cm) / union, np.nan)
+    return float(np.nanmean(iou)), float(np.trace(cm) / max(cm.sum(), 1)), iou.tolist()
+
+
+def step_segment(ctx: DemoContext) -> None:
+    """Run the shipped labels + normals network (onnxruntime) on every rendered frame.
+
+    Scores it against the renderer's ground truth (the demo city is not the held-out evaluation
+    city; ``bench/accuracy_seg.py`` measures that) and writes a thesis fig. 4.20-like sheet:
+    RGB | true labels | predicted labels | predicted normals | true normals, one row per
+    sequence. Skipped, with the command that trains them, when no weights are shipped.
+    """
+    import cv2
+    import numpy as np
+
+    from geoseg.classes import CLASS_NAMES, NUM_CLASSES, colorize
+    from geoseg.errors import GeosegError
+    from geoseg.infer import normals_to_rgb
+    from geoseg.pretrained import pretrained_segmenter
+    from geoseg.synth.maps import contact_sheet
+
+    try:
+        segmenter = pretrained_segmenter("normals", backend="onnx")
+    except GeosegError as err:
+        logger.warning("segment step skipped: %s", err)
+        return
+    cm = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
+    rows, row_labels = [], []
+    for (rig, condition), seq in ctx.sequences.items():
+        mid = ctx.frames // 2
+        for i in range(ctx.frames):
+            rgb = cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1].copy()
+            truth = cv2.imread(str(seq / "labels" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            result = segmenter(rgb)
+            pred = result.labels[0].astype(np.int64)
+            keep = truth < NUM_CLASSES
+            cm += np.bincount(
+                truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
+                minlength=NUM_CLASSES**2,
+            ).reshape(NUM_CLASSES, NUM_CLASSES)
+            if i != mid:
+                continue
+            with np.load(seq / "geometry" / f"{i:06d}.npz") as geometry:
+                true_normals = geometry["normals"].astype(np.float32)
+            row = [rgb, colorize(truth), colorize(pred)]
+            if result.normals is not None:
+                row.append(normals_to_rgb(result.normals[0]))
+            row.append(normals_to_rgb(true_normals))
+            rows.append(row)
+            row_labels.append(f"{rig} / {condition}")
+    miou, accuracy, iou = _segmentation_scores(cm)
+    columns = ["RGB", "true labels", "predicted labels", "predicted normals", "true normals"]
+    path = contact_sheet(
+        rows,
+        ctx.out / "segmentation.png",
+        row_labels=row_labels,
+        col_labels=columns if len(rows[0]) == 5 else columns[:3] + columns[4:],
+        title=f"shipped network on the demo frames: mIoU {miou:.2f}, pixel accuracy {accuracy:.2f}",
+    )
+    per_class = ", ".join(
+        f"{name} {v:.2f}" for name, v in zip(CLASS_NAMES, iou, strict=True) if v == v
+    )
+    print(
+        f"segmentation ({segmenter.source.name}, {ctx.frames * len(ctx.sequences)} frames): "
+        f"mIoU {miou:.3f}, pixel accuracy {accuracy:.3f}; IoU {per_class}"
+    )
+    ctx.outputs["segmentation"] = path
+
+
 # The demo, in order; later issues append (name, step) pairs.
 STEPS: list[tuple[str, Callable[[DemoContext], None]]] = [
     ("render", step_render),
     ("contact sheet", step_contact_sheet),
     ("map", step_map),
+    ("segment", step_segment),
 ]
 
 
@@ -164,7 +240,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--frames", type=int, default=10, help="frames per sequence (default 10)")
     parser.add_argument("--fps", type=float, default=1.0, help="frame rate (default 1)")
-    parser.add_argument("--size", default="160x120", help="image size WxH (default 160x120)")
+    parser.add_argument(
+        "--size", default="320x240", help="image size WxH (default 320x240, the networks' size)"
+    )
     parser.add_argument(
         "--conditions",
         default="summer_day,winter",

@@ -84,8 +84,9 @@ def test_demo_command_on_a_tiny_world(tmp_path, tiny_config, capsys) -> None:
     argv = ["demo", "--config", str(tiny_config), "--out", str(out), "--frames", "2"]
     assert main(argv + ["--size", "48x36"]) == 0
     printed = capsys.readouterr().out
-    for name in ("contact_sheet.png", "map.png"):
+    for name in ("contact_sheet.png", "map.png", "segmentation.png"):
         assert (out / name).is_file() and str(out / name) in printed
+    assert "segmentation (model.onnx, 8 frames): mIoU" in printed  # the shipped network ran
     sequences = sorted(p.name for p in (out / "sequences").iterdir())
     assert sequences == ["car_summer_day", "car_winter", "tram_summer_day", "tram_winter"]
     # same route under two conditions: identical poses, different pictures
