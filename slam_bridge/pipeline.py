@@ -141,6 +141,37 @@ class PipelineConfig:
             pose-graph junction (4.5 % inlier loss) and 0.05 mrad / 0.5 mm make the chain so
             stiff that the GPS moves the cameras less (xy error x2).
         dpc_sigma_trans_m: DPC weight ``B = I / sigma_trans^2``.
+        dpc_weight: ``"information"`` (default): each pose-graph link ``(z_i, z_{i+1})`` is
+            weighed by the information of its relative pose in this keyframe's k-BA
+            (:func:`_link_information`, the thesis's perspective §5.2), times
+            ``dpc_info_scale``; ``"constant"``: ``D = diag(I / sigma_rot^2, I / sigma_trans^2)``
+            for every link (``dpc_sigma_*``; MPC's DPC fallback links always use it). Measured
+            (640 m, sigma_b = 0.75 m, DPC): the constant D loses tracking at keyframe 247 (a
+            90 degree turn), the information weights x10 run through (xy 0.51 m, no inlier
+            loss vs n = 0).
+        dpc_info_scale: factor on the information weights. The marginal relative-pose
+            covariances (about 0.4 mrad, 10 mm per link on the 640 m run) overstate what a
+            chain of independent links may bend (a camera's noise enters its two links with
+            opposite signs), so the chain needs more than x1; the calibrated scale
+            (``dpc_info_calibrate``) makes it too stiff (tracking lost at keyframe 300, like a
+            constant 0.05 mrad); x10 is the one value measured to run through (others untried
+            for lack of time).
+        dpc_info_calibrate: rescale the information weights of the chain so that the
+            covariance of the chain's newest camera ``z_{n+1}`` about the fixed ``z_0`` (the
+            translation block's trace) equals its covariance in the k-BA
+            (:func:`_chain_scale`). The marginal relative-pose covariances count the noise of a
+            camera shared by two links twice (it enters them with opposite signs), so a chain
+            of independent links with those weights is softer than the k-BA it stands for.
+        fusion_guard_share: hybrids only (``None``: off): reject a fusion (keep ``X*``, log a
+            warning) when it raises the share of the fusion window's reprojection rows erring
+            by more than ``fusion_guard_px`` (or turning invalid) by more than this share. The
+            barrier bounds zeta, not how it spreads: with few points (a sharp turn) the whole
+            5 % slack can land on a handful of rows, and the next keyframe then loses its
+            tracking. A documented graceful behaviour, not in the thesis. Measured (640 m,
+            sigma_b = 0.75 m, constant D, share 0.02): it does not prevent the tracking loss at
+            keyframe 247, so it is off by default.
+        fusion_guard_px: pixel threshold of that test (the inlier threshold of §3.7).
+        dpc_min_sigma: ``(rad, m)`` floors of the information weights' standard deviations.
         mpc_sigma_px: pixel sigma of the MPC epipolar residuals (eq. 3.18).
         mpc_length_sigma_m: MPC only: sigma of a baseline-length term
             ``((||T_j - T_i|| - L_hat_ij) / sigma)^2`` added to zeta for every pose-graph pair
@@ -194,6 +225,12 @@ class PipelineConfig:
     history_keyframes: int = 30
     dpc_sigma_rot_rad: float = 1e-4
     dpc_sigma_trans_m: float = 1e-3
+    dpc_weight: str = "information"
+    dpc_info_scale: float = 10.0
+    dpc_min_sigma: tuple[float, float] = (1e-6, 1e-5)
+    dpc_info_calibrate: bool = False
+    fusion_guard_share: float | None = None
+    fusion_guard_px: float = 2.0
     mpc_sigma_px: float = 1.0
     mpc_length_sigma_m: float | None = 2e-3
     mpc_match_share: float = 0.25
@@ -210,6 +247,12 @@ class PipelineConfig:
             raise SlamError(f"l: expected >= 3 (BA window of at least 3 cameras), got {self.l}")
         if not 0 <= self.n <= self.l - 3:
             raise SlamError(f"n: expected 0 <= n <= l - 3 = {self.l - 3}, got {self.n}")
+        if self.dpc_weight not in ("information", "constant"):
+            raise SlamError(
+                f"dpc_weight: expected 'information' or 'constant', got {self.dpc_weight!r}"
+            )
+        if not self.dpc_info_scale > 0:
+            raise SlamError(f"dpc_info_scale: expected > 0, got {self.dpc_info_scale}")
         if self.kba_window not in ("plain", "ba", "hybrid"):
             raise SlamError(
                 f"kba_window: expected 'plain', 'ba' or 'hybrid', got {self.kba_window!r}"
@@ -435,6 +478,132 @@ def _freeze_links(
             R_h = np.stack([links[p][0] for p in kp])
             t_h = np.stack([links[p][1] for p in kp])
             problem.vision[i] = DPCFactor(f.pairs, R_h, t_h, D)
+
+
+def _link_information(kba, problem, cfg: PipelineConfig) -> int:
+    """Weigh every DPC link of ``problem`` by its relative pose's information in the k-BA.
+
+    The k-BA (``kba``, at its optimum, plain window of the ``l`` latest keyframes) sees the
+    points the hybrid window drops; the covariance of its free cameras is ``S^-1`` (eq. 1.32,
+    reduced camera system of its undamped normal equations). For each link ``(z_i, z_{i+1})``
+    the joint ``12 x 12`` block (zero for a camera the k-BA holds fixed or does not hold, e.g.
+    ``z_0``) gives ``D_i = Sigma_q^-1`` (:func:`slam_bridge.factors.pose_graph_dpc.
+    relative_pose_information`), times ``dpc_info_scale``. A constant ``D`` is isotropic, while
+    a link is stiff across the optical axis and soft along the baseline (scale) and the
+    bas-relief directions: the fusion then bends the chain where the k-BA's points would
+    have charged most, and the chain swings about ``z_0``. The factors are rebuilt in place
+    (same ``S_hat``); when the k-BA's system cannot be factorised the constant ``D`` stays
+    (logged).
+
+    Returns:
+        The number of links reweighed.
+    """
+    from slam_bridge.factors.pose_graph_dpc import relative_pose_information
+    from slam_bridge.problem import assemble
+    from slam_bridge.solvers.schur import SchurFactorization
+
+    idx = [i for i, f in enumerate(problem.vision) if isinstance(f, DPCFactor)]
+    if not idx:
+        return 0
+    st = kba.state
+    neq = assemble(kba.vision, st)
+    try:
+        try:
+            fac = SchurFactorization(neq, 0.0)
+        except SlamError:  # a point left with one valid row: a whisker of damping
+            fac = SchurFactorization(neq, 1e-6, "marquardt")
+        cov = fac.camera_covariance_full()
+    except SlamError as exc:
+        logger.warning("DPC weights: k-BA system not factorisable (%s); constant D kept", exc)
+        return 0
+    cmap = st.camera_index_map
+    free_of = {int(c): int(cmap[i]) for i, c in enumerate(kba.camera_ids)}
+    ids = problem.camera_ids
+    n = 0
+    for i in idx:
+        f = problem.vision[i]
+        Q = f.pairs.shape[0]
+        J = np.zeros((Q, 12, 12))
+        for q, (a, b) in enumerate(f.pairs):
+            fr = [free_of.get(int(ids[a]), -1), free_of.get(int(ids[b]), -1)]
+            for u, fu in enumerate(fr):
+                for v, fv in enumerate(fr):
+                    if fu >= 0 and fv >= 0:
+                        J[q, 6 * u : 6 * u + 6, 6 * v : 6 * v + 6] = cov[
+                            6 * fu : 6 * fu + 6, 6 * fv : 6 * fv + 6
+                        ]
+        ps = problem.state
+        a, b = f.pairs[:, 0], f.pairs[:, 1]
+        D = cfg.dpc_info_scale * relative_pose_information(
+            ps.R_wc[a], ps.t_wc[a], ps.R_wc[b], ps.t_wc[b], J, min_sigma=cfg.dpc_min_sigma
+        )
+        g = DPCFactor(f.pairs, f.R_hat_ij, f.t_hat_ij, D, kernel=f.kernel, name=f.name)
+        if cfg.dpc_info_calibrate:
+            scale = _chain_scale(g, problem, cov, free_of)
+            if scale is not None:
+                g = DPCFactor(
+                    f.pairs, f.R_hat_ij, f.t_hat_ij, scale * D, kernel=f.kernel, name=f.name
+                )
+        problem.vision[i] = g
+        n += Q
+    return n
+
+
+def _chain_scale(
+    factor: DPCFactor, problem, cov_kba: np.ndarray, free_of: dict[int, int]
+) -> float | None:
+    """Factor on a DPC chain's weights that matches its end's covariance to the k-BA's.
+
+    With the chain's own normal equations ``H = sum J^T J`` (whitened Jacobians, the chain's
+    free cameras; its fixed first camera ``z_0`` is the gauge), the translation covariance of
+    the newest camera of the last pair is ``tr_c = tr (H^-1)_TT``; the k-BA's is ``tr_k`` (its
+    ``S^-1`` block, ``cov_kba``). Scaling every weight by ``tr_c / tr_k`` makes the two equal.
+
+    Args:
+        factor: the DPC family (pairs in time order, ``(z_0, z_1) ... (z_n, z_{n+1})``).
+        problem: the hybrid window.
+        cov_kba: ``(6 Cf_kba, 6 Cf_kba)`` covariance of the k-BA's free cameras.
+        free_of: keyframe id -> free index in the k-BA (``-1``: fixed).
+
+    Returns:
+        The factor, clipped to ``[1, 1e4]``, or None when the chain has no fixed camera, its
+        end is not free in the k-BA, or its system is singular.
+    """
+    st = problem.state
+    cmap = st.camera_index_map
+    cams = np.unique(factor.pairs)
+    free = [int(c) for c in cams if cmap[c] >= 0]
+    end = int(factor.pairs[-1, 1])
+    fk = free_of.get(int(problem.camera_ids[end]), -1)
+    if len(free) == cams.size or end not in free or fk < 0:
+        return None
+    loc = {c: i for i, c in enumerate(free)}
+    blk = factor.evaluate(st)
+    H = np.zeros((6 * len(free), 6 * len(free)))
+    for q, (a, b) in enumerate(factor.pairs):
+        js = [(loc.get(int(c)), blk.J_cameras[q, s]) for s, c in enumerate((a, b))]
+        for ia, Ja in js:
+            for ib, Jb in js:
+                if ia is not None and ib is not None:
+                    H[6 * ia : 6 * ia + 6, 6 * ib : 6 * ib + 6] += Ja.T @ Jb
+    try:
+        C = np.linalg.inv(H)
+    except np.linalg.LinAlgError:
+        return None
+    e = 6 * loc[end] + 3
+    tr_c = float(np.trace(C[e : e + 3, e : e + 3]))
+    tr_k = float(np.trace(cov_kba[6 * fk + 3 : 6 * fk + 6, 6 * fk + 3 : 6 * fk + 6]))
+    if not (np.isfinite(tr_c) and tr_k > 0):
+        return None
+    return float(np.clip(tr_c / tr_k, 1.0, 1e4))
+
+
+def _bad_row_share(rep, state, threshold_px: float) -> float:
+    """Share of the rows of a reprojection family erring by more than ``threshold_px`` (or
+    invalid) at ``state`` (residuals are pixels over ``rep.sigma``)."""
+    r, ok = rep.residuals(state)
+    err = np.linalg.norm(r, axis=1) * rep.sigma
+    return float(np.mean(~ok | (err > threshold_px))) if r.shape[0] else 0.0
 
 
 def _add_length_terms(
@@ -692,6 +861,8 @@ def run_pipeline(
             )
             problem.state.camera_fixed[np.isin(problem.camera_ids, anchors)] = True
             _freeze_links(problem, links, R_wc, t_wc, D, cfg)
+            if cfg.dpc_weight == "information" and kba is not None and kind == "dpc":
+                _link_information(kba, problem, cfg)
             _add_length_terms(problem, kind, cfg, links)
             if problem.state.free_cameras.size == 0:
                 raise SlamError(f"keyframe {k}: the window has no free camera")
@@ -719,7 +890,22 @@ def run_pipeline(
             rec.fusion_seconds_per_iteration = float(fused.seconds_per_iteration)
             rec.zeta_star, rec.zeta = float(fused.zeta_star), float(fused.zeta)
             rec.gps_used = True
-            state = fused.state
+            if cfg.fusion_guard_share is not None and n_eff > 0:
+                rep = problem.vision[0]
+                before = _bad_row_share(rep, state, cfg.fusion_guard_px)
+                after = _bad_row_share(rep, fused.state, cfg.fusion_guard_px)
+                if after - before > cfg.fusion_guard_share:
+                    logger.warning(
+                        "keyframe %d: fusion rejected (rows over %.1f px: %.1f %% -> %.1f %%); "
+                        "X* kept",
+                        k,
+                        cfg.fusion_guard_px,
+                        100 * before,
+                        100 * after,
+                    )
+                    rec.gps_used = False
+            if rec.gps_used:
+                state = fused.state
         elif cfg.fuse:
             logger.debug("keyframe %d: no GPS fix (dropout), not fused", k)
         problem.write_back(state, R_wc, t_wc, X_w)

@@ -45,6 +45,7 @@ __all__ = [
     "relative_pose",
     "dpc_residuals",
     "dpc_whitener",
+    "relative_pose_information",
 ]
 
 
@@ -67,11 +68,15 @@ def relative_pose(
 
 
 def dpc_whitener(D: np.ndarray | None) -> np.ndarray:
-    """``L^T`` (``(6, 6)``) with ``D = L L^T``; identity for ``D = None``.
+    """``L^T`` with ``D = L L^T``; identity for ``D = None``.
 
     Args:
-        D: ``(6, 6)`` symmetric positive-definite weight ``diag(A, B)`` (or any SPD matrix), or
-            ``(6,)`` its diagonal.
+        D: ``(6, 6)`` symmetric positive-definite weight ``diag(A, B)`` (or any SPD matrix),
+            ``(6,)`` its diagonal, or ``(Q, 6, 6)`` one SPD weight per pair (e.g. the
+            information of each relative pose, :func:`relative_pose_information`).
+
+    Returns:
+        ``(6, 6)`` or, for a per-pair ``D``, ``(Q, 6, 6)``.
 
     Raises:
         GeosegError: D is not symmetric positive definite.
@@ -81,13 +86,71 @@ def dpc_whitener(D: np.ndarray | None) -> np.ndarray:
     D = np.asarray(D, dtype=np.float64)
     if D.shape == (6,):
         D = np.diag(D)
-    if D.shape != (6, 6) or not np.all(np.isfinite(D)) or not np.allclose(D, D.T):
-        raise GeosegError(f"D: expected a finite symmetric (6, 6) matrix, got shape {D.shape}")
+    if (
+        D.ndim not in (2, 3)
+        or D.shape[-2:] != (6, 6)
+        or not np.all(np.isfinite(D))
+        or not np.allclose(D, np.swapaxes(D, -1, -2))
+    ):
+        raise GeosegError(
+            f"D: expected a finite symmetric (6, 6) or (Q, 6, 6) matrix, got shape {D.shape}"
+        )
     try:
         L = np.linalg.cholesky(D)
     except np.linalg.LinAlgError as exc:
         raise GeosegError("D: expected a positive-definite weight matrix") from exc
-    return L.T.copy()
+    return np.swapaxes(L, -1, -2).copy()
+
+
+def relative_pose_information(
+    R_wc_i: np.ndarray,
+    t_wc_i: np.ndarray,
+    R_wc_j: np.ndarray,
+    t_wc_j: np.ndarray,
+    cov_joint: np.ndarray,
+    *,
+    min_sigma: tuple[float, float] = (1e-6, 1e-5),
+) -> np.ndarray:
+    """Information ``Sigma_q^-1`` of the relative pose ``S`` (eq. 3.2) of camera pairs.
+
+    The thesis's perspective (§5.2: learn the DPC weight from the uncertainty): to first order
+    the twist ``q`` of eq. 3.15 at ``S_hat = S`` moves by ``J_i d_i + J_j d_j`` when the cameras
+    move by ``d_i, d_j`` (``[dw, dT]``, :func:`dpc_residuals`), so a joint covariance of the two
+    cameras (e.g. the k-BA's marginal, ``S^-1`` of its reduced camera system, eq. 1.32) gives
+    ``Sigma_q = [J_i J_j] Sigma_ij [J_i J_j]^T``. Weighing ``q`` by its inverse makes ``xi``
+    (eq. 3.16) the chi-square the k-BA's points would charge for bending the link.
+
+    Args:
+        R_wc_i: ``(Q, 3, 3)`` older camera of each pair.
+        t_wc_i: ``(Q, 3)``.
+        R_wc_j: ``(Q, 3, 3)`` newer camera.
+        t_wc_j: ``(Q, 3)``.
+        cov_joint: ``(Q, 12, 12)`` covariance of ``[d_i, d_j]`` (zero rows/columns for a fixed
+            camera).
+        min_sigma: ``(rad, m)`` floors of the standard deviations along the eigenvectors of
+            ``Sigma_q`` (a numerically stiff link is capped, never infinite).
+
+    Returns:
+        ``(Q, 6, 6)`` SPD weights ``D`` (rotation block first).
+    """
+    Q = R_wc_i.shape[0]
+    cov_joint = np.asarray(cov_joint, dtype=np.float64)
+    if cov_joint.shape != (Q, 12, 12) or not np.all(np.isfinite(cov_joint)):
+        raise GeosegError(
+            f"cov_joint: expected a finite ({Q}, 12, 12) array, got {cov_joint.shape}"
+        )
+    R_ij, t_ij = relative_pose(R_wc_i, t_wc_i, R_wc_j, t_wc_j)
+    _, J_i, J_j = dpc_residuals(R_wc_i, t_wc_i, R_wc_j, t_wc_j, R_ij, t_ij)
+    J = np.concatenate([J_i, J_j], axis=2)  # (Q, 6, 12), q = 0 so J_r^-1 = I
+    cov = J @ cov_joint @ np.swapaxes(J, 1, 2)
+    # whiten by the floors so that the eigen-floor is one number for both blocks
+    f = np.repeat(np.asarray(min_sigma, dtype=np.float64), 3)
+    cov_n = 0.5 * (cov + np.swapaxes(cov, 1, 2)) / np.outer(f, f)
+    lam, V = np.linalg.eigh(cov_n)
+    lam = np.maximum(lam, 1.0)
+    info_n = (V / lam[:, None, :]) @ np.swapaxes(V, 1, 2)
+    info = info_n / np.outer(f, f)
+    return 0.5 * (info + np.swapaxes(info, 1, 2))
 
 
 def dpc_residuals(
@@ -110,7 +173,8 @@ def dpc_residuals(
         t_wc_j: ``(M, 3)`` its optical centre.
         R_hat_ij: ``(M, 3, 3)`` relative rotation before fusion (``S_hat``, eq. 3.14).
         t_hat_ij: ``(M, 3)`` relative translation before fusion.
-        whitener: ``(6, 6)`` ``L^T`` from :func:`dpc_whitener` (identity if None).
+        whitener: ``(6, 6)`` or ``(M, 6, 6)`` ``L^T`` from :func:`dpc_whitener` (identity if
+            None).
         with_jacobians: also return the Jacobians.
 
     Returns:
@@ -122,7 +186,7 @@ def dpc_residuals(
     R_hi, t_hi = lie.se3_inverse(R_hat_ij, t_hat_ij)
     R_e, t_e = lie.se3_compose(R_hi, t_hi, R_ij, t_ij)
     q = lie.se3_log(R_e, t_e)  # (M, 6)
-    r = q @ Wt.T
+    r = q @ Wt.T if Wt.ndim == 2 else np.einsum("mab,mb->ma", Wt, q)
     if not with_jacobians:
         return r, None, None
     M = q.shape[0]
@@ -135,7 +199,7 @@ def dpc_residuals(
     d_i[:, :3, :3] = -R_jt
     d_i[:, 3:, :3] = R_jt @ lie.so3_hat(t_wc_j - t_wc_i)
     d_i[:, 3:, 3:] = -R_jt
-    WJ = Wt[None] @ Jri
+    WJ = (Wt[None] if Wt.ndim == 2 else Wt) @ Jri
     return r, WJ @ d_i, WJ @ d_j
 
 
@@ -146,7 +210,8 @@ class DPCFactor:
         pairs: ``(Q, 2)`` state camera indices ``(i, j)`` of successive keyframes (``j`` newer).
         R_hat_ij: ``(Q, 3, 3)`` relative rotations before fusion (``S_hat``, eq. 3.14).
         t_hat_ij: ``(Q, 3)`` relative translations before fusion.
-        D: ``(6, 6)`` or ``(6,)`` weight ``diag(A, B)`` (rotation block first); identity if None.
+        D: ``(6, 6)`` or ``(6,)`` weight ``diag(A, B)`` (rotation block first), or ``(Q, 6, 6)``
+            one weight per pair; identity if None.
         kernel: robust kernel (default least squares, as eq. 3.16).
         name: family label.
 
@@ -170,6 +235,8 @@ class DPCFactor:
         check_finite("R_hat_ij", self.R_hat_ij)
         check_finite("t_hat_ij", self.t_hat_ij)
         self.whitener = dpc_whitener(D)
+        if self.whitener.ndim == 3 and self.whitener.shape[0] != Q:
+            raise GeosegError(f"D: expected one (6, 6) weight per pair ({Q}), got {np.shape(D)}")
         self.kernel = get_kernel(kernel)
         self.name = name
 

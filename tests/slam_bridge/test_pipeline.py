@@ -179,6 +179,27 @@ def test_bad_inputs(noiseless):
         run_pipeline(lost, "ba", cfg.pipeline)
 
 
+def test_information_weights_and_fusion_guard(noisy):
+    """DPC links weighed by the k-BA's (calibrated) relative-pose information, fusion guard on."""
+    cfg, seq = noisy
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
+    pc = dataclasses.replace(
+        cfg.pipeline,
+        dpc_weight="information",
+        dpc_info_calibrate=True,
+        fusion_guard_share=0.02,
+    )
+    res = run_pipeline(data, "dpc", pc)
+    assert np.all(np.isfinite(res.t_wc))
+    err = np.linalg.norm(res.t_wc[:, :2] - data.t_wc_true[:, :2], axis=1)
+    assert err.mean() < 2.0
+    assert any(r.gps_used for r in res.records)
+    with pytest.raises(SlamError, match="dpc_weight"):
+        PipelineConfig(dpc_weight="learned")
+    with pytest.raises(SlamError, match="dpc_info_scale"):
+        PipelineConfig(dpc_info_scale=0.0)
+
+
 def test_baseline_length_factor_jacobian():
     rng = np.random.default_rng(0)
     R = np.repeat(np.eye(3)[None], 3, axis=0)

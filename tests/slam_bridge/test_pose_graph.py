@@ -8,7 +8,12 @@ import pytest
 from geoseg.errors import GeosegError
 from slam_bridge import lie
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.pose_graph_dpc import DPCFactor, dpc_residuals, relative_pose
+from slam_bridge.factors.pose_graph_dpc import (
+    DPCFactor,
+    dpc_residuals,
+    relative_pose,
+    relative_pose_information,
+)
 from slam_bridge.factors.pose_graph_mpc import MPCDegenerateError, MPCFactor, epipolar_residuals
 from slam_bridge.problem import BAState, assemble
 
@@ -59,6 +64,80 @@ def test_dpc_jacobian_exact(scale: float) -> None:
     f = DPCFactor.from_state(state, pairs, D=np.array([1.0, 2.0, 3.0, 0.5, 4.0, 1.5]))
     moved = _perturbed(state, 1, scale)  # away from S_hat: q != 0
     _numeric_check(f, moved, rtol=1e-6)
+
+
+def _spd(rng: np.random.Generator, n: int, k: int) -> np.ndarray:
+    A = rng.normal(size=(n, k, k))
+    return A @ np.swapaxes(A, 1, 2) + 0.5 * np.eye(k)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 0.3])
+def test_dpc_per_pair_weight_jacobian_exact(scale: float) -> None:
+    state = _state()
+    pairs = np.array([[0, 1], [1, 2], [2, 3], [3, 4]])
+    D = _spd(np.random.default_rng(3), 4, 6)
+    f = DPCFactor.from_state(state, pairs, D=D)
+    moved = _perturbed(state, 1, scale)
+    _numeric_check(f, moved, rtol=1e-6)
+    # xi = q^T D_i q per pair
+    R_ij, t_ij = relative_pose(
+        moved.R_wc[pairs[:, 0]],
+        moved.t_wc[pairs[:, 0]],
+        moved.R_wc[pairs[:, 1]],
+        moved.t_wc[pairs[:, 1]],
+    )
+    Ri, ti = lie.se3_inverse(f.R_hat_ij, f.t_hat_ij)
+    q = lie.se3_log(*lie.se3_compose(Ri, ti, R_ij, t_ij))
+    assert f.cost(moved) == pytest.approx(float(np.einsum("ma,mab,mb->", q, D, q)), rel=1e-10)
+    with pytest.raises(GeosegError):
+        DPCFactor.from_state(state, pairs, D=D[:3])  # one weight per pair
+
+
+def test_relative_pose_information_matches_numeric_propagation() -> None:
+    """Sigma_q = J Sigma J^T with J from central differences of q (at S_hat = S)."""
+    state = _state(seed=2, C=3)
+    rng = np.random.default_rng(5)
+    cov = _spd(rng, 2, 12) * 1e-4
+    i, j = np.array([0, 1]), np.array([1, 2])
+    args = (state.R_wc[i], state.t_wc[i], state.R_wc[j], state.t_wc[j])
+    info = relative_pose_information(*args, cov, min_sigma=(1e-9, 1e-9))
+    R_h, t_h = relative_pose(*args)
+    h = 1e-6
+    for m in range(2):
+        J = np.zeros((6, 12))
+        for c, cam in enumerate((i[m], j[m])):
+            for d in range(6):
+                dc = np.zeros((3, 6))
+                dc[cam, d] = h
+                qs = []
+                for sgn in (1, -1):
+                    st = BAState(state.R_wc, state.t_wc, state.X_w).retract(
+                        sgn * dc, np.zeros((0, 3))
+                    )
+                    qs.append(
+                        dpc_residuals(
+                            st.R_wc[i[m] : i[m] + 1],
+                            st.t_wc[i[m] : i[m] + 1],
+                            st.R_wc[j[m] : j[m] + 1],
+                            st.t_wc[j[m] : j[m] + 1],
+                            R_h[m : m + 1],
+                            t_h[m : m + 1],
+                            with_jacobians=False,
+                        )[0][0]
+                    )
+                J[:, 6 * c + d] = (qs[0] - qs[1]) / (2 * h)
+        expected = np.linalg.inv(J @ cov[m] @ J.T)
+        np.testing.assert_allclose(info[m], expected, rtol=1e-5)
+
+
+def test_relative_pose_information_floors_a_fixed_pair() -> None:
+    """Both cameras fixed (zero covariance): the weight is capped by the sigma floors."""
+    state = _state(C=2)
+    a = (state.R_wc[:1], state.t_wc[:1], state.R_wc[1:], state.t_wc[1:])
+    info = relative_pose_information(*a, np.zeros((1, 12, 12)), min_sigma=(1e-3, 1e-2))
+    np.testing.assert_allclose(info[0], np.diag([1e6] * 3 + [1e4] * 3), rtol=1e-9)
+    with pytest.raises(GeosegError):
+        relative_pose_information(*a, np.zeros((1, 6, 6)))
 
 
 def test_dpc_zero_at_s_hat_and_value() -> None:
