@@ -24,8 +24,9 @@ database image. Measured:
   the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
   (query | top-3, green = correct).
 
-Weights: ``--trunk`` (default ``runs/seg``), ``--reloc`` (``runs/reloc``), ``--relpose``
-(``runs/relpose``); the word ``random`` asks for random weights. A missing one is replaced by random weights, and then the results JSON is
+Weights: ``--trunk``, ``--reloc``, ``--relpose`` (defaults: the shipped ``geoseg/weights/seg``,
+``.../reloc``, ``.../relpose``, else ``runs/seg`` etc.); the word ``random`` asks for random
+weights. A missing one is replaced by random weights, and then the results JSON is
 **refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
 
 Usage: ``python bench/accuracy_reloc.py [--quick] [--allow-untrained] [--out DIR]``. Prints a
@@ -56,10 +57,14 @@ NAME = "accuracy_reloc"
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument(
-        "--trunk", type=Path, default=None, help="ENet/joint model (default runs/seg; 'random')"
+        "--trunk", type=Path, default=None, help="ENet/joint model (default: shipped seg; 'random')"
     )
-    p.add_argument("--reloc", type=Path, default=None, help="embedding head (runs/reloc)")
-    p.add_argument("--relpose", type=Path, default=None, help="relative-pose head (runs/relpose)")
+    p.add_argument(
+        "--reloc", type=Path, default=None, help="embedding head (default: shipped reloc)"
+    )
+    p.add_argument(
+        "--relpose", type=Path, default=None, help="relative-pose head (default: shipped relpose)"
+    )
     p.add_argument("--quick", action="store_true", help="tiny smoke run (tiny city, 64x48)")
     p.add_argument(
         "--allow-untrained", action="store_true", help="write the JSON even with random weights"
@@ -103,12 +108,14 @@ def eval_route(quick: bool) -> Any:
 
 # ----------------------------------------------------------------------------- weights
 def _default(path: Path | None, run: str) -> Path | None:
-    """The weights to load: ``path``, else ``runs/<run>`` when present; None = random weights
-    (also when ``path`` is the word ``random``)."""
+    """The weights to load: ``path``, else the shipped ``geoseg/weights/<run>``, else
+    ``runs/<run>`` when present; None = random weights (also when ``path`` is ``random``)."""
     if path is not None:
         return None if str(path) == "random" else path
-    candidate = ROOT / "runs" / run
-    return candidate if candidate.exists() else None
+    for candidate in (ROOT / "geoseg" / "weights" / run, ROOT / "runs" / run):
+        if candidate.exists():
+            return candidate
+    return None
 
 
 def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, torch.nn.Module, list]:
