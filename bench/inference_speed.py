@@ -409,6 +409,9 @@ def main(argv: list[str] | None = None) -> int:
     }
     if torch.cuda.is_available():
         results.update(cuda_figures(joint, repeats, compile_model=args.compile))
+    elif args.out.is_file():  # keep the figures a GPU machine measured (--gpu-only)
+        previous = json.loads(args.out.read_text())
+        results.update({k: v for k, v in previous.items() if k.startswith("gpu_")})
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     results["load_average_1min"] = load
     results["machine"] = (
