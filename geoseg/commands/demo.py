@@ -165,7 +165,7 @@ def step_segment(ctx: DemoContext) -> None:
     import cv2
     import numpy as np
 
-    from geoseg.classes import CLASS_NAMES, NUM_CLASSES, colorize
+    from geoseg.classes import CLASS_NAMES, NUM_CLASSES, SKY, colorize
     from geoseg.errors import GeosegError
     from geoseg.infer import normals_to_rgb
     from geoseg.pretrained import pretrained_segmenter
@@ -195,8 +195,8 @@ def step_segment(ctx: DemoContext) -> None:
             with np.load(seq / "geometry" / f"{i:06d}.npz") as geometry:
                 true_normals = geometry["normals"].astype(np.float32)
             row = [rgb, colorize(truth), colorize(pred)]
-            if result.normals is not None:
-                row.append(normals_to_rgb(result.normals[0]))
+            if result.normals is not None:  # no surface on predicted sky: grey, as the truth
+                row.append(normals_to_rgb(np.where(pred == SKY, 0.0, result.normals[0])))
             row.append(normals_to_rgb(true_normals))
             rows.append(row)
             row_labels.append(f"{rig} / {condition}")
