@@ -78,6 +78,8 @@ class DirichletConfig:
         false_rejection_rate: share of the argmax-accepted true building pixels each filter
             may reject (the thesis reports ~15 % more false rejections).
         lam: barrier weight of eq. 4.7.
+        eps: probability floor before every logarithm (fit and scoring; see
+            :mod:`geoseg.dirichlet`).
         batch_size: frames per dense forward pass.
         band_rows: rows per band in the dense forward pass (bounds memory).
         progress: tqdm bars.
@@ -96,6 +98,7 @@ class DirichletConfig:
     eval_frames: int = 24
     false_rejection_rate: float = 0.15
     lam: float = 1.0
+    eps: float = 1e-30
     batch_size: int = 2
     band_rows: int | None = 64
     progress: bool = True
@@ -205,7 +208,7 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         rng = np.random.default_rng(cfg.seed)
         fit_probs = fit_probs[np.sort(rng.choice(len(fit_probs), cfg.max_fit_pixels, False))]
     t0 = time.perf_counter()
-    dirichlet = DirichletFilter(lam=cfg.lam).fit(fit_probs.astype(np.float64))
+    dirichlet = DirichletFilter(lam=cfg.lam, eps=cfg.eps).fit(fit_probs.astype(np.float64))
     fit_s = time.perf_counter() - t0
     logger.info("Dirichlet fitted on %d pixels in %.2f s", len(fit_probs), fit_s)
 

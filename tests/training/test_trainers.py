@@ -197,12 +197,14 @@ def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path):
             "fit_frames": 2,
             "calib_frames": 2,
             "eval_frames": 2,
+            "eps": 1e-6,
             "data": _data(cache_dir),
         },
     )
     out = dirichlet_trainer.main(cfg)
     filt = load_filter(out / "dirichlet.json")
     assert isinstance(filt, DirichletFilter) and filt.threshold is not None
+    assert filt.eps == 1e-6  # the configured floor is part of the saved filter
     assert (filt.alpha > 0).all()
     metrics = json.loads((out / "metrics.json").read_text())
     for key in (
