@@ -119,13 +119,14 @@ def synthetic_frames(split: str, n: int) -> tuple[list[np.ndarray], list[np.ndar
 
 
 def miou(pred: list[np.ndarray], truth: list[np.ndarray]) -> float:
-    """mIoU over the classes present in ``truth`` or ``pred`` (8-class label maps)."""
-    cm = np.zeros((8, 8), np.int64)
-    for p, t in zip(pred, truth, strict=True):
-        keep = t < 8
-        cm += np.bincount(t[keep] * 8 + p[keep], minlength=64).reshape(8, 8)
-    union = cm.sum(0) + cm.sum(1) - np.diag(cm)
-    return float(np.mean(np.diag(cm)[union > 0] / union[union > 0]))
+    """mIoU (:func:`training.metrics.segmentation_scores`) of 8-class label maps."""
+    from training.metrics import confusion_matrix, segmentation_scores
+
+    cm = sum(
+        confusion_matrix(torch.from_numpy(p.astype(np.int64)), torch.from_numpy(t))
+        for p, t in zip(pred, truth, strict=True)
+    )
+    return segmentation_scores(cm)["miou"]
 
 
 def quantize_int8(src: Path, dst: Path, calibration: list[np.ndarray], input_name: str) -> None:

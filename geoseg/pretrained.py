@@ -41,7 +41,6 @@ SHIPPED_FILES: tuple[str, ...] = (
     "dirichlet.json",
     "max_probability.json",
 )
-_TRAINERS = {"seg": "seg", "normals": "normals", "naive": "naive", "dirichlet": "dirichlet"}
 
 
 def pretrained_dir(name: str) -> Path:
@@ -54,11 +53,10 @@ def pretrained_dir(name: str) -> Path:
         raise GeosegError(f"pretrained: unknown name {name!r}; known {sorted(PRETRAINED)}")
     folder = WEIGHTS_DIR / name
     if not (folder / "model_card.json").is_file():
-        trainer = _TRAINERS.get(name, name)
-        raise GeosegError(
+        raise GeosegError(  # every shipped name is also its trainer's name
             f"pretrained {name!r} ({PRETRAINED[name]}): not shipped in {folder}; train it with "
-            f"`geoseg train {trainer} --config configs/{trainer}.yaml`, then "
-            f"`python -m training.ship runs/{trainer} {name}`"
+            f"`geoseg train {name} --config configs/{name}.yaml`, then "
+            f"`python -m training.ship runs/{name} {name}`"
         )
     return folder
 

@@ -144,16 +144,6 @@ def step_map(ctx: DemoContext) -> None:
     ctx.outputs["map"] = path
 
 
-def _segmentation_scores(cm: Any) -> tuple[float, float, list[float]]:
-    """(mIoU over the classes present or predicted, pixel accuracy, per-class IoU; NaN = absent)."""
-    import numpy as np
-
-    union = cm.sum(0) + cm.sum(1) - np.diag(cm)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = np.where(union > 0, np.diag(cm) / union, np.nan)
-    return float(np.nanmean(iou)), float(np.trace(cm) / max(cm.sum(), 1)), iou.tolist()
-
-
 def step_segment(ctx: DemoContext) -> None:
     """Run the shipped labels + normals network (onnxruntime) on every rendered frame.
 
@@ -164,19 +154,21 @@ def step_segment(ctx: DemoContext) -> None:
     """
     import cv2
     import numpy as np
+    import torch
 
     from geoseg.classes import CLASS_NAMES, NUM_CLASSES, SKY, colorize
     from geoseg.errors import GeosegError
     from geoseg.infer import normals_to_rgb
     from geoseg.pretrained import pretrained_segmenter
     from geoseg.synth.maps import contact_sheet
+    from training.metrics import confusion_matrix, segmentation_scores
 
     try:
         segmenter = pretrained_segmenter("normals", backend="onnx")
     except GeosegError as err:
         logger.warning("segment step skipped: %s", err)
         return
-    cm = np.zeros((NUM_CLASSES, NUM_CLASSES), np.int64)
+    cm = torch.zeros((NUM_CLASSES, NUM_CLASSES), dtype=torch.int64)
     rows, row_labels = [], []
     for (rig, condition), seq in ctx.sequences.items():
         mid = ctx.frames // 2
@@ -185,11 +177,7 @@ def step_segment(ctx: DemoContext) -> None:
             truth = cv2.imread(str(seq / "labels" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
             result = segmenter(rgb)
             pred = result.labels[0].astype(np.int64)
-            keep = truth < NUM_CLASSES
-            cm += np.bincount(
-                truth[keep].astype(np.int64) * NUM_CLASSES + pred[keep],
-                minlength=NUM_CLASSES**2,
-            ).reshape(NUM_CLASSES, NUM_CLASSES)
+            cm += confusion_matrix(torch.from_numpy(pred), torch.from_numpy(truth.astype(np.int64)))
             if i != mid:
                 continue
             with np.load(seq / "geometry" / f"{i:06d}.npz") as geometry:
@@ -200,7 +188,8 @@ def step_segment(ctx: DemoContext) -> None:
             row.append(normals_to_rgb(true_normals))
             rows.append(row)
             row_labels.append(f"{rig} / {condition}")
-    miou, accuracy, iou = _segmentation_scores(cm)
+    scores = segmentation_scores(cm)
+    miou, accuracy = scores["miou"], scores["pixel_acc"]
     columns = ["RGB", "true labels", "predicted labels", "predicted normals", "true normals"]
     path = contact_sheet(
         rows,
@@ -210,7 +199,9 @@ def step_segment(ctx: DemoContext) -> None:
         title=f"shipped network on the demo frames: mIoU {miou:.2f}, pixel accuracy {accuracy:.2f}",
     )
     per_class = ", ".join(
-        f"{name} {v:.2f}" for name, v in zip(CLASS_NAMES, iou, strict=True) if v == v
+        f"{name} {scores[f'iou_{name}']:.2f}"
+        for name in CLASS_NAMES
+        if scores[f"iou_{name}"] == scores[f"iou_{name}"]  # NaN: class absent and not predicted
     )
     print(
         f"segmentation ({segmenter.source.name}, {ctx.frames * len(ctx.sequences)} frames): "
