@@ -168,7 +168,7 @@ def prerender_frames(data: DataConfig, *datasets: Dataset | None) -> None:
 
     Only with ``data.prerender_workers > 0``, a synthetic source and a cache directory. Under
     DDP the main process renders while the others wait at a barrier. Frames already cached are
-    only read back (~10 ms each).
+    skipped.
     """
     if data.prerender_workers < 1 or data.source != "synth" or data.cache_dir is None:
         return

@@ -355,6 +355,11 @@ class SyntheticDataset(Dataset):
     def _cache_path(self, key: str) -> Path | None:
         return None if self.cache_dir is None else self.cache_dir / key[:2] / f"{key}.npz"
 
+    def is_cached(self, index: int) -> bool:
+        """Whether sample ``index`` has a cache file (not decoded: see :meth:`render_arrays`)."""
+        path = self._cache_path(self.cache_key(self.spec(index)))
+        return path is not None and path.is_file()
+
     def render_arrays(self, index: int) -> dict[str, np.ndarray]:
         """The raw arrays of sample ``index`` (from the cache when present): ``rgb (H, W, 3)
         uint8, labels (H, W) uint8, normals (3, H, W) float16, normal_valid (H, W) bool``."""
@@ -439,12 +444,12 @@ def prerender(
 
     Args:
         dataset: a dataset with a ``cache_dir``.
-        indices: samples to render (default: all).
+        indices: samples to render (default: all); those already cached are skipped.
         num_workers: DataLoader worker processes rendering in parallel (0: this process).
         progress: show the bar.
 
     Returns:
-        The number of samples processed.
+        The number of samples rendered.
 
     Raises:
         GeosegError: the dataset has no cache directory.
@@ -452,6 +457,8 @@ def prerender(
     if dataset.cache_dir is None:
         raise GeosegError("prerender: the dataset has no cache_dir (nothing would be kept)")
     indices = list(range(len(dataset)) if indices is None else indices)
+    # cached entries are not decoded here: a corrupt one is re-rendered when it is first read
+    indices = [i for i in indices if not dataset.is_cached(i)]
     raw = _ArraysOnly(dataset, indices)
     loader = torch.utils.data.DataLoader(
         raw, batch_size=None, num_workers=num_workers, collate_fn=_identity

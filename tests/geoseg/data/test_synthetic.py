@@ -110,6 +110,7 @@ def test_prerender_fills_the_cache(tmp_path, render_spy):
     for i in range(3):
         ds[i]
     assert len(render_spy) == n
+    assert prerender(ds, progress=False) == 0 and len(render_spy) == n  # all cached: skipped
 
 
 def test_held_out_seed_and_condition_are_refused():
