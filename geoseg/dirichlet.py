@@ -54,7 +54,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 from scipy.optimize import minimize
-from scipy.special import digamma, gammaln
+from scipy.special import digamma, gammaln, logsumexp
 
 from geoseg.classes import BUILDING, NUM_CLASSES
 from geoseg.errors import GeosegError, check_positive
@@ -108,22 +108,45 @@ def _log_clipped(p: np.ndarray, eps: float) -> np.ndarray:
     return np.log(q)
 
 
-def sufficient_statistics(probs: Any, *, eps: float = DEFAULT_EPS) -> tuple[np.ndarray, int]:
+def _tempered_log(p: np.ndarray, eps: float, temperature: float) -> np.ndarray:
+    """``ln softmax(ln p / T)`` of clipped ``p``: the log-probabilities the network would give
+    with its logits divided by ``T``. ``(..., K) -> (..., K)``."""
+    log_p = _log_clipped(p, eps)
+    if temperature == 1.0:
+        return log_p
+    log_p /= temperature
+    return log_p - logsumexp(log_p, axis=-1, keepdims=True)
+
+
+def temper(probs: Any, temperature: float, *, eps: float = DEFAULT_EPS) -> np.ndarray:
+    """Soften (``T > 1``) or sharpen (``T < 1``) probability vectors: ``softmax(ln p / T)``,
+    which equals the softmax of the network's logits divided by ``T``; clipped to ``eps``.
+    ``(..., K) -> (..., K)`` float64, same argmax."""
+    check_positive("temperature", temperature)
+    arr = _as_probs("probs", probs, None)
+    return np.exp(_tempered_log(arr, eps, float(temperature)))
+
+
+def sufficient_statistics(
+    probs: Any, *, eps: float = DEFAULT_EPS, temperature: float = 1.0
+) -> tuple[np.ndarray, int]:
     """The statistics of eq. 4.6: ``ln t_i = sum_q ln q_i`` and the sample count ``m``.
 
     Args:
         probs: ``(N, K)`` probability vectors (rows sum to 1).
         eps: clip floor before the logarithm (see the module docstring).
+        temperature: the statistics are those of :func:`temper`-ed vectors (1: unchanged).
 
     Returns:
         ``(log_t (K,), m)``.
     """
+    check_positive("temperature", temperature)
     arr = _as_probs("probs", probs, None)
     if arr.ndim != 2 or arr.shape[0] == 0:
         raise GeosegError(f"probs: expected a non-empty (N, K) array, got shape {arr.shape}")
     log_t = np.zeros(arr.shape[1], dtype=np.float64)
     for start in range(0, arr.shape[0], _CHUNK):
-        log_t += _log_clipped(arr[start : start + _CHUNK], eps).sum(axis=0)
+        log_t += _tempered_log(arr[start : start + _CHUNK], eps, float(temperature)).sum(axis=0)
     return log_t, int(arr.shape[0])
 
 
@@ -152,13 +175,16 @@ def dirichlet_cost_grad(
     return m * (digamma(alpha) - digamma(alpha.sum())) - log_t - lam * np.exp(-alpha)
 
 
-def dirichlet_log_density(alpha: np.ndarray, probs: Any, *, eps: float = DEFAULT_EPS) -> np.ndarray:
+def dirichlet_log_density(
+    alpha: np.ndarray, probs: Any, *, eps: float = DEFAULT_EPS, temperature: float = 1.0
+) -> np.ndarray:
     """Log of the Dirichlet density (thesis eq. 1.70) of each probability vector.
 
     Args:
         alpha: ``(K,)`` concentration parameters.
         probs: ``(..., K)`` probability vectors.
         eps: clip floor before the logarithm.
+        temperature: the density of the :func:`temper`-ed vectors (1: of ``probs`` itself).
 
     Returns:
         ``(...)`` log-densities, float64.
@@ -166,7 +192,7 @@ def dirichlet_log_density(alpha: np.ndarray, probs: Any, *, eps: float = DEFAULT
     alpha = np.asarray(alpha, dtype=np.float64)
     arr = _as_probs("probs", probs, alpha.shape[0])
     log_norm = gammaln(alpha.sum()) - gammaln(alpha).sum()
-    return log_norm + _log_clipped(arr, eps) @ (alpha - 1.0)
+    return log_norm + _tempered_log(arr, eps, float(temperature)) @ (alpha - 1.0)
 
 
 def _moments_init(probs_mean: np.ndarray, probs_sq: np.ndarray) -> np.ndarray:
@@ -401,6 +427,12 @@ class DirichletFilter(_ScoreFilter):
         building_class: the class id the filter acts on.
         lam: barrier weight ``lambda`` of eq. 4.7.
         eps: probability clip floor before logarithms.
+        temperature: ``T``; the filter models the tempered vectors ``softmax(ln p / T)``
+            (:func:`temper`) in fit and scoring alike. 1 is the thesis. An over-confident
+            network puts nearly all true-building vectors at the simplex corner (fitted
+            ``alpha_i`` ~0.1), where a false positive's density differs from a true pixel's
+            mostly through the building probability; ``T > 1`` spreads the vectors so the
+            secondary classes weigh in (the naive CNN: T = 4, see configs/dirichlet.yaml).
 
     Attributes:
         alpha: ``(K,)`` fitted concentration parameters (None before :meth:`fit`).
@@ -416,15 +448,18 @@ class DirichletFilter(_ScoreFilter):
         building_class: int = BUILDING,
         lam: float = 1.0,
         eps: float = DEFAULT_EPS,
+        temperature: float = 1.0,
         alpha: Any = None,
     ) -> None:
         super().__init__(num_classes=num_classes, building_class=building_class)
         check_positive("lam", lam, strict=False)
         check_positive("eps", eps)
+        check_positive("temperature", temperature)
         if eps >= 1.0 / num_classes:
             raise GeosegError(f"eps: expected < 1/K = {1.0 / num_classes:.3g}, got {eps}")
         self.lam = float(lam)
         self.eps = float(eps)
+        self.temperature = float(temperature)
         self.alpha: np.ndarray | None = None
         if alpha is not None:
             a = np.asarray(alpha, dtype=np.float64)
@@ -452,8 +487,9 @@ class DirichletFilter(_ScoreFilter):
         mean = np.zeros(self.num_classes)
         sq = np.zeros(self.num_classes)
         for start in range(0, m, _CHUNK):
-            chunk = arr[start : start + _CHUNK]
-            log_t += _log_clipped(chunk, self.eps).sum(axis=0)
+            log_chunk = _tempered_log(arr[start : start + _CHUNK], self.eps, self.temperature)
+            chunk = np.exp(log_chunk)
+            log_t += log_chunk.sum(axis=0)
             mean += chunk.sum(axis=0)
             sq += np.square(chunk).sum(axis=0)
         self._optimise(log_t, m, _moments_init(mean / m, sq / m), max_iter)
@@ -465,7 +501,8 @@ class DirichletFilter(_ScoreFilter):
 
         Args:
             log_t: ``(K,)`` ``sum_q ln q_i`` over the samples, with the same clip floor ``eps``
-                (see :func:`sufficient_statistics`; sums of several calls add up).
+                and temperature (see :func:`sufficient_statistics`; sums of several calls add
+                up).
             m: number of samples behind ``log_t``.
             max_iter: L-BFGS-B iteration cap.
 
@@ -518,7 +555,9 @@ class DirichletFilter(_ScoreFilter):
 
     def log_density(self, probs: Any) -> np.ndarray:
         """Log Dirichlet density of each vector. ``(..., K)`` -> ``(...)``, float64."""
-        return dirichlet_log_density(self._require_alpha(), probs, eps=self.eps)
+        return dirichlet_log_density(
+            self._require_alpha(), probs, eps=self.eps, temperature=self.temperature
+        )
 
     def score(self, probs: Any) -> np.ndarray:
         """The log-density (same as :meth:`log_density`)."""
@@ -533,6 +572,7 @@ class DirichletFilter(_ScoreFilter):
             "alpha": None if self.alpha is None else self.alpha.tolist(),
             "lam": self.lam,
             "eps": self.eps,
+            "temperature": self.temperature,
         }
 
     @classmethod
@@ -540,6 +580,7 @@ class DirichletFilter(_ScoreFilter):
         return cls(
             lam=float(params.get("lam", 1.0)),
             eps=float(params.get("eps", DEFAULT_EPS)),
+            temperature=float(params.get("temperature", 1.0)),
             alpha=params.get("alpha"),
             **common,
         )

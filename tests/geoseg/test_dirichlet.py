@@ -18,6 +18,7 @@ from geoseg.dirichlet import (
     dirichlet_cost_grad,
     load_filter,
     sufficient_statistics,
+    temper,
 )
 from geoseg.errors import GeosegError
 
@@ -262,3 +263,39 @@ def test_dirichlet_beats_max_probability_at_same_false_rejection() -> None:
         removed[cls.kind] = 1 - f.filter(fp).mean()
     assert removed["dirichlet"] > 0.6
     assert removed["dirichlet"] > 2 * removed["max_probability"]
+
+
+def test_temper_is_the_softmax_of_scaled_logits() -> None:
+    logits = np.random.default_rng(3).normal(0.0, 4.0, size=(50, NUM_CLASSES))
+    probs = np.exp(logits - logits.max(1, keepdims=True))
+    probs /= probs.sum(1, keepdims=True)
+    for t in (0.5, 1.0, 4.0):
+        expected = np.exp(logits / t - (logits / t).max(1, keepdims=True))
+        expected /= expected.sum(1, keepdims=True)
+        np.testing.assert_allclose(temper(probs, t), expected, rtol=1e-9, atol=1e-12)
+    np.testing.assert_array_equal(temper(probs, 4.0).argmax(1), probs.argmax(1))
+    for bad in (0.0, -1.0, float("nan"), True):
+        with pytest.raises(GeosegError, match="temperature"):
+            temper(probs, bad)
+        with pytest.raises(GeosegError, match="temperature"):
+            DirichletFilter(temperature=bad)
+
+
+def test_tempered_filter_recovers_alpha_and_round_trips(tmp_path) -> None:
+    """Vectors sharpened by 1/T are modelled, at temperature T, by the Dirichlet they came from."""
+    alpha = ALPHAS[0]
+    x = np.random.default_rng(11).dirichlet(alpha, size=100_000)
+    sharp = temper(x, 1.0 / 3.0)  # what an over-confident network would output
+    f = DirichletFilter(temperature=3.0).fit(sharp)
+    np.testing.assert_allclose(f.alpha, alpha, rtol=0.05)
+    rows = x[:500].min(1) > 1e-9  # cubes of smaller values fall under the eps floor
+    np.testing.assert_allclose(
+        f.log_density(sharp[:500][rows]), sp_dirichlet(f.alpha).logpdf(x[:500][rows].T), rtol=1e-6
+    )
+    lt, m = sufficient_statistics(sharp, temperature=3.0)
+    streamed = DirichletFilter(temperature=3.0).fit_statistics(lt, m)
+    np.testing.assert_allclose(streamed.alpha, f.alpha, rtol=1e-5)
+    f.threshold_for_false_rejection(sharp[:2000], 0.1)
+    loaded = load_filter(f.save(tmp_path / "tempered.json"))
+    assert loaded.temperature == 3.0
+    np.testing.assert_allclose(loaded.score(sharp[:100]), f.score(sharp[:100]))
