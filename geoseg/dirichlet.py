@@ -432,7 +432,7 @@ class DirichletFilter(_ScoreFilter):
             network puts nearly all true-building vectors at the simplex corner (fitted
             ``alpha_i`` ~0.1), where a false positive's density differs from a true pixel's
             mostly through the building probability; ``T > 1`` spreads the vectors so the
-            secondary classes weigh in (the naive CNN: T = 4, see configs/dirichlet.yaml).
+            secondary classes weigh in (the naive CNN: T = 5, see configs/dirichlet.yaml).
 
     Attributes:
         alpha: ``(K,)`` fitted concentration parameters (None before :meth:`fit`).

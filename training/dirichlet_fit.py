@@ -9,9 +9,10 @@ Three disjoint sets of frames:
 2. **calibration** (the first ``calib_frames`` validation frames, an unseen city): the threshold
    is the one that adds ``false_rejection_rate`` false rejections, as a share of all true
    building pixels, to the argmax's, i.e. rejects that many of the true building pixels the
-   argmax calls building (:meth:`~geoseg.dirichlet.DirichletFilter.threshold_for_false_rejection`). The
-   baseline :class:`~geoseg.dirichlet.MaxProbabilityFilter` is calibrated on the same pixels at
-   the same rate.
+   argmax calls building
+   (:meth:`~geoseg.dirichlet.DirichletFilter.threshold_for_false_rejection`). The baseline
+   :class:`~geoseg.dirichlet.MaxProbabilityFilter` is calibrated on the same pixels at the same
+   rate.
 3. **evaluation** (the next ``eval_frames`` validation frames): both filters are measured with
    :func:`~training.metrics.building_filter_scores`: share of the argmax's building false
    positives removed, and extra false rejections relative to the true building pixels.
