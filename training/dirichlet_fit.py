@@ -4,8 +4,11 @@ Three disjoint sets of frames:
 
 1. **fit** (``fit_frames`` frames of ``fit_split``, the training cities by default): the naive
    CNN runs densely; the softmax vectors of the pixels whose ground truth is building (the
-   thesis's ``D_build``, ~2e6 of them) are kept, uniformly subsampled to ``max_fit_pixels``, and
-   the :class:`~geoseg.dirichlet.DirichletFilter` is fitted on them (seconds).
+   thesis's ``D_build``, ~2e6 of them; with ``fit_pixels: accepted`` only those the argmax also
+   calls building, the population the filter will see) are kept, uniformly subsampled to
+   ``max_fit_pixels``, and the :class:`~geoseg.dirichlet.DirichletFilter` is fitted on them
+   (seconds). With ``window > 1`` every map is box-averaged first
+   (:meth:`~geoseg.dirichlet.DirichletFilter.smooth`), for both filters.
 2. **calibration** (the first ``calib_frames`` validation frames, an unseen city): the threshold
    is the one that adds ``false_rejection_rate`` false rejections, as a share of all true
    building pixels, to the argmax's, i.e. rejects that many of the true building pixels the
@@ -85,6 +88,10 @@ class DirichletConfig:
         eps: probability floor before every logarithm (fit and scoring; see
             :mod:`geoseg.dirichlet`).
         temperature: the filter models ``softmax(ln p / T)`` (:class:`DirichletFilter`).
+        window: odd box side over which both filters average the probability maps before
+            scoring (1 = per pixel, the thesis).
+        fit_pixels: ``true_building`` (the thesis's ``D_build``) or ``accepted`` (true building
+            pixels the argmax also calls building).
         batch_size: frames per dense forward pass.
         band_rows: rows per band in the dense forward pass (bounds memory).
         progress: tqdm bars.
@@ -105,6 +112,8 @@ class DirichletConfig:
     lam: float = 1.0
     eps: float = 1e-30
     temperature: float = 1.0
+    window: int = 1
+    fit_pixels: str = "true_building"
     batch_size: int = 2
     band_rows: int | None = 64
     progress: bool = True
@@ -116,6 +125,12 @@ class DirichletConfig:
         for key in ("fit_frames", "calib_frames", "eval_frames", "batch_size", "max_fit_pixels"):
             if getattr(self, key) < 1:
                 raise ConfigError(f"{key}: expected >= 1, got {getattr(self, key)}")
+        if self.fit_pixels not in ("true_building", "accepted"):
+            raise ConfigError(
+                f"fit_pixels: expected true_building or accepted, got {self.fit_pixels!r}"
+            )
+        if isinstance(self.window, bool) or self.window < 1 or self.window % 2 == 0:
+            raise ConfigError(f"window: expected an odd int >= 1, got {self.window}")
         if not self.temperature > 0:
             raise ConfigError(f"temperature: expected > 0, got {self.temperature}")
         if not 0.0 <= self.false_rejection_rate < 1.0:
@@ -158,13 +173,17 @@ def dense_probabilities(
             yield probs, batch["labels"].numpy()
 
 
-def _collect_true_building(batches: Any, *, only_argmax_building: bool = False) -> np.ndarray:
+def _collect_true_building(
+    batches: Any, filt: DirichletFilter, *, only_argmax_building: bool = False
+) -> np.ndarray:
+    """``(N, K)`` vectors, from ``filt.smooth``'s maps, of the true building pixels of
+    ``batches`` (only those whose per-pixel argmax is building when asked)."""
     out = []
     for probs, labels in batches:
         mask = labels == BUILDING
         if only_argmax_building:
             mask &= probs.argmax(-1) == BUILDING
-        out.append(probs[mask])
+        out.append(filt.smooth(probs)[mask].astype(np.float32))
     return np.concatenate(out) if out else np.zeros((0, 8), np.float32)
 
 
@@ -205,29 +224,41 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     kw = dict(device=device, batch_size=cfg.batch_size, band_rows=cfg.band_rows,
               progress=cfg.progress)  # fmt: skip
 
+    dirichlet = DirichletFilter(
+        lam=cfg.lam, eps=cfg.eps, temperature=cfg.temperature, window=cfg.window
+    )
     t0 = time.perf_counter()
     fit_probs = _collect_true_building(
-        dense_probabilities(model, fit_set, fit_idx, desc="fit frames", **kw)
+        dense_probabilities(model, fit_set, fit_idx, desc="fit frames", **kw),
+        dirichlet,
+        only_argmax_building=cfg.fit_pixels == "accepted",
     )
     inference_s = time.perf_counter() - t0
     if len(fit_probs) < 2:
-        raise GeosegError(f"fit frames: only {len(fit_probs)} true building pixels; need more")
+        which = "accepted " if cfg.fit_pixels == "accepted" else ""
+        raise GeosegError(
+            f"fit frames: only {len(fit_probs)} {which}true building pixels; need more (raise "
+            "fit_frames" + (", or fit_pixels: true_building for a weak network)" if which else ")")
+        )
     if len(fit_probs) > cfg.max_fit_pixels:
         rng = np.random.default_rng(cfg.seed)
         fit_probs = fit_probs[np.sort(rng.choice(len(fit_probs), cfg.max_fit_pixels, False))]
     t0 = time.perf_counter()
-    dirichlet = DirichletFilter(lam=cfg.lam, eps=cfg.eps, temperature=cfg.temperature).fit(
-        fit_probs.astype(np.float64)
-    )
+    dirichlet.fit(fit_probs.astype(np.float64))
     fit_s = time.perf_counter() - t0
     logger.info("Dirichlet fitted on %d pixels in %.2f s", len(fit_probs), fit_s)
 
-    calib_all = _collect_true_building(
-        dense_probabilities(model, val_set, range(cfg.calib_frames), desc="calibration", **kw)
-    )
+    calib_all, calib_accepted = [], []
+    for probs, labels in dense_probabilities(
+        model, val_set, range(cfg.calib_frames), desc="calibration", **kw
+    ):
+        truth = labels == BUILDING
+        smoothed = dirichlet.smooth(probs)
+        calib_all.append(smoothed[truth])
+        calib_accepted.append(smoothed[truth & (probs.argmax(-1) == BUILDING)])
+    calib_all, calib = np.concatenate(calib_all), np.concatenate(calib_accepted)
     if len(calib_all) == 0:
         raise GeosegError("calibration frames: no true building pixel; raise calib_frames")
-    calib = calib_all[calib_all.argmax(-1) == BUILDING]
     if len(calib) == 0:
         logger.warning(
             "calibration frames: no true building pixel is predicted building (an untrained "
@@ -235,7 +266,7 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
             len(calib_all),
         )
         calib = calib_all
-    baseline = MaxProbabilityFilter().fit()
+    baseline = MaxProbabilityFilter(window=cfg.window).fit()
     # the rate is relative to all true building pixels; the filters only see the accepted ones
     rate = min(cfg.false_rejection_rate * len(calib_all) / len(calib), 0.999)
     dirichlet.threshold_for_false_rejection(calib, rate)
@@ -246,10 +277,9 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         model, val_set, range(cfg.calib_frames, need), desc="evaluation", **kw
     ):
         valid = labels != IGNORE_INDEX
-        p = probs[valid]
-        pred_b.append(p.argmax(-1) == BUILDING)
-        keep_d.append(dirichlet.filter(p))
-        keep_m.append(baseline.filter(p))
+        pred_b.append((probs.argmax(-1) == BUILDING)[valid])
+        keep_d.append(np.stack([dirichlet.filter(p) for p in probs])[valid])
+        keep_m.append(np.stack([baseline.filter(p) for p in probs])[valid])
         true_b.append(labels[valid] == BUILDING)
     pred = torch.from_numpy(np.concatenate(pred_b))
     truth = torch.from_numpy(np.concatenate(true_b))

@@ -468,7 +468,8 @@ def evaluate(
         normals: normals model (joint network): normals figures.
         naive: the naive CNN (dense probabilities); needs ``dirichlet``.
         dirichlet: the fitted, calibrated filter; needs ``naive``.
-        maxprob: the max-probability baseline with its own stored threshold (optional).
+        maxprob: the max-probability baseline with its own stored threshold (optional; same
+            ``window`` as ``dirichlet``).
         dataset: override of :func:`heldout_dataset` (samples ``{"image": (3, H, W) in [0, 1],
             "labels": (H, W), "normals": (3, H, W), "condition"}``).
         indices: override of :func:`heldout_indices`.
@@ -488,6 +489,11 @@ def evaluate(
         )
     if dirichlet is not None and dirichlet.threshold is None:
         raise GeosegError("dirichlet: the filter has no threshold")
+    if maxprob is not None and dirichlet is not None and maxprob.window != dirichlet.window:
+        raise GeosegError(
+            f"maxprob: window {maxprob.window} differs from the Dirichlet filter's "
+            f"{dirichlet.window}; both must score the same smoothed maps"
+        )
     from geoseg.data.synthetic import HELDOUT_CONDITIONS
     from training.metrics import (
         NormalsMeter,
@@ -564,7 +570,7 @@ def evaluate(
                 filt["pred"].append(pred_b)
                 filt["keep"].append(keep[valid])
                 filt["truth"].append(truth)
-                p = probs[valid]
+                p = dirichlet.smooth(probs)[valid]  # what both filters score
                 tb_probs.append(p[pred_b & truth])
                 fp_probs.append(p[pred_b & ~truth])
         for k, i in enumerate(batch_idx):
@@ -637,7 +643,9 @@ def _filter_figures(
     fp = np.concatenate(fp_probs) if fp_probs else np.zeros((0, NUM_CLASSES), np.float32)
     # the baseline adding exactly the Dirichlet filter's extra false rejections on these frames
     extra = d["fr_filter"] - d["fr_argmax"]
-    matched = MaxProbabilityFilter(building_class=dirichlet.building_class)
+    matched = MaxProbabilityFilter(
+        building_class=dirichlet.building_class, window=dirichlet.window
+    )
     if len(tb) == 0 or extra >= len(tb):
         matched.threshold = math.inf  # nothing to keep at that rejection count: reject all
     else:

@@ -299,3 +299,47 @@ def test_tempered_filter_recovers_alpha_and_round_trips(tmp_path) -> None:
     loaded = load_filter(f.save(tmp_path / "tempered.json"))
     assert loaded.temperature == 3.0
     np.testing.assert_allclose(loaded.score(sharp[:100]), f.score(sharp[:100]))
+
+
+def _road_patch_with_building_pixel() -> np.ndarray:
+    """``(7, 7, K)`` map: confident road everywhere except one weak building pixel at (3, 3)."""
+    road, weak = np.full(NUM_CLASSES, 0.02), np.full(NUM_CLASSES, 0.02)
+    road[0] = 1.0 - 0.02 * (NUM_CLASSES - 1)
+    weak[0] = 0.30
+    weak[BUILDING] = 1.0 - weak[0] - 0.02 * (NUM_CLASSES - 2)
+    probs = np.tile(road, (7, 7, 1))
+    probs[3, 3] = weak
+    return probs
+
+
+@pytest.mark.parametrize("cls", [DirichletFilter, MaxProbabilityFilter])
+def test_window_smooths_box_means_and_round_trips(tmp_path, cls) -> None:
+    probs = _road_patch_with_building_pixel()
+    assert probs[3, 3].argmax() == BUILDING
+    f = cls(window=3, **({"alpha": _building_alpha()} if cls is DirichletFilter else {}))
+    smooth = f.smooth(probs)
+    np.testing.assert_allclose(smooth[3, 3], (8 * probs[0, 0] + probs[3, 3]) / 9)
+    np.testing.assert_allclose(smooth[0, 0], probs[0, 0])  # edge pixels repeat: all road
+    np.testing.assert_allclose(smooth.sum(-1), 1.0)
+    batch = f.smooth(np.stack([probs, probs[::-1]]))  # leading axes are frames
+    np.testing.assert_allclose(batch[0], smooth)
+    np.testing.assert_allclose(batch[1], smooth[::-1])
+    np.testing.assert_array_equal(cls().smooth(probs), probs)  # window 1: per pixel
+    one_hot = np.eye(NUM_CLASSES)[np.random.default_rng(0).integers(0, NUM_CLASSES, (9, 9))]
+    assert (f.smooth(one_hot) >= 0).all()  # exact zeros stay valid probabilities
+    # the lone building pixel passes per pixel but not once its road neighbourhood counts
+    scores = f.score(np.stack([smooth[3, 3], probs[3, 3]]))
+    assert scores[0] < scores[1]
+    f.threshold = thr = float(scores.mean())
+    per_pixel = cls(**({"alpha": _building_alpha()} if cls is DirichletFilter else {}))
+    per_pixel.threshold = thr
+    assert per_pixel.filter(probs)[3, 3] and per_pixel.filter(probs).sum() == 1
+    assert not f.filter(probs).any()
+    loaded = load_filter(f.save(tmp_path / "w.json"))
+    assert loaded.window == 3
+    np.testing.assert_array_equal(loaded.filter(probs), f.filter(probs))
+    for bad in (0, 2, -1, 1.0, True):
+        with pytest.raises(GeosegError, match="window"):
+            cls(window=bad)
+    with pytest.raises(GeosegError, match="H, W, K"):
+        f.smooth(probs[0])

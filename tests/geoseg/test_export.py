@@ -20,7 +20,9 @@ def _export(name: str, tmp_path_factory, **cfg):
     model = get_model(name, **cfg).eval()
     path = tmp_path_factory.mktemp("onnx") / f"{name}.onnx"
     export_onnx(model, path, metadata={"model_name": name, "model_config": cfg})
-    return prepare_for_export(model).eval(), OnnxModel(path, providers=["CPUExecutionProvider"])
+    # the reference is the model itself (its PReLUs included); the naive CNN runs densely
+    reference = prepare_for_export(model).eval() if name == "naive_cnn" else model
+    return reference, OnnxModel(path, providers=["CPUExecutionProvider"])
 
 
 def _angle_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -80,6 +82,34 @@ def test_relpose_head_parity(tmp_path_factory) -> None:
     for key in ("rotation", "direction"):
         assert got[key].shape == ref[key].shape == (3, 3)
         np.testing.assert_allclose(got[key], ref[key], atol=1e-4, rtol=1e-3)
+
+
+def test_prelu_is_exported_as_an_exact_relu_difference(tmp_path) -> None:
+    import onnx
+
+    torch.manual_seed(0)
+    model = get_model("enet").eval()
+    prelus = [m for m in model.modules() if isinstance(m, torch.nn.PReLU)]
+    with torch.no_grad():  # slopes of both signs and above 1, as training can leave them
+        for m in prelus:
+            m.weight.uniform_(-0.5, 1.5)
+    single = torch.nn.PReLU()  # one slope shared by all channels
+    with torch.no_grad():
+        single.weight.fill_(-0.3)
+    prepared = prepare_for_export(model)
+    assert prepared is not model and prelus  # a copy: the user's model keeps its PReLUs
+    assert all(isinstance(m, torch.nn.PReLU) for m in prelus)
+    assert not any(isinstance(m, torch.nn.PReLU) for m in prepared.modules())
+    x = torch.randn(2, 3, H2, W2, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        ref, got = model(x), prepared(x)
+        for key in ref:
+            assert torch.equal(ref[key], got[key]), key
+        y = torch.randn(3, 5, 4, 4)
+        assert torch.equal(prepare_for_export(torch.nn.Sequential(single))(y), single(y))
+    path = export_onnx(model, tmp_path / "enet.onnx")
+    ops = {node.op_type for node in onnx.load(str(path)).graph.node}
+    assert "PRelu" not in ops and "Relu" in ops
 
 
 def test_default_example_inputs_for_heads() -> None:

@@ -184,7 +184,8 @@ def test_naive_main_writes_a_complete_run(naive_run, run_files):
     assert "dense_miou" in card["metrics"] and "dense_iou_building" in card["metrics"]
 
 
-def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path):
+@pytest.mark.parametrize("window", [1, 3])
+def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path, window):
     from geoseg.dirichlet import DirichletFilter, load_filter
 
     cfg = load_config(
@@ -198,6 +199,7 @@ def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path):
             "calib_frames": 2,
             "eval_frames": 2,
             "eps": 1e-6,
+            "window": window,
             "data": _data(cache_dir),
         },
     )
@@ -205,6 +207,7 @@ def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path):
     filt = load_filter(out / "dirichlet.json")
     assert isinstance(filt, DirichletFilter) and filt.threshold is not None
     assert filt.eps == 1e-6  # the configured floor is part of the saved filter
+    assert filt.window == window == load_filter(out / "max_probability.json").window
     assert (filt.alpha > 0).all()
     metrics = json.loads((out / "metrics.json").read_text())
     for key in (
@@ -219,6 +222,10 @@ def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path):
     mtime = (out / "metrics.json").stat().st_mtime_ns
     dirichlet_trainer.main(cfg)  # finished: skipped
     assert (out / "metrics.json").stat().st_mtime_ns == mtime
+    # the tiny network calls no pixel building: fitting on the accepted ones must say so
+    cfg.fit_pixels, cfg.overwrite = "accepted", True
+    with pytest.raises(GeosegError, match="0 accepted true building pixels"):
+        dirichlet_trainer.main(cfg)
 
 
 # ----------------------------------------------------------------------------- one step
@@ -316,6 +323,9 @@ def test_configs_in_the_repository_load():
         assert cfg.data.source == "synth"
     with pytest.raises(ConfigError, match="train_crop"):
         load_config(seg_trainer.SegConfig, {"train_crop": [0, 4]})
+    for key, value in (("window", 4), ("window", 0), ("fit_pixels", "argmax")):
+        with pytest.raises(ConfigError, match=key):
+            load_config(dirichlet_trainer.DirichletConfig, {key: value})
 
 
 def _cityscapes_folder(root: Path) -> Path:
