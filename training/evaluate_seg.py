@@ -643,9 +643,7 @@ def _filter_figures(
     fp = np.concatenate(fp_probs) if fp_probs else np.zeros((0, NUM_CLASSES), np.float32)
     # the baseline adding exactly the Dirichlet filter's extra false rejections on these frames
     extra = d["fr_filter"] - d["fr_argmax"]
-    matched = MaxProbabilityFilter(
-        building_class=dirichlet.building_class, window=dirichlet.window
-    )
+    matched = MaxProbabilityFilter(building_class=dirichlet.building_class, window=dirichlet.window)
     if len(tb) == 0 or extra >= len(tb):
         matched.threshold = math.inf  # nothing to keep at that rejection count: reject all
     else:
