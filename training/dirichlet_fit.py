@@ -277,9 +277,11 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         model, val_set, range(cfg.calib_frames, need), desc="evaluation", **kw
     ):
         valid = labels != IGNORE_INDEX
-        pred_b.append((probs.argmax(-1) == BUILDING)[valid])
-        keep_d.append(np.stack([dirichlet.filter(p) for p in probs])[valid])
-        keep_m.append(np.stack([baseline.filter(p) for p in probs])[valid])
+        argmax = probs.argmax(-1)[valid]
+        scored = dirichlet.smooth(probs)[valid]  # both filters share the window: smooth once
+        pred_b.append(argmax == BUILDING)
+        keep_d.append(dirichlet.filter(scored, argmax))
+        keep_m.append(baseline.filter(scored, argmax))
         true_b.append(labels[valid] == BUILDING)
     pred = torch.from_numpy(np.concatenate(pred_b))
     truth = torch.from_numpy(np.concatenate(true_b))

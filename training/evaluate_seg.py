@@ -562,7 +562,10 @@ def evaluate(
                 lab = labels[k].numpy()
                 probs = res_v.probabilities[k].transpose(1, 2, 0)  # (H, W, C)
                 argmax = res_v.labels[k].astype(np.int64)
-                keep = dirichlet.filter(probs, argmax)
+                smoothed = dirichlet.smooth(probs)  # what both filters score, smoothed once
+                keep = dirichlet.filter(
+                    smoothed.reshape(-1, smoothed.shape[-1]), argmax.reshape(-1)
+                ).reshape(argmax.shape)
                 keep_maps.append(keep)
                 valid = lab != IGNORE_INDEX
                 pred_b = (argmax == BUILDING)[valid]
@@ -570,7 +573,7 @@ def evaluate(
                 filt["pred"].append(pred_b)
                 filt["keep"].append(keep[valid])
                 filt["truth"].append(truth)
-                p = dirichlet.smooth(probs)[valid]  # what both filters score
+                p = smoothed[valid]
                 tb_probs.append(p[pred_b & truth])
                 fp_probs.append(p[pred_b & ~truth])
         for k, i in enumerate(batch_idx):
