@@ -54,7 +54,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -65,6 +64,7 @@ from scipy.ndimage import uniform_filter
 from scipy.optimize import minimize
 from scipy.special import digamma, gammaln, logsumexp
 
+from geoseg.atomic import atomic_output
 from geoseg.classes import BUILDING, NUM_CLASSES
 from geoseg.errors import GeosegError, check_positive
 
@@ -439,14 +439,8 @@ class _ScoreFilter:
         """Write the filter as JSON (atomically: temp file + rename). Returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        try:
-            with os.fdopen(fd, "w") as f:
-                json.dump(self.to_dict(), f, indent=2)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_output(path, "w") as handle:
+            json.dump(self.to_dict(), handle, indent=2)
         return path
 
     @classmethod

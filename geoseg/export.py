@@ -31,7 +31,6 @@ import io
 import json
 import logging
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -40,6 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError
 
 logger = logging.getLogger(__name__)
@@ -163,18 +163,6 @@ def _quiet_exporter_logs(level: int = logging.ERROR):
             logging.getLogger(n).setLevel(lvl)
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
-
-
 def export_onnx(
     model: nn.Module,
     path: str | os.PathLike,
@@ -267,7 +255,8 @@ def export_onnx(
         entry = proto.metadata_props.add()
         entry.key = META_PREFIX + key
         entry.value = value if isinstance(value, str) else json.dumps(value)
-    _atomic_write_bytes(path, proto.SerializeToString())
+    with atomic_output(path) as handle:
+        handle.write(proto.SerializeToString())
     onnx.checker.check_model(str(path))
     logger.info("exported %s to %s", type(model).__name__, path)
     return path

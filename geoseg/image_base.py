@@ -41,13 +41,11 @@ cache. Provided here:
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import json
 import logging
 import os
 import re
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -55,6 +53,7 @@ from typing import Any
 
 import numpy as np
 
+from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError, check_finite, check_shape
 from geoseg.localize import RetrievalIndex
 
@@ -296,20 +295,13 @@ class ImageBase:
     def _write_cache(self, path: Path, emb: np.ndarray, fingerprints: np.ndarray) -> None:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
-            os.close(fd)
-            try:
+            with atomic_output(path, fsync=False) as handle:
                 np.savez(
-                    tmp,
+                    handle,
                     embeddings=emb,
                     images=np.asarray(self.images, dtype=str),
                     fingerprints=fingerprints,
                 )
-                os.replace(tmp, path)
-            except BaseException:
-                with contextlib.suppress(OSError):
-                    os.unlink(tmp)
-                raise
         except OSError as err:
             logger.warning("%s: could not write the embedding cache (%s)", path, err)
 

@@ -16,10 +16,8 @@ Extra keys (optimizer, epoch, ... from a training checkpoint) are ignored. They 
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
-import tempfile
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +27,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError, check_shape
 
 logger = logging.getLogger(__name__)
@@ -89,15 +88,8 @@ def save_model_checkpoint(
         state_dict={k: v.detach().cpu() for k, v in model.state_dict().items()},
         normalization=_check_normalization("normalization", normalization or DEFAULT_NORMALIZATION),
     )
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+    with atomic_output(path) as handle:
+        torch.save(payload, handle)
     return path
 
 

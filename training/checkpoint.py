@@ -35,7 +35,6 @@ import errno
 import logging
 import os
 import pickle
-import tempfile
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -44,6 +43,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError
 from training.reproducibility import capture_rng_state, restore_rng_state
 
@@ -151,16 +151,9 @@ def atomic_save(obj: Any, path: str | Path) -> Path:
     path = Path(path)
     if not path.parent.is_dir():
         raise GeosegError(f"checkpoint {path}: directory {path.parent} does not exist")
-    tmp_name = None
     try:
-        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        with os.fdopen(fd, "wb") as handle:
+        with atomic_output(path) as handle:
             torch.save(obj, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp_name, path)
-        tmp_name = None
-        _fsync_dir(path.parent)
     except OSError as err:
         if err.errno == errno.ENOSPC:
             problem = "no space left on device"
@@ -170,12 +163,6 @@ def atomic_save(obj: Any, path: str | Path) -> Path:
             problem = f"{type(err).__name__}: {err}"
         kept = " (the previous checkpoint is kept)" if path.exists() else ""
         raise GeosegError(f"cannot write checkpoint {path}: {problem}{kept}") from err
-    finally:
-        if tmp_name is not None:
-            try:
-                os.unlink(tmp_name)
-            except FileNotFoundError:
-                pass
     return path
 
 
@@ -338,17 +325,3 @@ def restore_checkpoint(
     if restore_rng and ckpt.get("rng"):
         restore_rng_state(ckpt["rng"])
     return ckpt
-
-
-def _fsync_dir(directory: Path) -> None:
-    """fsync a directory so a rename survives a power loss (best effort, POSIX only)."""
-    try:
-        fd = os.open(directory, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)

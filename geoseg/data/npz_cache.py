@@ -9,13 +9,13 @@ it.
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
 import zipfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
+
+from geoseg.atomic import atomic_output
 
 logger = logging.getLogger(__name__)
 
@@ -25,21 +25,14 @@ UNREADABLE = (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile)
 
 def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> bool:
     """Write ``arrays`` to ``path`` atomically (temp file + rename); False (logged) on failure."""
-    tmp = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as handle:
+        with atomic_output(path, fsync=False) as handle:  # a cache: losing it costs a recompute
             np.savez_compressed(handle, **arrays)
-        os.replace(tmp, path)
-        tmp = None
         return True
     except OSError as err:
         logger.warning("cannot write cache entry %s (%s); continuing without it", path, err)
         return False
-    finally:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
 
 
 def read_npz(path: Path | None, fields: Sequence[str]) -> dict[str, np.ndarray] | None:
