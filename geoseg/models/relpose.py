@@ -7,6 +7,13 @@ a cheap local correlation), two 3x3 convolutions mix them, global mean and max p
 concatenated and an MLP regresses 6 numbers: 3 rotation coefficients and 3 translation
 components, the latter L2-normalised into the unit direction.
 
+With ``correlation_radius = r > 0`` a cost volume joins the fusion: the cosine similarity of
+each cell of ``a`` with the cells of ``b`` displaced by up to ``r`` cells in each direction,
+``(2r + 1)^2`` channels (:func:`correlation_volume`). The product ``a * b`` only compares the
+same cell, so it cannot see where a structure moved; the volume shows the image motion, whose
+pattern (expansion or contraction about the focus of expansion, sideways shift) is what tells
+a forward from a backward baseline and left from right.
+
 Conventions (all explicit, since the thesis leaves them open):
 
 * Relative pose of the pair ``(a, b)``: ``R_ab = R_wc_a^T R_wc_b`` and
@@ -52,6 +59,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "RelPoseHead",
+    "correlation_volume",
     "from_thesis_coefficients",
     "relative_pose_labels",
     "relpose_head",
@@ -214,6 +222,32 @@ def relative_pose_labels(R_wc_a: Any, t_wc_a: Any, R_wc_b: Any, t_wc_b: Any) -> 
 # ============================================================================ head + loss
 
 
+def correlation_volume(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
+    """Cosine cost volume between two feature maps.
+
+    Args:
+        a: ``(B, C, h, w)`` features of the first image.
+        b: ``(B, C, h, w)`` features of the second image.
+        radius: largest displacement ``r`` in cells, >= 1.
+
+    Returns:
+        ``(B, (2r + 1)^2, h, w)``: channel ``(dy + r) (2r + 1) + (dx + r)`` holds the cosine of
+        ``a[..., y, x]`` and ``b[..., y + dy, x + dx]`` (0 where the displaced cell falls outside).
+    """
+    a = F.normalize(a, dim=1, eps=1e-6)
+    b = F.pad(F.normalize(b, dim=1, eps=1e-6), (radius, radius, radius, radius))
+    h, w = a.shape[-2], a.shape[-1]
+    size = 2 * radius + 1
+    return torch.cat(
+        [
+            (a * b[..., dy : dy + h, dx : dx + w]).sum(dim=1, keepdim=True)
+            for dy in range(size)
+            for dx in range(size)
+        ],
+        dim=1,
+    )
+
+
 def _conv_bn_relu(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
     return nn.Sequential(
         nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False),
@@ -229,26 +263,36 @@ class RelPoseHead(nn.Module):
         in_channels: channels of the layer-21 features (128 for ENet).
         hidden_channels: channels of each encoder branch's output.
         fc_dim: width of the hidden layer of the regression MLP.
+        correlation_radius: radius ``r`` of the cost volume added to the fusion
+            (:func:`correlation_volume`, on the branch maps, i.e. 1/16 of the image); 0: none.
     """
 
     def __init__(
-        self, *, in_channels: int = 128, hidden_channels: int = 64, fc_dim: int = 256
+        self,
+        *,
+        in_channels: int = 128,
+        hidden_channels: int = 64,
+        fc_dim: int = 256,
+        correlation_radius: int = 0,
     ) -> None:
         super().__init__()
-        for name, v in (
-            ("in_channels", in_channels),
-            ("hidden_channels", hidden_channels),
-            ("fc_dim", fc_dim),
+        for name, v, low in (
+            ("in_channels", in_channels, 1),
+            ("hidden_channels", hidden_channels, 1),
+            ("fc_dim", fc_dim, 1),
+            ("correlation_radius", correlation_radius, 0),
         ):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise GeosegError(f"{name}: expected an int >= 1, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise GeosegError(f"{name}: expected an int >= {low}, got {v!r}")
         self.in_channels = in_channels
+        self.correlation_radius = correlation_radius
+        fused = 3 * hidden_channels + (2 * correlation_radius + 1) ** 2 * (correlation_radius > 0)
         self.branch = nn.Sequential(
             _conv_bn_relu(in_channels, in_channels, stride=2),
             _conv_bn_relu(in_channels, hidden_channels),
         )
         self.fuse = nn.Sequential(
-            _conv_bn_relu(3 * hidden_channels, 128),
+            _conv_bn_relu(fused, 128),
             _conv_bn_relu(128, 128, stride=2),
         )
         self.regress = nn.Sequential(
@@ -280,7 +324,10 @@ class RelPoseHead(nn.Module):
                 )
         a = self.branch(feat_a)
         b = self.branch(feat_b)
-        x = self.fuse(torch.cat([a, b, a * b], dim=1))
+        parts = [a, b, a * b]
+        if self.correlation_radius:
+            parts.append(correlation_volume(a, b, self.correlation_radius))
+        x = self.fuse(torch.cat(parts, dim=1))
         pooled = torch.cat([x.mean(dim=(2, 3)), x.amax(dim=(2, 3))], dim=1)
         out = self.regress(pooled)
         rotation = out[:, :3]
@@ -289,10 +336,19 @@ class RelPoseHead(nn.Module):
 
 
 def relpose_head(
-    *, in_channels: int = 128, hidden_channels: int = 64, fc_dim: int = 256
+    *,
+    in_channels: int = 128,
+    hidden_channels: int = 64,
+    fc_dim: int = 256,
+    correlation_radius: int = 0,
 ) -> RelPoseHead:
     """Build the relative-pose head (fig. 5.7). See :class:`RelPoseHead`."""
-    return RelPoseHead(in_channels=in_channels, hidden_channels=hidden_channels, fc_dim=fc_dim)
+    return RelPoseHead(
+        in_channels=in_channels,
+        hidden_channels=hidden_channels,
+        fc_dim=fc_dim,
+        correlation_radius=correlation_radius,
+    )
 
 
 def relpose_loss(

@@ -12,6 +12,7 @@ import torch
 from geoseg.errors import GeosegError
 from geoseg.localize import absolute_position
 from geoseg.models.relpose import (
+    correlation_volume,
     from_thesis_coefficients,
     relative_pose_labels,
     relpose_head,
@@ -169,10 +170,33 @@ def test_labels_feed_absolute_position() -> None:
 # ----------------------------------------------------------------------------- head
 
 
+def test_correlation_volume_matches_loop_and_finds_the_shift() -> None:
+    g = torch.Generator().manual_seed(1)
+    a = torch.randn(2, 5, 6, 7, generator=g, dtype=F64)
+    b = torch.randn(2, 5, 6, 7, generator=g, dtype=F64)
+    r = 2
+    vol = correlation_volume(a, b, r)
+    assert vol.shape == (2, 25, 6, 7)
+    an, bn = (torch.nn.functional.normalize(x, dim=1) for x in (a, b))
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            k = (dy + r) * (2 * r + 1) + (dx + r)
+            for y in range(6):
+                for x in range(7):
+                    inside = 0 <= y + dy < 6 and 0 <= x + dx < 7
+                    want = (an[:, :, y, x] * bn[:, :, y + dy, x + dx]).sum(1) if inside else 0.0
+                    torch.testing.assert_close(vol[:, k, y, x], want * torch.ones(2, dtype=F64))
+    # b = a moved by (+1 row, -2 columns): a[y, x] reappears at b[y + 1, x - 2], cosine 1
+    moved = torch.roll(a, shifts=(1, -2), dims=(2, 3))
+    best = correlation_volume(a, moved, r)[:, :, 1:4, 2:5].argmax(dim=1)
+    assert (best == (1 + r) * (2 * r + 1) + (-2 + r)).all()
+
+
+@pytest.mark.parametrize("radius", [0, 2])
 @pytest.mark.parametrize("size", [(1, 4, 5), (2, 6, 8), (2, 1, 1)])
-def test_head_shapes(size) -> None:
+def test_head_shapes(size, radius) -> None:
     b, h, w = size
-    head = relpose_head().eval()
+    head = relpose_head(correlation_radius=radius).eval()
     out = head(torch.randn(b, 128, h, w), torch.randn(b, 128, h, w))
     assert set(out) == {"rotation", "direction"}
     assert out["rotation"].shape == (b, 3) and out["direction"].shape == (b, 3)
@@ -180,6 +204,8 @@ def test_head_shapes(size) -> None:
 
 
 def test_head_bad_inputs() -> None:
+    with pytest.raises(GeosegError, match="correlation_radius"):
+        relpose_head(correlation_radius=-1)
     head = relpose_head().eval()
     x = torch.randn(1, 128, 4, 4)
     with pytest.raises(GeosegError, match="feat_b"):
@@ -213,9 +239,10 @@ def test_loss_decreases_on_fixed_batch() -> None:
 
 
 @pytest.mark.filterwarnings("ignore:# The axis name")
-def test_onnx_dynamo_export_parity(tmp_path) -> None:
+@pytest.mark.parametrize("radius", [0, 3])
+def test_onnx_dynamo_export_parity(tmp_path, radius) -> None:
     torch.manual_seed(6)
-    head = relpose_head()
+    head = relpose_head(correlation_radius=radius)
     head.train()
     with torch.no_grad():
         for _ in range(3):
