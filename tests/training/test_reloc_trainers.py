@@ -301,5 +301,9 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path):
     assert res["untrained"] == ["reloc", "relpose"] and "warning" in res
     assert (out / "accuracy_reloc_tsne.png").stat().st_size > 0
     assert (out / "accuracy_reloc_panel.png").stat().st_size > 0
-    # the geometry itself is exact: true directions give the true position
-    assert res["abs_position_median_m_true_directions"] in (None, pytest.approx(0.0, abs=1e-6))
+    # the geometry itself is exact: true directions give the true position, for every k
+    assert res["abs_position_top_k"] == 2
+    for suffix in ("", "_top3", "_top4", "_top5"):
+        assert 0.0 <= res[f"abs_position_degenerate_share{suffix}"] <= 1.0
+        exact = res[f"abs_position_median_m_true_directions{suffix}"]
+        assert exact in (None, pytest.approx(0.0, abs=1e-6)), suffix
