@@ -47,7 +47,7 @@ def ship(run_dir: str | Path, name: str, *, weights_dir: Path = WEIGHTS_DIR) -> 
         for file in SHIPPED_FILES:
             if (run_dir / file).is_file():
                 shutil.copy2(run_dir / file, staging / file)
-                (staging / file).chmod(0o644)  # runs write some files 0600 (mkstemp)
+                (staging / file).chmod(0o644)  # package files: readable whatever the run umask
         if name == "dirichlet" and not (staging / "model_card.json").exists():
             # the filter's card is its metrics (fit data, threshold, figures, wall time)
             shutil.copy2(run_dir / "metrics.json", staging / "model_card.json")
