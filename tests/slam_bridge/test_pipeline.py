@@ -6,7 +6,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_info
 
+import slam_bridge.pipeline as pipeline
 from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.landmarks import LandmarkConfig
@@ -177,6 +179,33 @@ def test_bad_inputs(noiseless):
     )
     with pytest.raises(SlamError, match="tracking lost"):
         run_pipeline(lost, "ba", cfg.pipeline)
+
+
+def test_blas_threads_limit_holds_inside_the_loop_only(noiseless, monkeypatch):
+    """The loop runs its small dense solves with ``blas_threads`` BLAS threads, then restores
+    the caller's setting; ``None`` leaves BLAS alone; 0 is rejected."""
+
+    def blas_threads() -> set[int]:
+        return {m["num_threads"] for m in threadpool_info() if m["user_api"] == "blas"}
+
+    seen: list[set[int]] = []
+    original = pipeline._track
+
+    def spy(*args, **kwargs):
+        seen.append(blas_threads())
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "_track", spy)
+    cfg, data = noiseless
+    before = blas_threads()
+    run_pipeline(data, "ba", cfg.pipeline, num_keyframes=6)
+    assert seen and all(s == {1} for s in seen)
+    assert blas_threads() == before
+    seen.clear()
+    run_pipeline(data, "ba", dataclasses.replace(cfg.pipeline, blas_threads=None), num_keyframes=6)
+    assert seen and all(s == before for s in seen)
+    with pytest.raises(SlamError, match="blas_threads"):
+        PipelineConfig(blas_threads=0)
 
 
 def test_information_weights_and_fusion_guard(noisy):
