@@ -29,6 +29,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "TriangulationResult",
+    "ray_parallax_deg",
     "triangulate",
     "TwoViewResult",
     "two_view_init",
@@ -57,6 +58,33 @@ class TriangulationResult:
     parallax_deg: np.ndarray
     num_views: np.ndarray
     rms_px: np.ndarray
+
+
+def ray_parallax_deg(
+    centres: np.ndarray, X_obs: np.ndarray, points: np.ndarray, num_points: int
+) -> np.ndarray:
+    """Parallax of each point: the largest angle between its first view's ray and any other
+    view's ray (the first view = its first row).
+
+    Args:
+        centres: ``(M, 3)`` optical centre of each view (observation).
+        X_obs: ``(M, 3)`` the observed point's position, per view.
+        points: ``(M,)`` point index of each view, in ``0..num_points-1``.
+        num_points: ``P``.
+
+    Returns:
+        ``(P,)`` degrees (0 for points with fewer than two views).
+    """
+    rays = X_obs - centres
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+    first = np.full(num_points, -1, dtype=np.int64)
+    order = np.argsort(points, kind="stable")
+    uniq, idx = np.unique(points[order], return_index=True)
+    first[uniq] = order[idx]
+    cosang = np.einsum("mi,mi->m", rays, rays[first[points]])
+    parallax = np.zeros(num_points)
+    np.maximum.at(parallax, points, np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0))))
+    return parallax
 
 
 def triangulate(
@@ -138,16 +166,7 @@ def triangulate(
     Xo = np.where(finite[:, None], X, 0.0)[pts]
     uv_hat, z, front = project(Km, R_wc[cams], t_wc[cams], Xo, eps)
     in_front = (_segment_sum(pts, (~front).astype(float)[:, None], P)[:, 0] == 0) & finite
-    rays = Xo - t_wc[cams]
-    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
-    first = np.full(P, -1, dtype=np.int64)
-    order = np.argsort(pts, kind="stable")
-    uniq, idx = np.unique(pts[order], return_index=True)
-    first[uniq] = order[idx]
-    cosang = np.einsum("mi,mi->m", rays, rays[first[pts]])
-    ang = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
-    parallax = np.zeros(P)
-    np.maximum.at(parallax, pts, ang)
+    parallax = ray_parallax_deg(t_wc[cams], Xo, pts, P)
     err2 = np.where(front, np.sum((uv_hat - uv) ** 2, axis=1), 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         rms = np.sqrt(_segment_sum(pts, err2[:, None], P)[:, 0] / np.maximum(num_views, 1))

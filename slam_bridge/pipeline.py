@@ -38,7 +38,11 @@ unseen:
    after the fusion are deactivated (gross outliers that slipped through). The hybrids' pose-graph
    observations are not gated there (the fusion moved their cameras but not the points only
    they see; the next k-BA reconciles them); every observation was gated while its camera was
-   in the BA window.
+   in the BA window. Then the window's points whose views' rays now meet at less than
+   ``min_parallax_deg``, or that lie behind a view, are untriangulated (to be triangulated anew
+   when seen again). In a sharp turn the optimisation had slid points seen from close
+   viewpoints kilometres along their rays (76 of the 117 points keyframe 247 of the 640 m drive
+   tracked, DPC, sigma_b = 0), the reprojection gate could not see it, and PnP found no inliers.
 
 Recorded per keyframe (:class:`KeyframeRecord`): the online pose, BA and fusion times, fusion
 iterations and time per iteration, the **Hessian memory** and window sizes.
@@ -75,7 +79,7 @@ from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
-from slam_bridge.geometry import pnp, triangulate
+from slam_bridge.geometry import pnp, ray_parallax_deg, triangulate
 from slam_bridge.landmarks import LandmarkConfig, Observations
 from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
 from slam_bridge.solvers.lm import LMConfig
@@ -207,6 +211,10 @@ class PipelineConfig:
             (:attr:`slam_bridge.window.HybridWindowConfig.mpc_relative`).
         zeta_iterations: LM iterations of ``X* = argmin zeta`` (hybrid ``zeta``, started from
             the k-BA's output, so a few suffice).
+        cull_degenerate_points: after the gating, untriangulate the window's points whose
+            observers' rays now meet at less than ``min_parallax_deg`` or that are behind one
+            of them (:func:`_cull_degenerate_points`; they are triangulated anew when seen
+            again).
         blas_threads: BLAS/LAPACK threads while the loop runs (threadpoolctl; ``None`` leaves
             the library's default). The window's dense systems are small (a 240 x 240 reduced
             camera system), where threads cost more than they give. Measured on the 2-core
@@ -249,6 +257,7 @@ class PipelineConfig:
     mpc_relative: bool = True
     zeta_iterations: int = 5
     blas_threads: int | None = 1
+    cull_degenerate_points: bool = True
 
     def __post_init__(self) -> None:
         if self.blas_threads is not None and self.blas_threads < 1:
@@ -321,6 +330,8 @@ class KeyframeRecord:
         n_points: free points of the window.
         n_tracked: PnP inliers.
         n_new_points: points triangulated at this keyframe.
+        n_culled: points untriangulated after the fusion (degenerate geometry,
+            :func:`_cull_degenerate_points`).
         ba_seconds: wall time of ``X* = argmin zeta``.
         ba_iterations: its LM iterations.
         fusion_seconds: wall time of the barrier fusion (0 if not fused).
@@ -338,6 +349,7 @@ class KeyframeRecord:
     n_points: int = 0
     n_tracked: int = 0
     n_new_points: int = 0
+    n_culled: int = 0
     ba_seconds: float = 0.0
     ba_iterations: int = 0
     fusion_seconds: float = 0.0
@@ -945,6 +957,13 @@ def _run_pipeline(
         err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv[o], nan=1e9), axis=1), 1e9)
         bad = o[err > cfg.window_gate_px]
         active[bad] = False
+        if cfg.cull_degenerate_points:
+            # every active view of the window's points, older ones included
+            upto = np.arange(starts[k + 1])
+            ok = upto[active[upto] & np.isin(pt_obs[upto], pt_obs[o])]
+            rec.n_culled = _cull_degenerate_points(
+                pt_obs[ok], R_wc[kf_obs[ok]], t_wc[kf_obs[ok]], X_w, tri_ok, cfg.min_parallax_deg
+            )
         records.append(rec)
         if k % 25 == 0:
             logger.info(
@@ -1019,6 +1038,50 @@ def _track(
         if best is None or n_in > best[2]:
             best = (R, t, n_in)
     return best
+
+
+def _cull_degenerate_points(
+    points: np.ndarray,
+    R_obs: np.ndarray,
+    t_obs: np.ndarray,
+    X_w: np.ndarray,
+    tri_ok: np.ndarray,
+    min_parallax_deg: float,
+) -> int:
+    """Untriangulate the points whose geometry the optimisation has made degenerate.
+
+    A point triangulated with enough parallax can still slide along its rays in the k-BA or
+    the fusion when its observers are few and close in direction (a sharp turn): the
+    reprojection gate cannot see it (it still reprojects well), but the next keyframe's PnP
+    does. A point whose observers' rays now meet at less than ``min_parallax_deg`` (the
+    triangulation threshold), or that lies behind one of them, is marked untriangulated; the
+    next keyframe that sees it triangulates it anew from all its active observations.
+
+    Args:
+        points: ``(M,)`` point id of each active observation of the points to check (all their
+            views, not only the window's: old views carry the parallax).
+        R_obs: ``(M, 3, 3)`` rotation of its keyframe.
+        t_obs: ``(M, 3)`` optical centre of its keyframe.
+        X_w: ``(P, 3)`` the map.
+        tri_ok: ``(P,)`` triangulated flags (updated in place).
+        min_parallax_deg: parallax threshold, degrees.
+
+    Returns:
+        The number of points untriangulated.
+    """
+    if points.size == 0:
+        return 0
+    uniq, local = np.unique(points, return_inverse=True)
+    X_obs = X_w[points]
+    parallax = ray_parallax_deg(t_obs, X_obs, local, uniq.size)
+    depth = np.einsum("mi,mi->m", X_obs - t_obs, R_obs[:, :, 2])  # camera z axis in the world
+    behind = np.zeros(uniq.size, dtype=bool)
+    np.logical_or.at(behind, local, ~(depth > 0))
+    views = np.bincount(local, minlength=uniq.size)
+    # a point with a single active view left has nothing to measure parallax with: kept
+    cull = tri_ok[uniq] & (behind | ((views >= 2) & (parallax < min_parallax_deg)))
+    tri_ok[uniq[cull]] = False
+    return int(cull.sum())
 
 
 def _triangulate_new(

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.geometry import pnp, triangulate, two_view_init
+from slam_bridge.geometry import pnp, ray_parallax_deg, triangulate, two_view_init
 from slam_bridge.lie import so3_exp, so3_log
 
 
@@ -91,3 +91,13 @@ def test_pnp_recovers_pose_with_outliers():
     assert res.rms_px < 1e-6
     with pytest.raises(GeosegError):
         pnp(K, X[:3], uv[:3])
+
+
+def test_ray_parallax_deg_is_the_widest_angle_to_the_first_view():
+    # point 0 seen from x = 0, 1 and -2 at 10 m depth; point 1 seen once
+    centres = np.array([[0.0, 0, 0], [1.0, 0, 0], [-2.0, 0, 0], [5.0, 0, 0]])
+    X = np.array([[0.0, 0, 10], [0.0, 0, 10], [0.0, 0, 10], [5.0, 0, 3]])
+    points = np.array([0, 0, 0, 1])
+    par = ray_parallax_deg(centres, X, points, 3)
+    assert par[0] == pytest.approx(np.degrees(np.arctan(0.2)), rel=1e-12)
+    assert par[1] == 0.0 and par[2] == 0.0  # one view; no view

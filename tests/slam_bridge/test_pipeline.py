@@ -181,6 +181,29 @@ def test_bad_inputs(noiseless):
         run_pipeline(lost, "ba", cfg.pipeline)
 
 
+def test_cull_degenerate_points():
+    """Points whose window rays meet at < min parallax, or behind a camera, are untriangulated;
+    well-conditioned points and points seen once stay."""
+    # two cameras 1 m apart looking along +z (R = I: camera z axis = world z)
+    t_cams = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    X_w = np.array(
+        [
+            [0.5, 0.0, 10.0],  # parallax ~5.7 deg: kept
+            [0.5, 0.0, 1e5],  # slid far along its rays: ~0 deg, culled
+            [0.5, 0.0, -10.0],  # behind both cameras: culled
+            [0.5, 0.0, 1e5],  # a single active view: kept
+            [0.5, 0.0, 1e5],  # degenerate but not triangulated: untouched
+        ]
+    )
+    points = np.array([0, 0, 1, 1, 2, 2, 3, 4, 4])
+    cams = np.array([0, 1, 0, 1, 0, 1, 0, 0, 1])
+    tri_ok = np.array([True, True, True, True, False])
+    R = np.repeat(np.eye(3)[None], points.size, axis=0)
+    n = pipeline._cull_degenerate_points(points, R, t_cams[cams], X_w, tri_ok, 1.0)
+    assert n == 2
+    assert tri_ok.tolist() == [True, False, False, True, False]
+
+
 def test_blas_threads_limit_holds_inside_the_loop_only(noiseless, monkeypatch):
     """The loop runs its small dense solves with ``blas_threads`` BLAS threads, then restores
     the caller's setting; ``None`` leaves BLAS alone; 0 is rejected."""
