@@ -966,8 +966,9 @@ def _run_pipeline(
         active[bad] = False
         if cfg.cull_degenerate_points:
             # every active view of the window's points, older ones included
-            upto = np.arange(starts[k + 1])
-            ok = upto[active[upto] & np.isin(pt_obs[upto], pt_obs[o])]
+            in_window = np.zeros(data.num_points, dtype=bool)
+            in_window[pt_obs[o]] = True
+            ok = np.flatnonzero(active[: starts[k + 1]] & in_window[pt_obs[: starts[k + 1]]])
             rec.n_culled = _cull_degenerate_points(
                 pt_obs[ok], R_wc[kf_obs[ok]], t_wc[kf_obs[ok]], X_w, tri_ok, cfg.min_parallax_deg
             )
