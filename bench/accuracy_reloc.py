@@ -16,11 +16,16 @@ database image. Measured:
   SIFT -> ``findEssentialMat`` + ``recoverPose``) on the same pairs, separately for
   same-condition and cross-condition pairs (the baseline's medians are over the pairs where it
   returns a pose; its failure share is reported);
-* absolute position of each query from its top-``k`` retrieved base images (learned embedding,
-  GPS window; ``k = 2`` by default, every k in 2-5 recorded) by robust ray intersection of the
-  head's directions: median horizontal error over the non-degenerate queries and the degenerate
-  share (also with the true directions: the geometric limit of a tram line, where base cameras
-  are nearly collinear with the query);
+* re-ranking (heads with the distance output): Recall@1 in the GPS window and over the whole
+  base after ordering the top ``--rerank-k`` candidates by the head's predicted baseline
+  (nearest first);
+* absolute position of each query from its top-``k`` GPS-window base images (learned
+  embedding; ``k = 2`` by default, every k in 1-5 recorded): with a distance head by ranged rays
+  (predicted direction + distance, :func:`geoseg.localize.locate_from_ranged_rays`) over the
+  re-ranked candidates, else by robust intersection of the head's direction rays; median and
+  p90 horizontal error over the non-degenerate queries and the degenerate share. Direction rays
+  alone are reported beside (``..._rays_only``), and with the true directions (the geometric
+  limit of a tram line, where base cameras are nearly collinear with the query);
 * figures: a t-SNE of the layer-21 features (adaptive-average-pooled to 8x10 before PCA) and of
   the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
   (query | top-3, green = correct).
@@ -79,6 +84,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     # queries flagged degenerate, 3 gave 2.4 m / 28 %, 5 gave 4.9 m / 13 %: the nearest bases
     # have the accurate directions; the JSON holds every k in 2-5 (keys ..._top<k>)
     p.add_argument("--top-k", type=int, default=2, help="base images per absolute position")
+    p.add_argument(
+        "--rerank-k", type=int, default=3, help="candidates re-ranked by predicted distance"
+    )
     p.add_argument("--gps-radius", type=float, default=25.0, help="GPS window radius, m")
     p.add_argument("--gps-sigma", type=float, default=2.0, help="GPS noise per axis, m")
     p.add_argument("--seed", type=int, default=0)
@@ -160,16 +168,19 @@ def _median(x: np.ndarray) -> float:
 
 
 def relpose_predictions(head: torch.nn.Module, fa: torch.Tensor, fb: torch.Tensor) -> tuple:
-    """Head outputs as NumPy ``(R_ab (n, 3, 3), t_dir (n, 3))`` for feature pairs."""
+    """Head outputs as NumPy ``(R_ab (n, 3, 3), t_dir (n, 3), baseline (n,) or None)`` for
+    feature pairs (the baseline in metres when the head predicts distances)."""
     from geoseg.models.relpose import so3_exp
 
-    rots, dirs = [], []
+    rots, dirs, dists = [], [], []
     with torch.no_grad():
         for s in range(0, fa.shape[0], 64):
             out = head(fa[s : s + 64].float(), fb[s : s + 64].float())
             rots.append(so3_exp(out["rotation"].double()).numpy())
             dirs.append(out["direction"].double().numpy())
-    return np.concatenate(rots), np.concatenate(dirs)
+            if "log_distance" in out:
+                dists.append(out["log_distance"].double().exp().numpy())
+    return np.concatenate(rots), np.concatenate(dirs), np.concatenate(dists) if dists else None
 
 
 def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
@@ -218,9 +229,11 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
                 travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
             )
             fa, fb = feats[i][pairs.idx_a], feats[j][pairs.idx_b]
-            R, t = relpose_predictions(head, fa, fb)
+            R, t, dist = relpose_predictions(head, fa, fb)
             errs.setdefault("head_rot", []).append(rotation_error_deg(R, pairs.R_ab))
             errs.setdefault("head_dir", []).append(direction_error_deg(t, pairs.t_dir_ab))
+            if dist is not None:
+                errs.setdefault("head_dist", []).append(np.abs(dist / pairs.baseline_m - 1.0))
             for method in ("orb", "sift"):
                 rot, dirn = [], []
                 rows = zip(pairs.idx_a, pairs.idx_b, pairs.R_ab, pairs.t_dir_ab)
@@ -238,13 +251,15 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
             all_err.setdefault(key, []).append(arr)
             who, what = key.split("_")
             prefix = "relpose" if who == "head" else f"essential_{who}"
-            res[f"{prefix}_{what}_median_deg_{group}"] = _median(arr)
+            unit = "rel" if what == "dist" else "deg"
+            res[f"{prefix}_{what}_median_{unit}_{group}"] = _median(arr)
             if who != "head" and what == "rot":
                 res[f"essential_{who}_failure_share_{group}"] = float(np.mean(~np.isfinite(arr)))
     for key, parts in all_err.items():
         who, what = key.split("_")
         prefix = "relpose" if who == "head" else f"essential_{who}"
-        res[f"{prefix}_{what}_median_deg"] = _median(np.concatenate(parts))
+        unit = "rel" if what == "dist" else "deg"
+        res[f"{prefix}_{what}_median_{unit}"] = _median(np.concatenate(parts))
         if who != "head" and what == "rot":
             res[f"essential_{who}_failure_share"] = float(
                 np.mean(~np.isfinite(np.concatenate(parts)))
@@ -254,60 +269,119 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
     res["essential_dir_median_deg"] = res["essential_sift_dir_median_deg"]
 
 
+def _candidate_poses(head, f_db, f_q, keep: np.ndarray, ranked: np.ndarray) -> tuple:
+    """Head predictions for every (candidate, query) pair of ``ranked`` ``(Q, K)``:
+    ``(directions (Q, K, 3), baselines (Q, K) or None)``; zeros / inf at padding slots."""
+    dirs = np.zeros((*ranked.shape, 3))
+    dist = np.full(ranked.shape, np.inf)
+    has_dist = True
+    for row, (q, cand) in enumerate(zip(keep, ranked)):
+        c = cand[cand >= 0]
+        if c.size == 0:
+            continue
+        _, t, d = relpose_predictions(head, f_db[c], f_q[q : q + 1].expand(c.size, -1, -1, -1))
+        dirs[row, : c.size] = t
+        if d is None:
+            has_dist = False
+        else:
+            dist[row, : c.size] = d
+    return dirs, (dist if has_dist else None)
+
+
+def _reorder(order: np.ndarray, *arrays: np.ndarray) -> list[np.ndarray]:
+    """Apply a per-row permutation ``(Q, K)`` to ``(Q, K, ...)`` arrays."""
+    return [
+        np.take_along_axis(a, order.reshape(order.shape + (1,) * (a.ndim - 2)), axis=1)
+        for a in arrays
+    ]
+
+
 def measure_abs_position(res: dict, db, qr, f_db, f_q, head, retrieval: dict, args) -> None:
-    """Absolute position from the top-k retrieved base images (learned, GPS window), for the
-    headline ``args.top_k`` and for every k in 2-5 (keys ``..._top<k>``)."""
-    from geoseg.localize import absolute_position
+    """Re-ranking by predicted distance, and the absolute position of each query from its
+    top-k base images (learned embedding, GPS window), for the headline ``args.top_k`` and for
+    every k in 1-5 (keys ``..._top<k>``).
+
+    Methods: direction rays only (:func:`intersect_rays`, k >= 2, in embedding order; also with
+    the true directions: the geometric limit) and, when the head predicts distances, ranged
+    rays (:func:`locate_from_ranged_rays`) over the candidates re-ranked by predicted distance
+    (``--rerank-k``). The headline keys hold the ranged method when available.
+    """
+    from geoseg.localize import absolute_position, recall_at_k, rerank_by_distance
     from geoseg.models.relpose import relative_pose_labels
 
     keep = np.flatnonzero(retrieval["keep"])
+    sets = [retrieval["truth"][q] for q in keep]
     index = retrieval["index"]["learned"]
-    q_emb = retrieval["q_learned"]
-    ks = sorted({2, 3, 4, 5, args.top_k})
-    ranked, _ = index.query(
-        q_emb[keep], k=max(ks), gps=retrieval["gps"][keep], radius_m=args.gps_radius
-    )
-    errors: dict[int, list] = {k: [] for k in ks}
-    errors_true: dict[int, list] = {k: [] for k in ks}
-    degenerate = dict.fromkeys(ks, 0)
-    degenerate_true = dict.fromkeys(ks, 0)
-    for q, row in zip(keep, ranked):
-        ranked_base = row[row >= 0]  # best first
-        _, dirs_all = relpose_predictions(
-            head, f_db[ranked_base], f_q[q : q + 1].expand(ranked_base.size, -1, -1, -1)
+    q_emb = retrieval["q_learned"][keep]
+    ks = sorted({1, 2, 3, 4, 5, args.top_k})
+    ranked, _ = index.query(q_emb, k=max(ks), gps=retrieval["gps"][keep], radius_m=args.gps_radius)
+    dirs, dist = _candidate_poses(head, f_db, f_q, keep, ranked)
+    order = np.broadcast_to(np.arange(ranked.shape[1]), ranked.shape)
+    if dist is not None:
+        m = args.rerank_k
+        head_order = rerank_by_distance(ranked[:, :m], dist[:, :m])[2]
+        order = np.concatenate([head_order, order[:, m:]], axis=1)
+        res["recall_at_1_gps_window_reranked"] = recall_at_k(
+            np.take_along_axis(ranked, order, 1), sets, k=1
         )
-        for k in ks:
-            base, dirs = ranked_base[:k], dirs_all[:k]
-            if base.size < 2:
-                degenerate[k] += 1
-                degenerate_true[k] += 1
-                continue
-            sol = absolute_position(db.R_wc[base], db.t_wc[base], dirs)
-            if sol.degenerate:
-                degenerate[k] += 1
-            else:
-                errors[k].append(float(np.linalg.norm(sol.point[:2] - qr.t_wc[q, :2])))
-            dist = np.linalg.norm(db.t_wc[base] - qr.t_wc[q], axis=1)
-            if (dist < 1e-6).any():
-                degenerate_true[k] += 1
-                continue
-            _, t_true = relative_pose_labels(
-                db.R_wc[base], db.t_wc[base], np.repeat(qr.R_wc[q : q + 1], base.size, 0),
-                np.repeat(qr.t_wc[q : q + 1], base.size, 0),
-            )  # fmt: skip
-            sol_true = absolute_position(db.R_wc[base], db.t_wc[base], t_true)
-            if sol_true.degenerate:
-                degenerate_true[k] += 1
-            else:
-                errors_true[k].append(float(np.linalg.norm(sol_true.point[:2] - qr.t_wc[q, :2])))
+        whole, _ = index.query(q_emb, k=m)
+        _, wdist = _candidate_poses(head, f_db, f_q, keep, whole)
+        res["recall_at_1_reranked"] = recall_at_k(rerank_by_distance(whole, wdist)[0], sets, k=1)
+        res["rerank_k"] = m
+    methods = {"rays_only": (ranked, dirs, None)}
+    if dist is not None:
+        methods["ranged"] = tuple(_reorder(order, ranked, dirs, dist))
     n = max(len(keep), 1)
-    for k in ks:
-        suffix = "" if k == args.top_k else f"_top{k}"
-        res[f"abs_position_median_m{suffix}"] = _median(np.asarray(errors[k]))
-        res[f"abs_position_degenerate_share{suffix}"] = degenerate[k] / n
-        res[f"abs_position_median_m_true_directions{suffix}"] = _median(np.asarray(errors_true[k]))
-        res[f"abs_position_degenerate_share_true_directions{suffix}"] = degenerate_true[k] / n
+    for method, (rk, dd, ds) in methods.items():
+        for k in ks:
+            if ds is None and k < 2:
+                continue
+            errors, errors_true, degenerate, degenerate_true = [], [], 0, 0
+            for row, q in enumerate(keep):
+                valid = rk[row, :k] >= 0
+                base = rk[row, :k][valid]
+                if base.size < (1 if ds is not None else 2):
+                    degenerate += 1
+                    degenerate_true += 1
+                    continue
+                ranges = None if ds is None else ds[row, :k][valid]
+                sol = absolute_position(db.R_wc[base], db.t_wc[base], dd[row, :k][valid], ranges)
+                if sol.degenerate:
+                    degenerate += 1
+                else:
+                    errors.append(float(np.linalg.norm(sol.point[:2] - qr.t_wc[q, :2])))
+                if ds is not None:
+                    continue
+                if (np.linalg.norm(db.t_wc[base] - qr.t_wc[q], axis=1) < 1e-6).any():
+                    degenerate_true += 1
+                    continue
+                _, t_true = relative_pose_labels(
+                    db.R_wc[base], db.t_wc[base], np.repeat(qr.R_wc[q : q + 1], base.size, 0),
+                    np.repeat(qr.t_wc[q : q + 1], base.size, 0),
+                )  # fmt: skip
+                sol_true = absolute_position(db.R_wc[base], db.t_wc[base], t_true)
+                if sol_true.degenerate:
+                    degenerate_true += 1
+                else:
+                    errors_true.append(float(np.linalg.norm(sol_true.point[:2] - qr.t_wc[q, :2])))
+            headline = method == ("ranged" if dist is not None else "rays_only")
+            suffix = ("" if headline else f"_{method}") + ("" if k == args.top_k else f"_top{k}")
+            res[f"abs_position_median_m{suffix}"] = _median(np.asarray(errors))
+            res[f"abs_position_p90_m{suffix}"] = (
+                float(np.quantile(errors, 0.9)) if errors else float("nan")
+            )
+            res[f"abs_position_degenerate_share{suffix}"] = degenerate / n
+            if ds is None:  # the geometry of direction rays, with the true directions
+                tail = "_true_directions" + ("" if k == args.top_k else f"_top{k}")
+                res[f"abs_position_median_m{tail}"] = _median(np.asarray(errors_true))
+                res[f"abs_position_degenerate_share{tail}"] = degenerate_true / n
     res["abs_position_top_k"] = args.top_k
+    res["abs_position_method"] = (
+        f"ranged rays (predicted direction + distance) from the top-{args.top_k} GPS-window "
+        f"candidates re-ranked by predicted distance among the top-{args.rerank_k}"
+        if dist is not None
+        else f"direction rays from the top-{args.top_k} GPS-window candidates"
+    )
 
 
 # ----------------------------------------------------------------------------- figures

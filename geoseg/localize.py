@@ -14,7 +14,11 @@ Two steps:
    frame. :func:`absolute_position` rotates these directions into the world frame and
    :func:`intersect_rays` returns the point closest (least squares) to the rays, robustly
    (RANSAC over ray pairs + refit on the inliers) and with a degeneracy flag for near-parallel
-   ray sets.
+   ray sets. When the head also predicts the baseline (``predict_distance``), each ray carries a
+   range and :func:`locate_from_ranged_rays` fuses rays and ranges by weighted least squares:
+   one base image then suffices and bases collinear with the query (a straight street, where
+   rays alone are degenerate) still place it. :func:`rerank_by_distance` orders retrieved
+   candidates by the predicted baseline (the nearest base first).
 
 Frames (DESIGN §4): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
 positions are in the world frame's ``(x, y)`` (projected), in metres.
@@ -473,6 +477,7 @@ def absolute_position(
     base_R_wc: Any,
     base_t_wc: Any,
     directions_in_base_camera: Any,
+    distances: Any = None,
     **kwargs: Any,
 ) -> RayIntersection:
     """Absolute position of a query from ``N >= 2`` georeferenced base cameras (fig. 5.6).
@@ -483,11 +488,17 @@ def absolute_position(
     relative-pose head for the pair (base, query), or ``t_dir_ab`` of
     :func:`geoseg.models.relpose.relative_pose_labels` with ``a`` = base, ``b`` = query).
 
+    With ``distances`` (the head's predicted baselines) the rays are ranged and
+    :func:`locate_from_ranged_rays` places the query, from ``N >= 1`` base cameras.
+
     Args:
         base_R_wc: ``(N, 3, 3)`` base camera-to-world rotations.
         base_t_wc: ``(N, 3)`` base camera centres in the world frame.
         directions_in_base_camera: ``(N, 3)`` directions base -> query, base camera frame.
-        **kwargs: forwarded to :func:`intersect_rays` (``robust``, ``inlier_angle_deg``, ...).
+        distances: ``(N,)`` baselines base -> query in metres, or None (rays only).
+        **kwargs: forwarded to :func:`intersect_rays` (``robust``, ``inlier_angle_deg``, ...)
+            or, with ``distances``, to :func:`locate_from_ranged_rays` (``angle_sigma_deg``,
+            ``range_sigma``, ...).
 
     Returns:
         :class:`RayIntersection` with ``point`` the query's camera centre in the world frame.
@@ -501,4 +512,170 @@ def absolute_position(
     check_shape("directions_in_base_camera", dc, (n, 3))
     check_finite("base_R_wc", R)
     dw = np.einsum("nij,nj->ni", R, dc)
+    if distances is not None:
+        return locate_from_ranged_rays(t, dw, distances, **kwargs)
     return intersect_rays(t, dw, **kwargs)
+
+
+# ============================================================================ ranged rays
+
+
+def _ranged_information(
+    d: np.ndarray, r: np.ndarray, angle_sigma: float, range_sigma: float
+) -> np.ndarray:
+    """``(N, 3, 3)`` information matrices of the points ``o + r d``: across the ray
+    ``(I - d d^T) / (r sigma_angle)^2``, along it ``d d^T / (r sigma_range)^2``."""
+    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
+    along = d[:, :, None] * d[:, None, :]
+    return (
+        proj / (r * angle_sigma)[:, None, None] ** 2 + along / (r * range_sigma)[:, None, None] ** 2
+    )
+
+
+def _ranged_chi2(
+    p: np.ndarray,
+    o: np.ndarray,
+    d: np.ndarray,
+    r: np.ndarray,
+    angle_sigma: float,
+    range_sigma: float,
+) -> np.ndarray:
+    """``(N,)`` normalised squared errors of ``p`` against each ranged ray: angle between the ray
+    and ``p - o`` over ``sigma_angle``, log range ratio over ``sigma_range``."""
+    v = p[None, :] - o
+    dist = np.linalg.norm(v, axis=1)
+    ang = _angular_errors(p, o, d)
+    log_ratio = np.log(np.maximum(dist, 1e-9) / r)
+    return (ang / angle_sigma) ** 2 + (log_ratio / range_sigma) ** 2
+
+
+def locate_from_ranged_rays(
+    origins: Any,
+    directions: Any,
+    ranges: Any,
+    *,
+    angle_sigma_deg: float = 3.0,
+    range_sigma: float = 0.25,
+    robust: bool = True,
+    inlier_chi2: float = 9.0,
+) -> RayIntersection:
+    """The point seen from ``N >= 1`` origins along given directions at given ranges.
+
+    Each ranged ray proposes the point ``q_n = o_n + r_n d_n`` with an anisotropic Gaussian error:
+    across the ray ``r_n sigma_angle`` (an angular error grows with the range), along it
+    ``r_n sigma_range`` (a relative range error). The estimate is the weighted least-squares
+    point ``(sum A_n)^-1 sum A_n q_n`` with ``A_n = P_n / (r_n sigma_angle)^2 +
+    d_n d_n^T / (r_n sigma_range)^2``, ``P_n = I - d_n d_n^T``: where rays cross, their
+    directions fix the point (the ray intersection of :func:`intersect_rays`, range-weighted);
+    along near-parallel rays the ranges fix it, so there is no degenerate configuration.
+
+    Robust mode (``N > 1``): each ``q_n`` is a hypothesis; a ray is its inlier when its angular
+    and log-range errors (over their sigmas) have a squared sum below ``inlier_chi2``; the
+    hypothesis with most inliers (ties: smallest summed, capped error) wins and the point is
+    refit on its inliers, re-evaluated once and refit.
+
+    Args:
+        origins: ``(N, 3)`` ray origins (world frame).
+        directions: ``(N, 3)`` directions (normalised here).
+        ranges: ``(N,)`` distances from each origin to the point, metres, > 0.
+        angle_sigma_deg: standard deviation of the direction error, degrees, > 0.
+        range_sigma: standard deviation of ``log(range)`` (~ the relative range error), > 0.
+        robust: hypothesise-and-verify + refit when True; all rays when False.
+        inlier_chi2: inlier threshold on the normalised squared error (9: 3 sigma in one term).
+
+    Returns:
+        :class:`RayIntersection`; ``degenerate`` is always False, ``residuals`` are the
+        distances of the point to each ray's line, ``condition`` and ``min_eigenvalue`` those of
+        the information matrix ``sum A_n`` (``min_eigenvalue`` in m^-2, not normalised).
+
+    Raises:
+        GeosegError: mismatched shapes, no ray, zero directions, ranges <= 0, bad sigmas.
+    """
+    o = _to_numpy("origins", origins)
+    d = _to_numpy("directions", directions)
+    r = _to_numpy("ranges", ranges)
+    check_shape("origins", o, (None, 3))
+    n = o.shape[0]
+    if n < 1:
+        raise GeosegError("origins: at least 1 ranged ray is needed, got 0")
+    check_shape("directions", d, (n, 3))
+    check_shape("ranges", r, (n,))
+    for name, v in (("origins", o), ("directions", d), ("ranges", r)):
+        check_finite(name, v)
+    if (r <= 0).any():
+        raise GeosegError("ranges: expected distances > 0 m")
+    norms = np.linalg.norm(d, axis=1)
+    if (norms < 1e-12).any():
+        raise GeosegError("directions: zero-length direction vector")
+    check_positive("angle_sigma_deg", angle_sigma_deg)
+    check_positive("range_sigma", range_sigma)
+    check_positive("inlier_chi2", inlier_chi2)
+    d = d / norms[:, None]
+    sig_a = float(np.deg2rad(angle_sigma_deg))
+    info = _ranged_information(d, r, sig_a, range_sigma)
+    q = o + r[:, None] * d
+
+    def fit(mask: np.ndarray) -> np.ndarray:
+        a = info[mask].sum(axis=0)
+        return np.linalg.solve(a, np.einsum("nij,nj->i", info[mask], q[mask]))
+
+    inliers = np.ones(n, dtype=bool)
+    if robust and n > 1:
+        best: tuple[int, float] | None = None
+        for k in range(n):
+            chi2 = _ranged_chi2(q[k], o, d, r, sig_a, range_sigma)
+            inl = chi2 < inlier_chi2
+            key = (int(inl.sum()), -float(np.minimum(chi2, inlier_chi2).sum()))
+            if best is None or key > best:
+                best, inliers = key, inl
+        for _ in range(2):
+            new = _ranged_chi2(fit(inliers), o, d, r, sig_a, range_sigma) < inlier_chi2
+            if not new.any() or np.array_equal(new, inliers):
+                break
+            inliers = new
+    point = fit(inliers)
+    w = np.linalg.eigvalsh(info[inliers].sum(axis=0))
+    return RayIntersection(
+        point=point,
+        residuals=_line_distances(point, o, d),
+        inliers=inliers,
+        degenerate=False,
+        condition=float(w[-1] / w[0]),
+        min_eigenvalue=float(w[0]),
+    )
+
+
+def rerank_by_distance(ranked: Any, distances: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Reorder each query's retrieved candidates by the predicted baseline, nearest first.
+
+    Retrieval ranks base images by appearance; on a street of regularly spaced base images the
+    two neighbours of a query look alike and the farther one can win. The relative-pose head's
+    distance output tells which of them is nearer.
+
+    Args:
+        ranked: ``(Q, K)`` base indices per query, best first (``-1`` = padding).
+        distances: ``(Q, K)`` predicted baselines (metres) query <-> candidate; ignored at
+            padding slots.
+
+    Returns:
+        ``(ranked (Q, K) int64, distances (Q, K) float64, order (Q, K) int64)``: sorted by
+        increasing predicted distance per query (stable: ties keep the appearance order),
+        padding last; ``order`` is the permutation (``ranked_out = take(ranked, order)``), to
+        reorder anything else held per candidate.
+    """
+    idx = np.asarray(ranked)
+    check_shape("ranked", idx, (None, None))
+    if not np.issubdtype(idx.dtype, np.integer):
+        raise GeosegError(f"ranked: expected integer indices, got dtype {idx.dtype}")
+    dist = _to_numpy("distances", distances)
+    check_shape("distances", dist, idx.shape)
+    valid = idx >= 0
+    if not np.isfinite(dist[valid]).all():
+        raise GeosegError("distances: NaN or inf at a candidate slot")
+    key = np.where(valid, dist, np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    return (
+        np.take_along_axis(idx, order, axis=1).astype(np.int64),
+        np.take_along_axis(key, order, axis=1),
+        order.astype(np.int64),
+    )

@@ -11,13 +11,19 @@ targets ``R_ab`` and the unit direction a -> b in camera a's frame
 (:func:`geoseg.models.relpose.relative_pose_labels`). ``pairs_per_epoch`` fresh pairs are drawn
 every epoch (seeded by ``(seed, epoch)``) and spread evenly over the routes and ordered
 traversal pairs (same and cross condition alike): fresh pairs every epoch fight the overfitting
-that stopped the thesis's network. Loss: eq. 5.2 with weight ``lam`` on the direction term.
+that stopped the thesis's network. Loss: eq. 5.2 with weight ``lam`` on the direction term, plus
+``mu`` times the squared log-baseline error when the head predicts distances
+(``model_config.predict_distance``). Such a head also sees ``far_pairs_per_epoch`` pairs with
+baselines beyond ``max_baseline_m`` (up to ``far_max_baseline_m``) that train the distance
+term only: retrieval candidates 10-30 m from the query must read as far to be re-ranked behind
+the near one, while far pairs blur the direction (see configs/relpose.yaml).
 
 Validation: eq. 5.2, and the median / mean rotation and direction errors (degrees; medians from
-a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs.
+a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs; with
+distances, the median relative baseline error ``|d_est / d_gt - 1|``.
 
 ``model.pt`` / ``model.onnx`` hold the head alone: ``(feat_a, feat_b)`` ``(B, 128, h, w)`` each
--> ``{"rotation": (B, 3), "direction": (B, 3)}``.
+-> ``{"rotation": (B, 3), "direction": (B, 3)}`` (and ``"log_distance": (B,)``).
 
 Usage::
 
@@ -41,7 +47,7 @@ from geoseg.data.pairs import sample_relpose_pairs
 from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
-from geoseg.models.relpose import relpose_loss, so3_exp
+from geoseg.models.relpose import log_distance_error, relpose_loss, so3_exp
 from training import common
 from training.heads import (
     HeadTrainConfig,
@@ -77,6 +83,11 @@ class RelPoseConfig(HeadTrainConfig):
         min_baseline_m, max_baseline_m: baseline range of a pair, metres.
         max_angle_deg: largest angle between the two optical axes.
         lam: weight of the direction term of eq. 5.2.
+        mu: weight of the log-baseline term (heads with ``predict_distance`` only).
+        far_pairs_per_epoch: extra pairs per epoch with baselines in
+            ``(max_baseline_m, far_max_baseline_m]`` for the distance term alone (heads with
+            ``predict_distance`` only; 0: none).
+        far_max_baseline_m: largest baseline of the far pairs, metres.
     """
 
     trainer: ClassVar[str] = "relpose"
@@ -92,13 +103,30 @@ class RelPoseConfig(HeadTrainConfig):
     max_baseline_m: float = 10.0
     max_angle_deg: float = 30.0
     lam: float = 1.0
+    mu: float = 1.0
+    far_pairs_per_epoch: int = 0
+    far_max_baseline_m: float = 30.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if not 0 < self.min_baseline_m <= self.max_baseline_m:
             raise ConfigError("min_baseline_m, max_baseline_m: expected 0 < min <= max")
-        if not self.lam > 0:
-            raise ConfigError(f"lam: expected > 0, got {self.lam}")
+        for name in ("lam", "mu"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"{name}: expected > 0, got {getattr(self, name)}")
+        if self.far_pairs_per_epoch < 0:
+            raise ConfigError(f"far_pairs_per_epoch: expected >= 0, got {self.far_pairs_per_epoch}")
+        if self.far_pairs_per_epoch:
+            if not dict(self.model_config or {}).get("predict_distance", False):
+                raise ConfigError(
+                    "far_pairs_per_epoch: far pairs train the distance output only; set "
+                    "model_config.predict_distance: true (or far_pairs_per_epoch: 0)"
+                )
+            if not self.far_max_baseline_m > self.max_baseline_m:
+                raise ConfigError(
+                    f"far_max_baseline_m: expected > max_baseline_m ({self.max_baseline_m}), "
+                    f"got {self.far_max_baseline_m}"
+                )
 
 
 CONFIG_CLASS = RelPoseConfig
@@ -123,13 +151,25 @@ class PairRegressor(nn.Module):
 
 
 class RelPoseLoss:
-    """Eq. 5.2 (:func:`relpose_loss`) against ``batch["R_ab"]``, ``batch["t_dir_ab"]``."""
+    """Eq. 5.2 (:func:`relpose_loss`) against ``batch["R_ab"]``, ``batch["t_dir_ab"]``, plus
+    ``mu`` times the squared log-baseline error against ``batch["baseline_m"]`` when the head
+    predicts distances; ``batch["pose_weight"]`` (when present) weighs the eq. 5.2 terms per
+    pair (0 for the far, distance-only pairs)."""
 
-    def __init__(self, lam: float = 1.0) -> None:
+    def __init__(self, lam: float = 1.0, mu: float = 1.0) -> None:
         self.lam = float(lam)
+        self.mu = float(mu)
 
     def __call__(self, outputs: dict[str, torch.Tensor], batch: dict[str, Any]) -> torch.Tensor:
-        return relpose_loss(outputs, batch["R_ab"], batch["t_dir_ab"], lam=self.lam)
+        loss = relpose_loss(
+            outputs, batch["R_ab"], batch["t_dir_ab"], lam=self.lam, reduction="none"
+        )
+        if "pose_weight" in batch:
+            loss = loss * batch["pose_weight"].to(loss.dtype)
+        if "log_distance" in outputs:
+            err = log_distance_error(outputs["log_distance"], batch["baseline_m"])
+            loss = loss + self.mu * err * err
+        return loss.mean()
 
 
 def pose_errors_deg(
@@ -154,39 +194,50 @@ def pose_errors_deg(
 
 class RelPoseMeter(Meter):
     """Rotation and direction errors (degrees): means, medians (0.05-degree histograms) and the
-    shares within the issue's targets (2 and 10 degrees)."""
+    shares within the issue's targets (2 and 10 degrees); with distance outputs, the relative
+    baseline error ``|d_est / d_gt - 1|`` (median from 0.1 % bins over [0, 3.6], mean, share
+    within 20 %)."""
 
-    bins = 3600  # 0.05 degree over [0, 180]
+    bins = 3600  # 0.05 degree over [0, 180]; 0.001 of relative distance error over [0, 3.6]
+    # name -> (histogram range, unit suffix, "within" limit)
+    errors = {"rot": (180.0, "deg", 2.0), "dir": (180.0, "deg", 10.0), "dist": (3.6, "rel", 0.2)}
 
     def reset(self) -> None:
-        self.state = {
-            "rot_hist": torch.zeros(self.bins, dtype=torch.float64),
-            "dir_hist": torch.zeros(self.bins, dtype=torch.float64),
-            "rot_sum": torch.zeros((), dtype=torch.float64),
-            "dir_sum": torch.zeros((), dtype=torch.float64),
-        }
+        self.state = {}
+        for name in self.errors:
+            self.state[f"{name}_hist"] = torch.zeros(self.bins, dtype=torch.float64)
+            self.state[f"{name}_sum"] = torch.zeros((), dtype=torch.float64)
 
     def update(self, outputs: Any, batch: Any) -> None:
         rot, dirn = pose_errors_deg(outputs, batch["R_ab"], batch["t_dir_ab"])
-        for name, err in (("rot", rot), ("dir", dirn)):
-            idx = (err / 180.0 * self.bins).long().clamp(0, self.bins - 1)
+        errs = {"rot": rot, "dir": dirn}
+        if "log_distance" in outputs:
+            d = outputs["log_distance"].detach().double().cpu().exp()
+            errs["dist"] = (d / batch["baseline_m"].double().cpu() - 1.0).abs()
+        for name, err in errs.items():
+            top = self.errors[name][0]
+            idx = (err / top * self.bins).long().clamp(0, self.bins - 1)
             self.state[f"{name}_hist"] += torch.bincount(idx, minlength=self.bins).double()
             self.state[f"{name}_sum"] += err.sum()
 
     def compute(self) -> dict[str, float]:
         out: dict[str, float] = {}
-        width = 180.0 / self.bins
-        for name, limit in (("rot", 2.0), ("dir", 10.0)):
+        for name, (top, unit, limit) in self.errors.items():
             hist = self.state[f"{name}_hist"]
             n = float(hist.sum())
             if n == 0:
-                out.update({f"{name}_median_deg": float("nan"), f"{name}_mean_deg": float("nan")})
+                if name != "dist":  # no distance output: no distance figures
+                    out.update(
+                        {f"{name}_median_{unit}": float("nan"), f"{name}_mean_{unit}": float("nan")}
+                    )
                 continue
+            width = top / self.bins
             cdf = torch.cumsum(hist, 0)
             k = int(torch.searchsorted(cdf, torch.tensor(n / 2.0, dtype=torch.float64)))
-            out[f"{name}_median_deg"] = (k + 0.5) * width
-            out[f"{name}_mean_deg"] = float(self.state[f"{name}_sum"]) / n
-            out[f"{name}_within_{limit:g}deg"] = float(hist[: int(limit / width)].sum()) / n
+            out[f"{name}_median_{unit}"] = (k + 0.5) * width
+            out[f"{name}_mean_{unit}"] = float(self.state[f"{name}_sum"]) / n
+            within = f"{limit:g}deg" if unit == "deg" else f"{limit:g}"
+            out[f"{name}_within_{within}"] = float(hist[: round(limit / width)].sum()) / n
         return out
 
 
@@ -198,51 +249,81 @@ class PairSet(Dataset):
         n: pairs per draw (spread evenly over routes and ordered traversal pairs, same-condition
             pairs included).
         seed: seeds every draw (``(seed, epoch)``).
+        n_far: extra distance-only pairs per draw, baselines in
+            ``(max_baseline_m, far_max_baseline_m]`` (``pose_weight`` 0).
+        far_max_baseline_m: largest baseline of the far pairs (needed when ``n_far > 0``).
         pair_kwargs: :func:`sample_relpose_pairs` thresholds.
 
     Items: ``{"image": (2, C, h, w) float32, "R_ab": (3, 3) float32, "t_dir_ab": (3,) float32,
+    "baseline_m": () float32, "pose_weight": () float32 (1, or 0 for far pairs),
     "same_condition": () bool, "index": (5,) int64 (route, trav a, trav b, a, b)}``.
     """
 
     def __init__(
-        self, routes: Sequence[RouteFeatures], n: int, *, seed: int = 0, **pair_kwargs: Any
+        self,
+        routes: Sequence[RouteFeatures],
+        n: int,
+        *,
+        seed: int = 0,
+        n_far: int = 0,
+        far_max_baseline_m: float | None = None,
+        **pair_kwargs: Any,
     ) -> None:
         if not routes:
             raise GeosegError("routes: no route to draw pairs from")
+        if n_far and far_max_baseline_m is None:
+            raise GeosegError("far_max_baseline_m: required with far pairs (n_far > 0)")
         feature_shape(routes)
         self.routes = list(routes)
         self.n = int(n)
+        self.n_far = int(n_far)
+        self.far_max_baseline_m = far_max_baseline_m
         self.seed = int(seed)
         self.pair_kwargs = pair_kwargs
         self.resample(0)
 
-    def resample(self, epoch: int) -> None:
-        """Draw this epoch's pairs."""
+    def _draw(self, n: int, rng: np.random.Generator, **thresholds: Any) -> tuple:
+        """``n`` pairs spread over routes and ordered traversal pairs: ``(index (n, 5), R_ab,
+        t_dir_ab, baseline_m)`` as NumPy arrays."""
         jobs = [
             (r, i, j)
             for r, route in enumerate(self.routes)
             for i in range(len(route.traversals))
             for j in range(len(route.traversals))
         ]
-        rng = np.random.default_rng(np.random.SeedSequence([self.seed, int(epoch), 5202]))
-        index, R, t = [], [], []
-        for (r, i, j), count in zip(jobs, split_count(self.n, len(jobs))):
+        index, R, t, baseline = [], [], [], []
+        for (r, i, j), count in zip(jobs, split_count(n, len(jobs))):
             if count == 0:
                 continue
             travs = self.routes[r].traversals
             pairs = sample_relpose_pairs(
-                travs[i].poses, travs[j].poses, count, rng=rng, **self.pair_kwargs
+                travs[i].poses, travs[j].poses, count, rng=rng, **thresholds
             )
             block = np.stack([np.full(count, r), np.full(count, i), np.full(count, j)], 1)
             index.append(np.concatenate([block, np.stack([pairs.idx_a, pairs.idx_b], 1)], 1))
             R.append(pairs.R_ab)
             t.append(pairs.t_dir_ab)
-        self.index = np.concatenate(index).astype(np.int64)
-        self.R_ab = torch.from_numpy(np.concatenate(R)).float()
-        self.t_dir_ab = torch.from_numpy(np.concatenate(t)).float()
+            baseline.append(pairs.baseline_m)
+        return tuple(np.concatenate(x) for x in (index, R, t, baseline))
+
+    def resample(self, epoch: int) -> None:
+        """Draw this epoch's pairs (the pose pairs first: far pairs leave them unchanged)."""
+        rng = np.random.default_rng(np.random.SeedSequence([self.seed, int(epoch), 5202]))
+        parts = [self._draw(self.n, rng, **self.pair_kwargs)]
+        if self.n_far:
+            far = dict(self.pair_kwargs)
+            far["min_baseline_m"] = far.get("max_baseline_m", 10.0) + 1e-6
+            far["max_baseline_m"] = self.far_max_baseline_m
+            parts.append(self._draw(self.n_far, rng, **far))
+        index, R, t, baseline = (np.concatenate(x) for x in zip(*parts))
+        self.index = index.astype(np.int64)
+        self.R_ab = torch.from_numpy(R).float()
+        self.t_dir_ab = torch.from_numpy(t).float()
+        self.baseline_m = torch.from_numpy(baseline).float()
+        self.pose_weight = (torch.arange(len(self)) < self.n).float()
 
     def __len__(self) -> int:
-        return self.n
+        return self.n + self.n_far
 
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         r, i, j, a, b = (int(v) for v in self.index[k])
@@ -251,6 +332,8 @@ class PairSet(Dataset):
             "image": torch.stack([feats[i][a], feats[j][b]]).float(),
             "R_ab": self.R_ab[k],
             "t_dir_ab": self.t_dir_ab[k],
+            "baseline_m": self.baseline_m[k],
+            "pose_weight": self.pose_weight[k],
             "same_condition": torch.tensor(i == j),
             "index": torch.from_numpy(self.index[k].copy()),
         }
@@ -272,14 +355,21 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         "max_baseline_m": cfg.max_baseline_m,
         "max_angle_deg": cfg.max_angle_deg,
     }
-    train_set = PairSet(data.train, cfg.pairs_per_epoch, seed=cfg.seed, **thresholds)
+    train_set = PairSet(
+        data.train,
+        cfg.pairs_per_epoch,
+        seed=cfg.seed,
+        n_far=cfg.far_pairs_per_epoch,
+        far_max_baseline_m=cfg.far_max_baseline_m,
+        **thresholds,
+    )
     val_set = PairSet(data.val, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)
     run_dir = fit_head(
         cfg,
         model,
         train_set,
         val_set,
-        RelPoseLoss(cfg.lam),
+        RelPoseLoss(cfg.lam, cfg.mu),
         RelPoseMeter(),
         model_name="relpose_pair",
     )
@@ -291,5 +381,8 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         kind="relpose",
         input_names=("feat_a", "feat_b"),
         command=command,
-        extra_card={"conventions": "R_ab = R_wc_a^T R_wc_b; direction a -> b in camera a's frame"},
+        extra_card={
+            "conventions": "R_ab = R_wc_a^T R_wc_b; direction a -> b in camera a's frame"
+            + ("; log_distance = ln |t_ab| in metres" if head.predict_distance else "")
+        },
     )

@@ -6,6 +6,12 @@ of the query's GPS position), the relative pose to each of them (the relative-po
 absolute position triangulated from the rays base -> query (:func:`geoseg.localize.absolute_position`)
 with its degeneracy flag. Prints a table; ``--out`` writes the same as JSON.
 
+A relative-pose head that predicts baselines (``predict_distance``) also gives each match its
+distance from the query: the matches are then re-ranked nearest first (``--no-rerank`` keeps
+the appearance order) and the position comes from ranged rays
+(:func:`geoseg.localize.locate_from_ranged_rays`), which one match already determines and which
+stay determined when the bases are collinear with the query.
+
 Embeddings: ``--model`` (a segmentation checkpoint or ONNX file exposing layer-21 features)
 gives the raw layer-21 matching of §5.1.1, ``--model`` + ``--reloc-head`` the learned embedding;
 without ``--model`` a normalised grey thumbnail is used, a placeholder baseline that only
@@ -53,6 +59,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--relpose-head", type=Path, help="trained relative-pose head checkpoint (needs --model)"
+    )
+    parser.add_argument(
+        "--no-rerank",
+        action="store_true",
+        help="keep the appearance order even when the relative-pose head predicts distances",
+    )
+    parser.add_argument(
+        "--position-k",
+        type=int,
+        help="matches used for the absolute position, best first (default: all --k)",
     )
     parser.add_argument(
         "--pool",
@@ -201,6 +217,8 @@ def _print_table(result: dict[str, Any]) -> None:
             rp = m["relative_pose"]
             if rp["ok"]:
                 pose = f"rot {rp['rotation_deg']:5.1f} deg, dir {_fmt_vec(rp['t_dir_ab'])}"
+                if rp.get("distance_m") is not None:
+                    pose += f", {rp['distance_m']:.1f} m away"
             else:
                 pose = f"failed: {rp['reason']}"
             print(
@@ -215,7 +233,7 @@ def _print_table(result: dict[str, Any]) -> None:
             x, y, z = pos["xyz"]
             print(
                 f"{'':<24} position: x {x:.2f}  y {y:.2f}  z {z:.2f} m "
-                f"({pos['n_inliers']}/{pos['n_rays']} rays)"
+                f"({pos['n_inliers']}/{pos['n_rays']} {pos['method']})"
             )
 
 
@@ -235,7 +253,7 @@ def run(args: argparse.Namespace) -> int:
         raw_layer21_embedder,
         read_rgb,
     )
-    from geoseg.localize import absolute_position
+    from geoseg.localize import absolute_position, rerank_by_distance
 
     # ---- arguments
     if isinstance(args.k, bool) or args.k < 1:
@@ -246,6 +264,8 @@ def run(args: argparse.Namespace) -> int:
         check_positive("--radius", args.radius)
     if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
         raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
+    if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
+        raise GeosegError(f"--position-k: expected an int >= 1, got {args.position_k}")
     if args.pool is not None and (args.model is None or min(args.pool) < 1):
         raise GeosegError("--pool: needs --model and two sizes >= 1")
 
@@ -329,13 +349,22 @@ def run(args: argparse.Namespace) -> int:
                 out = relpose_head(fa, fb)
             R_ab = so3_exp(out["rotation"].double())[0].cpu().numpy()
             t_dir = out["direction"][0].double().cpu().numpy()
-            return {"ok": True, "reason": "", "R_ab": R_ab, "t_dir_ab": t_dir, "n_inliers": None}
+            dist = out.get("log_distance")
+            return {
+                "ok": True,
+                "reason": "",
+                "R_ab": R_ab,
+                "t_dir_ab": t_dir,
+                "distance_m": None if dist is None else float(dist[0].double().exp()),
+                "n_inliers": None,
+            }
         est = estimate_relative_pose(base_img, q_img, K, method=args.features)
         return {
             "ok": est.ok,
             "reason": est.reason,
             "R_ab": est.R_ab,
             "t_dir_ab": est.t_dir_ab,
+            "distance_m": None,  # an essential matrix has no scale
             "n_inliers": est.n_inliers,
         }
 
@@ -361,8 +390,18 @@ def run(args: argparse.Namespace) -> int:
                     "relative_pose": rp,
                 }
             )
-        ok = [m for m in matches if m["relative_pose"]["ok"]]
+        ranged = bool(matches) and all(
+            m["relative_pose"]["distance_m"] is not None for m in matches
+        )
+        if ranged and not args.no_rerank:
+            dist = np.array([[m["relative_pose"]["distance_m"] for m in matches]])
+            order = rerank_by_distance(np.arange(len(matches))[None], dist)[2][0]
+            matches = [matches[i] for i in order]
+        for r, m in enumerate(matches, start=1):
+            m["appearance_rank"], m["rank"] = m["rank"], r
+        ok = [m for m in matches if m["relative_pose"]["ok"]][: args.position_k]
         position: dict[str, Any] = {
+            "method": "ranged rays" if ranged else "rays",
             "xyz": None,
             "degenerate": True,
             "n_rays": len(ok),
@@ -376,12 +415,13 @@ def run(args: argparse.Namespace) -> int:
                 if args.radius is not None
                 else "no match"
             )
-        elif len(ok) < 2:
-            position["reason"] = f"{len(ok)} relative pose(s), at least 2 are needed"
+        elif len(ok) < (need := 1 if ranged else 2):
+            position["reason"] = f"{len(ok)} relative pose(s), at least {need} needed"
         else:
             idx = [m["index"] for m in ok]
             dirs = np.stack([m["relative_pose"]["t_dir_ab"] for m in ok])
-            ray = absolute_position(base.R_wc[idx], base.t_wc[idx], dirs)
+            ranges = [m["relative_pose"]["distance_m"] for m in ok] if ranged else None
+            ray = absolute_position(base.R_wc[idx], base.t_wc[idx], dirs, ranges)
             position.update(
                 xyz=None if ray.degenerate else ray.point,
                 degenerate=ray.degenerate,

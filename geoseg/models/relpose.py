@@ -7,6 +7,15 @@ a cheap local correlation), two 3x3 convolutions mix them, global mean and max p
 concatenated and an MLP regresses 6 numbers: 3 rotation coefficients and 3 translation
 components, the latter L2-normalised into the unit direction.
 
+With ``predict_distance=True`` a seventh output regresses the natural log of the baseline
+``|t_ab|`` in metres (an extension: the thesis's head gives the direction only). In a world of
+known scale (buildings, lanes and the camera height have metric sizes) the image motion between
+two views tells the baseline; with it one base image places the query
+(:func:`geoseg.localize.locate_from_ranged_rays`) where direction rays alone are degenerate
+(bases collinear with the query along a straight street), and among retrieved candidates the
+nearest base can be picked (:func:`geoseg.localize.rerank_by_distance`). Its loss is the squared
+log ratio, scale-free like the angular terms.
+
 With ``correlation_radius = r > 0`` a cost volume joins the fusion: the cosine similarity of
 each cell of ``a`` with the cells of ``b`` displaced by up to ``r`` cells in each direction,
 ``(2r + 1)^2`` channels (:func:`correlation_volume`). The product ``a * b`` only compares the
@@ -30,7 +39,8 @@ Conventions (all explicit, since the thesis leaves them open):
   ``w = (-a3, -a2, -a1)`` (the thesis calls it the cross-product matrix of ``a``, which holds
   only up to this sign/ordering). :func:`to_thesis_coefficients` /
   :func:`from_thesis_coefficients` convert; ``a^T a = w^T w``, so eq. 5.2 is the same in both.
-* Loss (eq. 5.2): ``lam (1 - T_est^T T_gt) + alpha^T alpha`` with
+* Loss (eq. 5.2): ``lam (1 - T_est^T T_gt) + alpha^T alpha`` (plus
+  ``mu (log d_est - log |t_ab|)^2`` for the distance output) with
   ``alpha = log(R_gt^T R_est)^vee``, i.e. the error is a right (body-frame) perturbation,
   ``R_est = R_gt exp([alpha]x)``; ``alpha^T alpha`` is the squared geodesic angle between the two
   rotations (the same for the left error ``R_est R_gt^T``). :func:`so3_exp` / :func:`so3_log`
@@ -61,6 +71,7 @@ __all__ = [
     "RelPoseHead",
     "correlation_volume",
     "from_thesis_coefficients",
+    "log_distance_error",
     "relative_pose_labels",
     "relpose_head",
     "relpose_loss",
@@ -73,6 +84,8 @@ __all__ = [
 
 # Below this squared angle the Taylor expansions are used (their truncation error is ~theta^6).
 _SMALL = 1e-6
+# Initial log-baseline output: ~4 m, mid-range of the training pairs (0.5-10 m).
+_LOG_DISTANCE_INIT = float(np.log(4.0))
 # cos(theta) below this uses the near-pi branch of the logarithm (theta > ~177.4 degrees).
 _NEAR_PI_COS = -0.999
 
@@ -265,6 +278,7 @@ class RelPoseHead(nn.Module):
         fc_dim: width of the hidden layer of the regression MLP.
         correlation_radius: radius ``r`` of the cost volume added to the fusion
             (:func:`correlation_volume`, on the branch maps, i.e. 1/16 of the image); 0: none.
+        predict_distance: also regress ``log |t_ab|`` (metres), output ``"log_distance"``.
     """
 
     def __init__(
@@ -274,8 +288,11 @@ class RelPoseHead(nn.Module):
         hidden_channels: int = 64,
         fc_dim: int = 256,
         correlation_radius: int = 0,
+        predict_distance: bool = False,
     ) -> None:
         super().__init__()
+        if not isinstance(predict_distance, bool):
+            raise GeosegError(f"predict_distance: expected a bool, got {predict_distance!r}")
         for name, v, low in (
             ("in_channels", in_channels, 1),
             ("hidden_channels", hidden_channels, 1),
@@ -286,6 +303,7 @@ class RelPoseHead(nn.Module):
                 raise GeosegError(f"{name}: expected an int >= {low}, got {v!r}")
         self.in_channels = in_channels
         self.correlation_radius = correlation_radius
+        self.predict_distance = predict_distance
         fused = 3 * hidden_channels + (2 * correlation_radius + 1) ** 2 * (correlation_radius > 0)
         self.branch = nn.Sequential(
             _conv_bn_relu(in_channels, in_channels, stride=2),
@@ -296,12 +314,18 @@ class RelPoseHead(nn.Module):
             _conv_bn_relu(128, 128, stride=2),
         )
         self.regress = nn.Sequential(
-            nn.Linear(256, fc_dim), nn.ReLU(inplace=True), nn.Linear(fc_dim, 6)
+            nn.Linear(256, fc_dim),
+            nn.ReLU(inplace=True),
+            nn.Linear(fc_dim, 6 + int(predict_distance)),
         )
-        # start near the identity rotation: small rotation outputs
+        # start near the identity rotation (small rotation outputs) and, for the distance, near
+        # a typical baseline of the training pairs
         with torch.no_grad():
             self.regress[-1].weight[:3].mul_(0.01)
             self.regress[-1].bias[:3].zero_()
+            if predict_distance:
+                self.regress[-1].weight[6:].mul_(0.01)
+                self.regress[-1].bias[6:].fill_(_LOG_DISTANCE_INIT)
 
     def forward(self, feat_a: torch.Tensor, feat_b: torch.Tensor) -> dict[str, torch.Tensor]:
         """Predict the relative pose of the pair ``(a, b)``.
@@ -312,7 +336,9 @@ class RelPoseHead(nn.Module):
 
         Returns:
             ``{"rotation": (B, 3)`` rotation vector of ``R_ab`` (usual hat convention),
-            ``"direction": (B, 3)}`` unit direction a -> b in camera a's frame.
+            ``"direction": (B, 3)`` unit direction a -> b in camera a's frame,
+            ``"log_distance": (B,)}`` natural log of the baseline in metres (only with
+            ``predict_distance``).
         """
         if not is_exporting():
             check_features("feat_a", feat_a, self.in_channels)
@@ -331,7 +357,9 @@ class RelPoseHead(nn.Module):
         pooled = torch.cat([x.mean(dim=(2, 3)), x.amax(dim=(2, 3))], dim=1)
         out = self.regress(pooled)
         rotation = out[:, :3]
-        direction = F.normalize(out[:, 3:], p=2.0, dim=1, eps=1e-12)
+        direction = F.normalize(out[:, 3:6], p=2.0, dim=1, eps=1e-12)
+        if self.predict_distance:
+            return {"rotation": rotation, "direction": direction, "log_distance": out[:, 6]}
         return {"rotation": rotation, "direction": direction}
 
 
@@ -341,6 +369,7 @@ def relpose_head(
     hidden_channels: int = 64,
     fc_dim: int = 256,
     correlation_radius: int = 0,
+    predict_distance: bool = False,
 ) -> RelPoseHead:
     """Build the relative-pose head (fig. 5.7). See :class:`RelPoseHead`."""
     return RelPoseHead(
@@ -348,7 +377,22 @@ def relpose_head(
         hidden_channels=hidden_channels,
         fc_dim=fc_dim,
         correlation_radius=correlation_radius,
+        predict_distance=predict_distance,
     )
+
+
+def log_distance_error(log_distance: torch.Tensor, distance_gt: torch.Tensor) -> torch.Tensor:
+    """``(B,)`` error ``log_distance - log(distance_gt)`` of the head's baseline output.
+
+    Args:
+        log_distance: ``(B,)`` predicted ``log |t_ab|`` (metres).
+        distance_gt: ``(B,)`` true baselines in metres, > 0.
+    """
+    check_shape("log_distance", log_distance, (None,))
+    check_shape("distance_gt", distance_gt, (log_distance.shape[0],))
+    if not bool((distance_gt > 0).all()):
+        raise GeosegError("distance_gt: expected baselines > 0 m")
+    return log_distance - torch.log(distance_gt.to(log_distance.dtype))
 
 
 def relpose_loss(
@@ -357,9 +401,14 @@ def relpose_loss(
     t_dir_gt: torch.Tensor,
     *,
     lam: float = 1.0,
+    distance_gt: torch.Tensor | None = None,
+    mu: float = 1.0,
     reduction: str = "mean",
 ) -> torch.Tensor:
     """Eq. 5.2: ``lam (1 - T_est^T T_gt) + alpha^T alpha``, ``alpha = log(R_gt^T R_est)^vee``.
+
+    With ``distance_gt``, plus ``mu (log_distance - log distance_gt)^2`` (the head's
+    ``predict_distance`` output; an extension of eq. 5.2).
 
     Args:
         pred: ``{"rotation": (B, 3), "direction": (B, 3)}`` as returned by the head
@@ -368,6 +417,9 @@ def relpose_loss(
         t_dir_gt: ``(B, 3)`` ground-truth direction (normalised here).
         lam: weight ``lambda`` of the direction term (the thesis gives no value; 1 by
             default: ``1 - cos`` in ``[0, 2]`` against a squared angle in rad^2).
+        distance_gt: ``(B,)`` true baselines ``|t_ab|`` in metres (> 0), or None: no distance
+            term. Needs ``pred["log_distance"]`` ``(B,)``.
+        mu: weight of the distance term, > 0.
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` (``(B,)``).
 
     Returns:
@@ -388,6 +440,15 @@ def relpose_loss(
     t_est = F.normalize(dirn, dim=1, eps=1e-12)
     alpha = so3_log(R_gt.transpose(-1, -2) @ so3_exp(rot))
     loss = lam * (1.0 - (t_est * t_gt).sum(-1)) + (alpha * alpha).sum(-1)
+    if distance_gt is not None:
+        if "log_distance" not in pred:
+            raise GeosegError(
+                "pred: distance_gt given but no 'log_distance' output (a head built with "
+                "predict_distance=True)"
+            )
+        if not mu > 0:
+            raise GeosegError(f"mu: expected > 0, got {mu}")
+        loss = loss + mu * log_distance_error(pred["log_distance"], distance_gt) ** 2
     if reduction == "mean":
         return loss.mean()
     if reduction == "sum":

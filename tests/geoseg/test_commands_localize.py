@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from geoseg.cli import main
-from geoseg.image_base import write_poses_csv
+from geoseg.image_base import load_image_base, write_poses_csv
 
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
@@ -180,7 +180,23 @@ def checkpoints(tmp_path_factory) -> dict[str, Path]:
             model_config={"embedding_dim": 16},
         ),
         "relpose": save_model_checkpoint(relpose_head(), d / "relpose.pt", model_name="relpose"),
+        "relpose_distance": save_model_checkpoint(
+            _fixed_distance_head(relpose_head(predict_distance=True), 5.0),
+            d / "relpose_distance.pt",
+            model_name="relpose",
+            model_config={"predict_distance": True},
+        ),
     }
+
+
+def _fixed_distance_head(head, metres: float):
+    """A distance head that predicts ``metres`` for every pair (zero weights, bias log m)."""
+    import torch
+
+    with torch.no_grad():
+        head.regress[-1].weight[6].zero_()
+        head.regress[-1].bias[6] = float(np.log(metres))
+    return head
 
 
 def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
@@ -211,6 +227,31 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     assert query["matches"][0]["image"] == "img_1.png"
     assert all(m["relative_pose"]["ok"] for m in query["matches"])
     assert isinstance(query["position"]["degenerate"], bool)
+    # a head with distances: each match gets one, the position comes from ranged rays (one
+    # match suffices), matches are re-ranked by distance (ties keep the appearance order)
+    head_args = [
+        *args,
+        "--model",
+        str(checkpoints["seg"]),
+        "--reloc-head",
+        str(checkpoints["reloc"]),
+    ]
+    rc = main(
+        [*head_args, "--relpose-head", str(checkpoints["relpose_distance"]), "--position-k", "1"]
+    )
+    assert rc == 0
+    query = json.loads(out.read_text())["queries"][0]
+    assert [m["relative_pose"]["distance_m"] for m in query["matches"]] == pytest.approx([5.0] * 3)
+    assert [m["rank"] for m in query["matches"]] == [1, 2, 3]
+    assert [m["appearance_rank"] for m in query["matches"]] == [1, 2, 3]
+    pos = query["position"]
+    assert pos["method"] == "ranged rays" and not pos["degenerate"] and pos["n_rays"] == 1
+    first = query["matches"][0]
+    base = load_image_base(tmp_path / "base")
+    i = first["index"]
+    want = base.t_wc[i] + 5.0 * base.R_wc[i] @ np.asarray(first["relative_pose"]["t_dir_ab"])
+    np.testing.assert_allclose(pos["xyz"], want, atol=1e-5)
+    assert "5.0 m away" in capsys.readouterr().out
     # a head of the wrong kind
     err = _error(
         capsys,

@@ -12,7 +12,9 @@ from geoseg.localize import (
     absolute_position,
     evaluate_retrieval,
     intersect_rays,
+    locate_from_ranged_rays,
     recall_at_k,
+    rerank_by_distance,
     triplet_accuracy,
 )
 
@@ -228,6 +230,104 @@ def test_ray_bad_inputs() -> None:
         intersect_rays(np.zeros((2, 3)), np.ones((3, 3)))
     with pytest.raises(GeosegError, match="NaN"):
         intersect_rays(np.full((2, 3), np.nan), np.ones((2, 3)))
+
+
+# ----------------------------------------------------------------------------- ranged rays
+
+
+@pytest.mark.parametrize("robust", [False, True])
+@pytest.mark.parametrize("n", [1, 2, 5])
+def test_ranged_rays_exact_without_noise(robust: bool, n: int) -> None:
+    point = np.array([12.0, -7.0, 1.6])
+    o, d = _rays_to(point, n)
+    r = np.linalg.norm(point - o, axis=1)
+    res = locate_from_ranged_rays(o, d, r, robust=robust)
+    assert not res.degenerate and res.inliers.all()
+    np.testing.assert_allclose(res.point, point, atol=1e-9)
+    assert res.residuals.max() < 1e-9
+
+
+def test_ranged_rays_fix_collinear_bases() -> None:
+    """Bases on a straight street in line with the query: rays alone are degenerate, ranges
+    place the query; with a range error the point moves along the street only."""
+    o = np.array([[0.0, 0, 1.5], [-11.7, 0, 1.5]])
+    query = np.array([3.0, 0.0, 1.5])
+    d = np.array([[1.0, 0, 0], [1.0, 0, 0]])
+    assert intersect_rays(o, d).degenerate
+    res = locate_from_ranged_rays(o, d, [3.0, 14.7])
+    np.testing.assert_allclose(res.point, query, atol=1e-9)
+    # ranges 10 % long: the weighted mean of 3.3 and 16.17 - 11.7 = 4.47 with weights
+    # 1 / (r sigma)^2, i.e. the near base dominates as 1 / r^2
+    res = locate_from_ranged_rays(o, d, [3.3, 16.17], robust=False)
+    w = np.array([1 / 3.3**2, 1 / 16.17**2])
+    np.testing.assert_allclose(res.point, [(w @ [3.3, 4.47]) / w.sum(), 0, 1.5], atol=1e-9)
+
+
+def test_ranged_rays_cross_where_directions_meet() -> None:
+    """Two crossing rays with ranges 20 % too long: the directions (3 deg sigma) outweigh the
+    ranges (25 % sigma), so the point stays near the true intersection."""
+    point = np.array([0.0, 5.0, 0.0])
+    o = np.array([[-5.0, 0, 0], [5.0, 0, 0]])
+    d = point - o
+    r = np.linalg.norm(d, axis=1)
+    res = locate_from_ranged_rays(o, d, 1.2 * r, robust=False)
+    single = o[0] + 1.2 * d[0]  # what the first ranged ray alone says
+    assert np.linalg.norm(res.point - point) < 0.1 * np.linalg.norm(single - point)
+
+
+def test_ranged_rays_reject_an_outlier() -> None:
+    point = np.array([5.0, 20.0, 1.5])
+    o, d = _rays_to(point, 5, seed=1)
+    r = np.linalg.norm(point - o, axis=1)
+    r_bad = r.copy()
+    r_bad[3] *= 3.0  # a wrong match: three times too far
+    plain = locate_from_ranged_rays(o, d, r_bad, robust=False)
+    res = locate_from_ranged_rays(o, d, r_bad)
+    assert res.inliers.tolist() == [True, True, True, False, True]
+    np.testing.assert_allclose(res.point, point, atol=1e-9)
+    assert np.linalg.norm(plain.point - point) > 0.1
+
+
+def test_absolute_position_with_distances() -> None:
+    R_wc = np.stack([np.eye(3), np.eye(3)])
+    t_wc = np.array([[0.0, 0, 0], [0, 0, -8]])
+    d_cam = np.array([[0.0, 0, 1], [0, 0, 1]])  # both look at the query straight ahead
+    res = absolute_position(R_wc, t_wc, d_cam, [2.0, 10.0])
+    np.testing.assert_allclose(res.point, [0.0, 0, 2], atol=1e-9)
+    assert absolute_position(R_wc, t_wc, d_cam).degenerate
+    one = absolute_position(R_wc[:1], t_wc[:1], d_cam[:1], [2.0])
+    np.testing.assert_allclose(one.point, [0.0, 0, 2], atol=1e-12)
+
+
+def test_ranged_rays_bad_inputs() -> None:
+    o, d = np.zeros((2, 3)), np.array([[1.0, 0, 0], [0, 1, 0]])
+    with pytest.raises(GeosegError, match="ranges"):
+        locate_from_ranged_rays(o, d, [1.0, 0.0])
+    with pytest.raises(GeosegError, match="ranges"):
+        locate_from_ranged_rays(o, d, [1.0])
+    with pytest.raises(GeosegError, match="NaN"):
+        locate_from_ranged_rays(o, d, [1.0, np.nan])
+    with pytest.raises(GeosegError, match="at least 1"):
+        locate_from_ranged_rays(np.zeros((0, 3)), np.zeros((0, 3)), [])
+    with pytest.raises(GeosegError, match="zero-length"):
+        locate_from_ranged_rays(o, np.zeros((2, 3)), [1.0, 1.0])
+    with pytest.raises(GeosegError, match="range_sigma"):
+        locate_from_ranged_rays(o, d, [1.0, 1.0], range_sigma=0.0)
+
+
+def test_rerank_by_distance() -> None:
+    ranked = np.array([[7, 3, 9], [4, 5, -1], [1, 2, 0]])
+    dist = np.array([[8.7, 2.9, 20.0], [3.0, 1.0, np.nan], [5.0, 5.0, 5.0]])
+    out, d, order = rerank_by_distance(ranked, dist)
+    assert out.tolist() == [[3, 7, 9], [5, 4, -1], [1, 2, 0]]  # padding last, ties stable
+    np.testing.assert_array_equal(d[1], [1.0, 3.0, np.inf])
+    np.testing.assert_array_equal(np.take_along_axis(ranked, order, 1), out)
+    with pytest.raises(GeosegError, match="distances"):
+        rerank_by_distance(ranked, np.where(ranked >= 0, np.nan, 1.0))
+    with pytest.raises(GeosegError, match="distances"):
+        rerank_by_distance(ranked, dist[:, :2])
+    with pytest.raises(GeosegError, match="integer"):
+        rerank_by_distance(ranked.astype(float), dist)
 
 
 def test_evaluate_retrieval_with_and_without_window() -> None:

@@ -97,17 +97,22 @@ def test_reloc_main_end_to_end(shared, tmp_path, run_files):
     np.testing.assert_allclose(got, ref, atol=1e-4)
 
 
-def test_relpose_main_end_to_end(shared, tmp_path, run_files):
+@pytest.mark.parametrize("distance", [False, True])
+def test_relpose_main_end_to_end(shared, tmp_path, run_files, distance):
+    model_config = {"predict_distance": True} if distance else {}
     cfg = load_config(
         relpose_trainer.RelPoseConfig,
         None,
-        overrides=_overrides(shared, tmp_path / "run", pairs_per_epoch=8, val_pairs=8),
+        overrides=_overrides(
+            shared, tmp_path / "run", pairs_per_epoch=8, val_pairs=8, model_config=model_config
+        ),
     )
     run = relpose_trainer.main(cfg)
     for name in run_files:
         assert (run / name).is_file(), name
     row = json.loads((run / "metrics.json").read_text())[0]
     assert {"val_loss", "val_rot_median_deg", "val_dir_median_deg"} <= set(row)
+    assert ("val_dist_median_rel" in row) is distance
     ckpt = torch.load(run / "model.pt", weights_only=True)
     head = get_model("relpose", **ckpt["model_config"])
     head.load_state_dict(ckpt["state_dict"])
@@ -117,6 +122,8 @@ def test_relpose_main_end_to_end(shared, tmp_path, run_files):
     outs = _onnx_run(run / "model.onnx", [a.numpy(), b.numpy()])
     np.testing.assert_allclose(outs[0], ref["rotation"].numpy(), atol=1e-4)
     np.testing.assert_allclose(outs[1], ref["direction"].numpy(), atol=1e-4)
+    if distance:
+        np.testing.assert_allclose(outs[2], ref["log_distance"].numpy(), atol=1e-4)
 
 
 def test_reloc_resume_continues_with_the_next_epochs_triplets(shared, tmp_path):
@@ -178,6 +185,28 @@ def test_relpose_loss_decreases_on_a_fixed_batch():
     assert losses[-1] < 0.7 * losses[0]
 
 
+def test_relpose_loss_with_distances_uses_the_baselines():
+    torch.manual_seed(0)
+    head = get_model("relpose", hidden_channels=16, fc_dim=32, predict_distance=True)
+    model = relpose_trainer.PairRegressor(head)
+    x = torch.randn(8, 2, 128, 4, 5)
+    R = so3_exp(0.2 * torch.randn(8, 3))
+    t = torch.nn.functional.normalize(torch.randn(8, 3), dim=1)
+    baseline = torch.linspace(0.5, 10.0, 8)
+    batch = {"R_ab": R, "t_dir_ab": t, "baseline_m": baseline}
+    loss_fn = relpose_trainer.RelPoseLoss(mu=2.0)
+    with torch.no_grad():
+        out = model(x)
+    # the distance term is mu times the mean squared log ratio
+    plain = relpose_trainer.RelPoseLoss()(
+        {k: v for k, v in out.items() if k != "log_distance"}, batch
+    )
+    want = plain + 2.0 * ((out["log_distance"] - baseline.log()) ** 2).mean()
+    torch.testing.assert_close(loss_fn(out, batch), want)
+    losses = _adam_losses(model, loss_fn, x, batch)
+    assert losses[-1] < 0.7 * losses[0]
+
+
 def test_relpose_meter_medians_and_shares():
     meter = relpose_trainer.RelPoseMeter()
     R_gt = torch.eye(3).expand(4, 3, 3)
@@ -190,6 +219,18 @@ def test_relpose_meter_medians_and_shares():
     assert 0.95 <= out["rot_median_deg"] <= 3.05  # lower median, 0.05-degree bins
     assert out["rot_within_2deg"] == pytest.approx(0.5)
     assert out["dir_median_deg"] < 0.1 and out["dir_within_10deg"] == 1.0
+    assert "dist_median_rel" not in out  # no distance output, no distance figures
+    # relative baseline errors 0, 10 %, 30 %, 100 %
+    log_d = torch.log(torch.tensor([2.0, 5.5, 6.5, 2.0]))
+    meter.reset()
+    meter.update(
+        {"rotation": rot, "direction": t_gt, "log_distance": log_d},
+        {"R_ab": R_gt, "t_dir_ab": t_gt, "baseline_m": torch.tensor([2.0, 5.0, 5.0, 1.0])},
+    )
+    out = meter.compute()
+    assert 0.099 <= out["dist_median_rel"] <= 0.301  # lower median, 0.001 bins
+    assert out["dist_mean_rel"] == pytest.approx(0.35, abs=1e-6)
+    assert out["dist_within_0.2"] == pytest.approx(0.5)
 
 
 def test_hard_negatives_are_true_negatives_and_resampling_is_seeded(shared):
@@ -227,6 +268,42 @@ def test_hard_negatives_are_true_negatives_and_resampling_is_seeded(shared):
     )  # fmt: skip
     np.testing.assert_allclose(pairs[0]["R_ab"].numpy(), R, atol=1e-5)
     np.testing.assert_allclose(pairs[0]["t_dir_ab"].numpy(), t, atol=1e-5)
+    base_ab = rf.traversals[j].t_wc[b] - rf.traversals[i].t_wc[a]
+    assert pairs[0]["baseline_m"].item() == pytest.approx(np.linalg.norm(base_ab), rel=1e-6)
+    # far, distance-only pairs come after the pose pairs, which they leave unchanged
+    far = relpose_trainer.PairSet(
+        [rf], 10, seed=0, n_far=4, far_max_baseline_m=30.0, min_baseline_m=0.5, max_baseline_m=10.0
+    )
+    assert len(far) == 14
+    np.testing.assert_array_equal(far.index[:10], pairs.index)
+    assert far.pose_weight.tolist() == [1.0] * 10 + [0.0] * 4
+    assert (far.baseline_m[10:] > 10.0).all() and (far.baseline_m[10:] <= 30.0).all()
+    assert far[12]["pose_weight"].item() == 0.0
+    with pytest.raises(GeosegError, match="far_max_baseline_m"):
+        relpose_trainer.PairSet([rf], 10, n_far=4)
+
+
+def test_far_pairs_need_a_distance_head(shared, tmp_path):
+    from geoseg.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="predict_distance"):
+        load_config(
+            relpose_trainer.RelPoseConfig,
+            None,
+            overrides=_overrides(shared, tmp_path / "run", far_pairs_per_epoch=8),
+        )
+    with pytest.raises(ConfigError, match="far_max_baseline_m"):
+        load_config(
+            relpose_trainer.RelPoseConfig,
+            None,
+            overrides=_overrides(
+                shared,
+                tmp_path / "run",
+                far_pairs_per_epoch=8,
+                far_max_baseline_m=5.0,
+                model_config={"predict_distance": True},
+            ),
+        )
 
 
 # ----------------------------------------------------------------------------- the command
@@ -256,9 +333,18 @@ def test_bench_refuses_untrained_weights(tmp_path, capsys):
     assert not (tmp_path / "accuracy_reloc.json").exists()
 
 
-def test_bench_quick_runs_end_to_end(shared, tmp_path):
+@pytest.mark.parametrize("distance", [False, True])
+def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
     bench = _bench()
     out = tmp_path / "results"
+    relpose = "random"
+    if distance:  # an untrained head with the distance output
+        torch.manual_seed(0)
+        head = get_model("relpose", predict_distance=True)
+        relpose = str(tmp_path / "relpose.pt")
+        save_model_checkpoint(
+            head, relpose, model_name="relpose", model_config={"predict_distance": True}
+        )
     code = bench.main(
         [
             "--quick",
@@ -272,7 +358,7 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path):
             "--reloc",
             "random",
             "--relpose",
-            "random",
+            relpose,
             "--pairs",
             "4",
             "--triplets",
@@ -298,7 +384,8 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path):
     ):
         assert key in res, key
     assert 0.0 <= res["recall_at_1"] <= res["recall_at_3"] <= 1.0
-    assert res["untrained"] == ["reloc", "relpose"] and "warning" in res
+    assert res["untrained"] == (["reloc"] if distance else ["reloc", "relpose"])
+    assert "warning" in res
     assert (out / "accuracy_reloc_tsne.png").stat().st_size > 0
     assert (out / "accuracy_reloc_panel.png").stat().st_size > 0
     # the geometry itself is exact: true directions give the true position, for every k
@@ -307,3 +394,12 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path):
         assert 0.0 <= res[f"abs_position_degenerate_share{suffix}"] <= 1.0
         exact = res[f"abs_position_median_m_true_directions{suffix}"]
         assert exact in (None, pytest.approx(0.0, abs=1e-6)), suffix
+    if distance:  # ranged rays head the figures, from one base image up; rays alone beside
+        assert "ranged" in res["abs_position_method"]
+        assert res["abs_position_degenerate_share_top1"] <= res["abs_position_degenerate_share"]
+        assert "abs_position_median_m_rays_only" in res
+        assert 0.0 <= res["recall_at_1_gps_window_reranked"] <= 1.0
+        assert 0.0 <= res["recall_at_1_reranked"] <= 1.0
+        assert res["relpose_dist_median_rel"] is not None
+    else:
+        assert "abs_position_median_m_top1" not in res and "rays" in res["abs_position_method"]

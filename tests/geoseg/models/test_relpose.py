@@ -203,6 +203,41 @@ def test_head_shapes(size, radius) -> None:
     torch.testing.assert_close(out["direction"].norm(dim=1), torch.ones(b))
 
 
+def test_distance_output_shape_and_initial_value() -> None:
+    head = relpose_head(predict_distance=True).eval()
+    out = head(torch.randn(3, 128, 4, 5), torch.randn(3, 128, 4, 5))
+    assert set(out) == {"rotation", "direction", "log_distance"}
+    assert out["log_distance"].shape == (3,)
+    # the output starts near a 4 m baseline (small weights, bias log 4)
+    assert torch.allclose(out["log_distance"].exp(), torch.full((3,), 4.0), rtol=0.3)
+    with pytest.raises(GeosegError, match="predict_distance"):
+        relpose_head(predict_distance=1)
+
+
+def test_distance_term_of_the_loss() -> None:
+    """Zero for the exact baseline, ``mu log(ratio)^2`` otherwise, gradient 2 mu log(ratio) / B."""
+    r_gt = so3_exp(torch.tensor([[0.1, -0.2, 0.05], [0.0, 0.3, 0.0]], dtype=F64))
+    t_gt = torch.nn.functional.normalize(torch.tensor([[0.2, 0.1, 1.0], [1.0, 0, 0]], dtype=F64))
+    dist = torch.tensor([2.0, 7.5], dtype=F64)
+    log_d = torch.log(dist * torch.tensor([1.0, 1.5], dtype=F64)).requires_grad_(True)
+    pred = {"rotation": so3_log(r_gt), "direction": t_gt, "log_distance": log_d}
+    base = relpose_loss(pred, r_gt, t_gt, reduction="none")
+    loss = relpose_loss(pred, r_gt, t_gt, distance_gt=dist, mu=0.5, reduction="none")
+    want = 0.5 * torch.log(torch.tensor([1.0, 1.5], dtype=F64)) ** 2
+    torch.testing.assert_close(loss - base, want)
+    relpose_loss(pred, r_gt, t_gt, distance_gt=dist, mu=0.5).backward()
+    grad = 2 * 0.5 * torch.log(torch.tensor([1.0, 1.5], dtype=F64)) / 2
+    torch.testing.assert_close(log_d.grad, grad)
+    with pytest.raises(GeosegError, match="log_distance"):
+        relpose_loss(
+            {"rotation": pred["rotation"], "direction": t_gt}, r_gt, t_gt, distance_gt=dist
+        )
+    with pytest.raises(GeosegError, match="distance_gt"):
+        relpose_loss(pred, r_gt, t_gt, distance_gt=torch.tensor([1.0, 0.0], dtype=F64))
+    with pytest.raises(GeosegError, match="mu"):
+        relpose_loss(pred, r_gt, t_gt, distance_gt=dist, mu=0.0)
+
+
 def test_head_bad_inputs() -> None:
     with pytest.raises(GeosegError, match="correlation_radius"):
         relpose_head(correlation_radius=-1)
@@ -239,10 +274,10 @@ def test_loss_decreases_on_fixed_batch() -> None:
 
 
 @pytest.mark.filterwarnings("ignore:# The axis name")
-@pytest.mark.parametrize("radius", [0, 3])
-def test_onnx_dynamo_export_parity(tmp_path, radius) -> None:
+@pytest.mark.parametrize(("radius", "distance"), [(0, False), (3, True)])
+def test_onnx_dynamo_export_parity(tmp_path, radius, distance) -> None:
     torch.manual_seed(6)
-    head = relpose_head(correlation_radius=radius)
+    head = relpose_head(correlation_radius=radius, predict_distance=distance)
     head.train()
     with torch.no_grad():
         for _ in range(3):
@@ -257,16 +292,20 @@ def test_onnx_dynamo_export_parity(tmp_path, radius) -> None:
         str(path),
         dynamo=True,
         input_names=["feat_a", "feat_b"],
-        output_names=["rotation", "direction"],
+        output_names=["rotation", "direction", "log_distance"][: 2 + distance],
         dynamic_shapes={"feat_a": dims, "feat_b": dims},
         verbose=False,
     )
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     names = [i.name for i in sess.get_inputs()]
     fa, fb = torch.randn(3, 128, 5, 11), torch.randn(3, 128, 5, 11)
-    rot, dirn = sess.run(["rotation", "direction"], {names[0]: fa.numpy(), names[1]: fb.numpy()})
+    outs = sess.run(None, {names[0]: fa.numpy(), names[1]: fb.numpy()})
+    rot, dirn = outs[:2]
     with torch.no_grad():
         ref = head(fa, fb)
+    assert len(outs) == 2 + distance
+    if distance:
+        np.testing.assert_allclose(outs[2], ref["log_distance"].numpy(), atol=1e-4, rtol=1e-3)
     np.testing.assert_allclose(rot, ref["rotation"].numpy(), atol=1e-4, rtol=1e-3)
     cos = torch.nn.functional.cosine_similarity(torch.from_numpy(dirn), ref["direction"], dim=1)
     assert cos.min().item() >= 0.9999
