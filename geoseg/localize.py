@@ -525,8 +525,8 @@ def _ranged_information(
 ) -> np.ndarray:
     """``(N, 3, 3)`` information matrices of the points ``o + r d``: across the ray
     ``(I - d d^T) / (r sigma_angle)^2``, along it ``d d^T / (r sigma_range)^2``."""
-    proj = np.eye(3)[None] - d[:, :, None] * d[:, None, :]
     along = d[:, :, None] * d[:, None, :]
+    proj = np.eye(3)[None] - along
     return (
         proj / (r * angle_sigma)[:, None, None] ** 2 + along / (r * range_sigma)[:, None, None] ** 2
     )
