@@ -7,6 +7,8 @@ interleaved rounds, median per contender):
   num_classes=8)`` in torch eager (what a user would pick instead; no downloads);
 - ``joint_torch``: the joint network in torch eager;
 - ``joint_ort``: the joint network exported with :func:`geoseg.export.export_onnx`, onnxruntime;
+- ``joint_ort_plain``: the same exported without :mod:`geoseg.export_rewrites` (``rewrite=False``),
+  to show what the rewrites buy;
 - ``joint_ort_int8``: the same, statically quantised to int8 (QDQ, per-channel weights) with
   ``onnxruntime.quantization`` (calibration below);
 - ``enet_ort``: the plain ENet on onnxruntime, for reference;
@@ -31,10 +33,11 @@ Usage::
     python bench/inference_speed.py --gpu-only --compile   # on a CUDA machine
 
 Prints a Markdown table and writes ``bench/results/inference_speed.json`` (medians as
-``<contender>_ms_640x480``, minima as ``<contender>_min_ms_640x480``). On a shared machine torch
-eager suffers far more from CPU contention than onnxruntime (OpenMP threads), so the ratios move
-with the load: the 1-minute load average is recorded, and the minima are the better estimate of
-uncontended cost.
+``<contender>_ms_640x480``, minima as ``<contender>_min_ms_640x480``; the 1-minute load average
+is recorded). Each timed call follows an untimed call of the same contender: onnxruntime's and
+OpenMP's worker threads keep spinning for a while after a call, and timing a contender right after
+another one measured that contention (earlier versions of this script did, which inflated torch
+eager's times by ~40 % and flattered every ratio to LRASPP).
 """
 
 from __future__ import annotations
@@ -158,13 +161,18 @@ def quantize_int8(src: Path, dst: Path, calibration: list[np.ndarray], input_nam
 def time_interleaved(
     contenders: dict[str, Callable[[], object]], *, warmup: int, repeats: int
 ) -> dict[str, list[float]]:
-    """Milliseconds per call (one list per contender), contenders interleaved round by round."""
+    """Milliseconds per call (one list per contender), contenders interleaved round by round.
+
+    Each timed call follows an untimed one of the same contender, so that no call is timed while
+    the previous contender's worker threads still spin.
+    """
     for fn in contenders.values():
         for _ in range(warmup):
             fn()
     samples: dict[str, list[float]] = {k: [] for k in contenders}
     for _ in range(repeats):
         for name, fn in contenders.items():
+            fn()
             t0 = time.perf_counter()
             fn()
             samples[name].append((time.perf_counter() - t0) * 1e3)
@@ -327,6 +335,7 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         export_onnx(joint, tmp / "joint.onnx")
+        export_onnx(joint, tmp / "joint_plain.onnx", rewrite=False)
         export_onnx(enet, tmp / "enet.onnx")
         export_onnx(
             lraspp, tmp / "lraspp.onnx", example_inputs=torch.zeros(1, 3, H, W), dynamic=False
@@ -338,6 +347,7 @@ def main(argv: list[str] | None = None) -> int:
         quantize_int8(tmp / "joint.onnx", tmp / "joint_int8.onnx", calibration, "x")
         cpu = ["CPUExecutionProvider"]
         joint_ort = OnnxModel(tmp / "joint.onnx", providers=cpu, threads=args.threads)
+        joint_plain = OnnxModel(tmp / "joint_plain.onnx", providers=cpu, threads=args.threads)
         joint_int8 = OnnxModel(tmp / "joint_int8.onnx", providers=cpu, threads=args.threads)
         enet_ort = OnnxModel(tmp / "enet.onnx", providers=cpu, threads=args.threads)
         lraspp_ort = OnnxModel(tmp / "lraspp.onnx", providers=cpu, threads=args.threads)
@@ -356,6 +366,7 @@ def main(argv: list[str] | None = None) -> int:
             "lraspp_torch": torch_call(lraspp),
             "joint_torch": torch_call(joint),
             "joint_ort": lambda: joint_ort(x_np),
+            "joint_ort_plain": lambda: joint_plain(x_np),
             "joint_ort_int8": lambda: joint_int8(x_np),
             "enet_ort": lambda: enet_ort(x_np),
             "lraspp_ort": lambda: lraspp_ort(x_np),
@@ -400,6 +411,7 @@ def main(argv: list[str] | None = None) -> int:
         "ort_over_lraspp_ort_640x480": ms["joint_ort"] / ms["lraspp_ort"],
         "joint_torch_over_lraspp_640x480": ms["joint_torch"] / ms["lraspp_torch"],
         "int8_over_fp32_ort_640x480": ms["joint_ort_int8"] / ms["joint_ort"],
+        "rewritten_over_plain_ort_640x480": ms["joint_ort"] / ms["joint_ort_plain"],
         "int8_label_agreement": float(np.mean(agreement)),
         "int8_normal_angle_deg": float(np.mean(angles)),
         "fp32_majority_label_fraction": float(np.mean(majority)),
@@ -430,6 +442,7 @@ def main(argv: list[str] | None = None) -> int:
         "lraspp_torch": results["lraspp_params"],
         "joint_torch": results["joint_params"],
         "joint_ort": results["joint_params"],
+        "joint_ort_plain": results["joint_params"],
         "joint_ort_int8": results["joint_params"],
         "enet_ort": results["enet_params"],
         "lraspp_ort": results["lraspp_params"],

@@ -11,21 +11,20 @@ images to per-pixel log-probabilities).
 :class:`OnnxModel` wraps an ``onnxruntime.InferenceSession`` and returns the same named dict as
 the torch module (NumPy arrays for NumPy inputs, CPU tensors for tensor inputs).
 
-Every ``nn.PReLU`` is exported as ``relu(x) - a * relu(-x)`` (:class:`ReluDifferencePReLU`,
-bit-identical): onnxruntime's CPU ``PRelu`` kernel is slow. Measured side by side on this
-project's 2-core CPU (a 3x3 conv plus its activation, 128 channels, ratio to conv + ReLU):
-``PRelu`` 1.58, the ReLU difference 1.27, ``Where`` 2.33; ``max(x, a x)`` (1.13) is only exact
-for slopes in ``[0, 1]``, and 41 % of the shipped ENet's slopes are negative.
+ENet-based models are exported through :func:`geoseg.export_rewrites.rewrite_for_onnxruntime`
+(PReLU, pooling switches, sub-pixel transposed convolutions in the forms onnxruntime's CPU
+provider runs in its blocked layout; equal up to float rounding); ``rewrite=False`` exports the
+modules as they are.
 
-The legacy TorchScript-based exporter cannot export ``MaxUnpool2d`` with dynamic sizes, hence the
-dynamo exporter. Max-unpooling index ties may flip single pixels between torch and
-onnxruntime: compare outputs by argmax agreement and mean errors, not max-abs equality.
+The legacy TorchScript-based exporter cannot export ``MaxUnpool2d`` with dynamic sizes (with
+``rewrite=False``), hence the dynamo exporter. Near-ties in a max-pooling window may flip single
+pixels between torch and onnxruntime: compare outputs by argmax agreement and mean errors, not
+max-abs equality.
 """
 
 from __future__ import annotations
 
 import contextlib
-import copy
 import inspect
 import io
 import json
@@ -57,46 +56,16 @@ def _forward_arg_names(model: nn.Module, count: int) -> list[str]:
     return params[:count] if len(params) >= count else [f"input_{i}" for i in range(count)]
 
 
-class ReluDifferencePReLU(nn.Module):
-    """``PReLU`` written as ``relu(x) - a * relu(-x)`` (equal bit for bit, any slope sign), the
-    form that onnxruntime runs fast on CPU (see the module docstring).
-
-    Args:
-        prelu: the module to replace; its slopes are copied (not shared).
-    """
-
-    def __init__(self, prelu: nn.PReLU) -> None:
-        super().__init__()
-        self.register_buffer("weight", prelu.weight.detach().clone())
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """``(B, C, ...) -> (B, C, ...)``; one slope per channel ``C`` or one for all."""
-        a = self.weight
-        if a.numel() > 1:
-            a = a.reshape((-1,) + (1,) * (x.ndim - 2))
-        return torch.relu(x) - a * torch.relu(-x)
-
-
-def _replace_prelu(module: nn.Module) -> None:
-    for name, child in module.named_children():
-        if isinstance(child, nn.PReLU):
-            setattr(module, name, ReluDifferencePReLU(child))
-        else:
-            _replace_prelu(child)
-
-
-def prepare_for_export(model: nn.Module) -> nn.Module:
-    """The module that is exported for ``model``: the naive CNN becomes its dense form, and a
-    model with ``nn.PReLU`` layers is copied with them replaced by
-    :class:`ReluDifferencePReLU` (``model`` itself is left untouched)."""
+def prepare_for_export(model: nn.Module, *, rewrite: bool = True) -> nn.Module:
+    """The module that is exported for ``model``: the naive CNN becomes its dense form, and with
+    ``rewrite`` a model with ENet blocks or PReLUs becomes a rewritten copy
+    (:func:`~geoseg.export_rewrites.rewrite_for_onnxruntime`; ``model`` itself is untouched)."""
+    from geoseg.export_rewrites import rewrite_for_onnxruntime
     from geoseg.models.naive_cnn import NaiveCNN, NaiveDense
 
     if isinstance(model, NaiveCNN):
         return NaiveDense(model)
-    if any(isinstance(m, nn.PReLU) for m in model.modules()):
-        model = copy.deepcopy(model)
-        _replace_prelu(model)
-    return model
+    return rewrite_for_onnxruntime(model) if rewrite else model
 
 
 def default_example_inputs(
@@ -171,6 +140,7 @@ def export_onnx(
     dynamic: bool = True,
     metadata: Mapping[str, Any] | None = None,
     opset: int | None = None,
+    rewrite: bool = True,
 ) -> Path:
     """Export ``model`` to ONNX with the dynamo exporter, in eval mode, on CPU.
 
@@ -186,6 +156,8 @@ def export_onnx(
         metadata: extra values stored in the ONNX metadata under ``geoseg.<key>`` (JSON-encoded
             unless already strings), e.g. ``model_name``, ``model_config``, ``normalization``.
         opset: ONNX opset (default: the exporter's).
+        rewrite: export ENet blocks and PReLUs in their onnxruntime-friendly forms
+            (:mod:`geoseg.export_rewrites`); ``False`` exports the modules as they are.
 
     Returns:
         The written path.
@@ -194,7 +166,7 @@ def export_onnx(
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    model = prepare_for_export(model)
+    model = prepare_for_export(model, rewrite=rewrite)
     if example_inputs is None:
         example_inputs = default_example_inputs(model)
     inputs = (
