@@ -16,7 +16,11 @@ that stopped the thesis's network. Loss: eq. 5.2 with weight ``lam`` on the dire
 (``model_config.predict_distance``). Such a head also sees ``far_pairs_per_epoch`` pairs with
 baselines beyond ``max_baseline_m`` (up to ``far_max_baseline_m``) that train the distance
 term only: retrieval candidates 10-30 m from the query must read as far to be re-ranked behind
-the near one, while far pairs blur the direction (see configs/relpose.yaml).
+the near one, while far pairs blur the direction (see configs/relpose.yaml). And
+``unrelated_pairs_per_epoch`` pairs of views at least ``unrelated_min_m`` apart (any
+orientation: other places) teach it a floor: their loss is ``mu (min(0, log d_est - log
+unrelated_floor_m))^2``, zero once the head reads them at least ``unrelated_floor_m`` away, so
+that re-ranking the whole base by predicted distance puts other places behind the query's.
 
 Validation: eq. 5.2, and the median / mean rotation and direction errors (degrees; medians from
 a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs; with
@@ -88,6 +92,11 @@ class RelPoseConfig(HeadTrainConfig):
             ``(max_baseline_m, far_max_baseline_m]`` for the distance term alone (heads with
             ``predict_distance`` only; 0: none).
         far_max_baseline_m: largest baseline of the far pairs, metres.
+        unrelated_pairs_per_epoch: extra pairs per epoch of views at least ``unrelated_min_m``
+            apart, any orientation, that train a floor on the predicted distance (heads with
+            ``predict_distance`` only; 0: none).
+        unrelated_min_m: smallest distance between the views of an unrelated pair, metres.
+        unrelated_floor_m: distance the head must predict at least for unrelated pairs, metres.
     """
 
     trainer: ClassVar[str] = "relpose"
@@ -106,6 +115,9 @@ class RelPoseConfig(HeadTrainConfig):
     mu: float = 1.0
     far_pairs_per_epoch: int = 0
     far_max_baseline_m: float = 30.0
+    unrelated_pairs_per_epoch: int = 0
+    unrelated_min_m: float = 60.0
+    unrelated_floor_m: float = 40.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -114,14 +126,23 @@ class RelPoseConfig(HeadTrainConfig):
         for name in ("lam", "mu"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: expected > 0, got {getattr(self, name)}")
-        if self.far_pairs_per_epoch < 0:
-            raise ConfigError(f"far_pairs_per_epoch: expected >= 0, got {self.far_pairs_per_epoch}")
-        if self.far_pairs_per_epoch:
-            if not dict(self.model_config or {}).get("predict_distance", False):
+        for name in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch"):
+            count = getattr(self, name)
+            if count < 0:
+                raise ConfigError(f"{name}: expected >= 0, got {count}")
+            if count and not dict(self.model_config or {}).get("predict_distance", False):
                 raise ConfigError(
-                    "far_pairs_per_epoch: far pairs train the distance output only; set "
-                    "model_config.predict_distance: true (or far_pairs_per_epoch: 0)"
+                    f"{name}: these pairs train the distance output only; set "
+                    f"model_config.predict_distance: true (or {name}: 0)"
                 )
+        if self.unrelated_pairs_per_epoch and not (
+            0 < self.unrelated_floor_m <= self.unrelated_min_m
+        ):
+            raise ConfigError(
+                "unrelated_floor_m, unrelated_min_m: expected 0 < floor <= min, got "
+                f"{self.unrelated_floor_m}, {self.unrelated_min_m}"
+            )
+        if self.far_pairs_per_epoch:
             if not self.far_max_baseline_m > self.max_baseline_m:
                 raise ConfigError(
                     f"far_max_baseline_m: expected > max_baseline_m ({self.max_baseline_m}), "
@@ -154,7 +175,8 @@ class RelPoseLoss:
     """Eq. 5.2 (:func:`relpose_loss`) against ``batch["R_ab"]``, ``batch["t_dir_ab"]``, plus
     ``mu`` times the squared log-baseline error against ``batch["baseline_m"]`` when the head
     predicts distances; ``batch["pose_weight"]`` (when present) weighs the eq. 5.2 terms per
-    pair (0 for the far, distance-only pairs)."""
+    pair (0 for the far, distance-only pairs), and where ``batch["distance_floor"]`` is true
+    ``baseline_m`` is a floor: only predictions nearer than it are penalised."""
 
     def __init__(self, lam: float = 1.0, mu: float = 1.0) -> None:
         self.lam = float(lam)
@@ -168,6 +190,8 @@ class RelPoseLoss:
             loss = loss * batch["pose_weight"].to(loss.dtype)
         if "log_distance" in outputs:
             err = log_distance_error(outputs["log_distance"], batch["baseline_m"])
+            if "distance_floor" in batch:
+                err = torch.where(batch["distance_floor"], err.clamp(max=0.0), err)
             loss = loss + self.mu * err * err
         return loss.mean()
 
@@ -252,11 +276,16 @@ class PairSet(Dataset):
         n_far: extra distance-only pairs per draw, baselines in
             ``(max_baseline_m, far_max_baseline_m]`` (``pose_weight`` 0).
         far_max_baseline_m: largest baseline of the far pairs (needed when ``n_far > 0``).
+        n_unrelated: extra pairs per draw of views at least ``unrelated_min_m`` apart (any
+            orientation), whose ``baseline_m`` is ``unrelated_floor_m``, a floor
+            (``distance_floor`` true, ``pose_weight`` 0).
+        unrelated_min_m, unrelated_floor_m: see :class:`RelPoseConfig`.
         pair_kwargs: :func:`sample_relpose_pairs` thresholds.
 
     Items: ``{"image": (2, C, h, w) float32, "R_ab": (3, 3) float32, "t_dir_ab": (3,) float32,
-    "baseline_m": () float32, "pose_weight": () float32 (1, or 0 for far pairs),
-    "same_condition": () bool, "index": (5,) int64 (route, trav a, trav b, a, b)}``.
+    "baseline_m": () float32, "pose_weight": () float32 (1, or 0 for far and unrelated pairs),
+    "distance_floor": () bool, "same_condition": () bool, "index": (5,) int64 (route, trav a,
+    trav b, a, b)}``.
     """
 
     def __init__(
@@ -267,6 +296,9 @@ class PairSet(Dataset):
         seed: int = 0,
         n_far: int = 0,
         far_max_baseline_m: float | None = None,
+        n_unrelated: int = 0,
+        unrelated_min_m: float = 60.0,
+        unrelated_floor_m: float = 40.0,
         **pair_kwargs: Any,
     ) -> None:
         if not routes:
@@ -278,6 +310,9 @@ class PairSet(Dataset):
         self.n = int(n)
         self.n_far = int(n_far)
         self.far_max_baseline_m = far_max_baseline_m
+        self.n_unrelated = int(n_unrelated)
+        self.unrelated_min_m = float(unrelated_min_m)
+        self.unrelated_floor_m = float(unrelated_floor_m)
         self.seed = int(seed)
         self.pair_kwargs = pair_kwargs
         self.resample(0)
@@ -307,7 +342,8 @@ class PairSet(Dataset):
         return tuple(np.concatenate(x) for x in (index, R, t, baseline))
 
     def resample(self, epoch: int) -> None:
-        """Draw this epoch's pairs (the pose pairs first: far pairs leave them unchanged)."""
+        """Draw this epoch's pairs (the pose pairs first: far and unrelated pairs leave them
+        unchanged)."""
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, int(epoch), 5202]))
         parts = [self._draw(self.n, rng, **self.pair_kwargs)]
         if self.n_far:
@@ -315,15 +351,25 @@ class PairSet(Dataset):
             far["min_baseline_m"] = far.get("max_baseline_m", 10.0) + 1e-6
             far["max_baseline_m"] = self.far_max_baseline_m
             parts.append(self._draw(self.n_far, rng, **far))
+        if self.n_unrelated:
+            index, R, t, _ = self._draw(
+                self.n_unrelated,
+                rng,
+                min_baseline_m=self.unrelated_min_m,
+                max_baseline_m=1e9,
+                max_angle_deg=180.0,
+            )
+            parts.append((index, R, t, np.full(len(index), self.unrelated_floor_m)))
         index, R, t, baseline = (np.concatenate(x) for x in zip(*parts))
         self.index = index.astype(np.int64)
         self.R_ab = torch.from_numpy(R).float()
         self.t_dir_ab = torch.from_numpy(t).float()
         self.baseline_m = torch.from_numpy(baseline).float()
         self.pose_weight = (torch.arange(len(self)) < self.n).float()
+        self.distance_floor = torch.arange(len(self)) >= self.n + self.n_far
 
     def __len__(self) -> int:
-        return self.n + self.n_far
+        return self.n + self.n_far + self.n_unrelated
 
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         r, i, j, a, b = (int(v) for v in self.index[k])
@@ -334,6 +380,7 @@ class PairSet(Dataset):
             "t_dir_ab": self.t_dir_ab[k],
             "baseline_m": self.baseline_m[k],
             "pose_weight": self.pose_weight[k],
+            "distance_floor": self.distance_floor[k],
             "same_condition": torch.tensor(i == j),
             "index": torch.from_numpy(self.index[k].copy()),
         }
@@ -361,6 +408,9 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         seed=cfg.seed,
         n_far=cfg.far_pairs_per_epoch,
         far_max_baseline_m=cfg.far_max_baseline_m,
+        n_unrelated=cfg.unrelated_pairs_per_epoch,
+        unrelated_min_m=cfg.unrelated_min_m,
+        unrelated_floor_m=cfg.unrelated_floor_m,
         **thresholds,
     )
     val_set = PairSet(data.val, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)

@@ -4,6 +4,7 @@ negatives, the ``geoseg train reloc|relpose`` errors and ``bench/accuracy_reloc.
 
 import importlib.util
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -207,6 +208,26 @@ def test_relpose_loss_with_distances_uses_the_baselines():
     assert losses[-1] < 0.7 * losses[0]
 
 
+def test_relpose_loss_floor_pairs_penalise_only_nearer_predictions():
+    n = 4
+    out = {
+        "rotation": torch.zeros(n, 3),
+        "direction": torch.tensor([[0.0, 0.0, 1.0]]).expand(n, 3),
+        "log_distance": torch.log(torch.tensor([5.0, 50.0, 20.0, 80.0])),
+    }
+    batch = {
+        "R_ab": torch.eye(3).expand(n, 3, 3),
+        "t_dir_ab": out["direction"],
+        "baseline_m": torch.tensor([5.0, 40.0, 40.0, 40.0]),
+        "distance_floor": torch.tensor([False, True, True, True]),
+        "pose_weight": torch.tensor([1.0, 0.0, 0.0, 0.0]),
+    }
+    # exact pose and distance on the pose pair; of the floor pairs only the 20 m reading counts
+    want = 3.0 * math.log(20.0 / 40.0) ** 2 / n
+    got = relpose_trainer.RelPoseLoss(mu=3.0)(out, batch)
+    assert float(got) == pytest.approx(want, rel=1e-5)
+
+
 def test_relpose_meter_medians_and_shares():
     meter = relpose_trainer.RelPoseMeter()
     R_gt = torch.eye(3).expand(4, 3, 3)
@@ -279,18 +300,44 @@ def test_hard_negatives_are_true_negatives_and_resampling_is_seeded(shared):
     assert far.pose_weight.tolist() == [1.0] * 10 + [0.0] * 4
     assert (far.baseline_m[10:] > 10.0).all() and (far.baseline_m[10:] <= 30.0).all()
     assert far[12]["pose_weight"].item() == 0.0
+    assert not far.distance_floor.any()
     with pytest.raises(GeosegError, match="far_max_baseline_m"):
         relpose_trainer.PairSet([rf], 10, n_far=4)
+    # unrelated pairs (views >= 20 m apart, any orientation) come last, their baseline a floor
+    unrelated = relpose_trainer.PairSet(
+        [rf], 10, seed=0, n_far=4, far_max_baseline_m=30.0, n_unrelated=3, unrelated_min_m=20.0,
+        unrelated_floor_m=15.0, min_baseline_m=0.5, max_baseline_m=10.0,
+    )  # fmt: skip
+    assert len(unrelated) == 17
+    np.testing.assert_array_equal(unrelated.index[:14], far.index)
+    assert unrelated.distance_floor.tolist() == [False] * 14 + [True] * 3
+    assert unrelated.pose_weight[14:].eq(0).all() and unrelated.baseline_m[14:].eq(15.0).all()
+    for _r, i, j, a, b in unrelated.index[14:]:
+        assert np.linalg.norm(rf.traversals[i].t_wc[a] - rf.traversals[j].t_wc[b]) >= 20.0
+    assert unrelated[16]["distance_floor"].item() is True
 
 
 def test_far_pairs_need_a_distance_head(shared, tmp_path):
     from geoseg.errors import ConfigError
 
-    with pytest.raises(ConfigError, match="predict_distance"):
+    for key in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch"):
+        with pytest.raises(ConfigError, match=f"{key}.*predict_distance"):
+            load_config(
+                relpose_trainer.RelPoseConfig,
+                None,
+                overrides=_overrides(shared, tmp_path / "run", **{key: 8}),
+            )
+    with pytest.raises(ConfigError, match="unrelated_floor_m"):
         load_config(
             relpose_trainer.RelPoseConfig,
             None,
-            overrides=_overrides(shared, tmp_path / "run", far_pairs_per_epoch=8),
+            overrides=_overrides(
+                shared,
+                tmp_path / "run",
+                unrelated_pairs_per_epoch=8,
+                unrelated_floor_m=80.0,
+                model_config={"predict_distance": True},
+            ),
         )
     with pytest.raises(ConfigError, match="far_max_baseline_m"):
         load_config(
