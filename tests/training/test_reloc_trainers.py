@@ -327,30 +327,17 @@ def test_far_pairs_need_a_distance_head(shared, tmp_path):
                 None,
                 overrides=_overrides(shared, tmp_path / "run", **{key: 8}),
             )
-    with pytest.raises(ConfigError, match="unrelated_floor_m"):
-        load_config(
-            relpose_trainer.RelPoseConfig,
-            None,
-            overrides=_overrides(
-                shared,
-                tmp_path / "run",
-                unrelated_pairs_per_epoch=8,
-                unrelated_floor_m=80.0,
-                model_config={"predict_distance": True},
-            ),
-        )
-    with pytest.raises(ConfigError, match="far_max_baseline_m"):
-        load_config(
-            relpose_trainer.RelPoseConfig,
-            None,
-            overrides=_overrides(
-                shared,
-                tmp_path / "run",
-                far_pairs_per_epoch=8,
-                far_max_baseline_m=5.0,
-                model_config={"predict_distance": True},
-            ),
-        )
+    distance_head = {"model_config": {"predict_distance": True}}
+    for match, bad in (
+        ("unrelated_floor_m", {"unrelated_pairs_per_epoch": 8, "unrelated_floor_m": 80.0}),
+        ("far_max_baseline_m", {"far_pairs_per_epoch": 8, "far_max_baseline_m": 5.0}),
+    ):
+        with pytest.raises(ConfigError, match=match):
+            load_config(
+                relpose_trainer.RelPoseConfig,
+                None,
+                overrides=_overrides(shared, tmp_path / "run", **bad, **distance_head),
+            )
 
 
 # ----------------------------------------------------------------------------- the command
