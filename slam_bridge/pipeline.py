@@ -15,20 +15,22 @@ unseen:
 2. *Mapping*: points seen by ``k`` and not yet triangulated are triangulated from all their
    active observations (DLT + refinement, parallax >= ``min_parallax_deg``); a point whose worst
    observation errs by more than ``outlier_gate_px`` loses that observation and waits.
-3. *k-BA* (the SLAM's own, unconstrained): the plain ``n = 0`` window of the ``l`` latest
-   keyframes, all their observations, older observers fixed (:mod:`slam_bridge.window`), by
-   Levenberg-Marquardt, **for every method**. For ``n = 0`` its result is ``X*``.
-3b. *Hybrid zeta* (DPC, MPC): the hybrid window of eq. 3.4 is built on the k-BA's output, with
-   ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras (the BA window keeps ``l - n``
-   cameras while fewer than ``l`` keyframes exist); ``S_hat`` (eq. 3.14) = the relative poses
-   after this k-BA, i.e. "before the fusion" as §3.5.0.1 says; ``X* = argmin zeta`` by a few LM
-   iterations from there (:func:`slam_bridge.window.minimize_zeta`). Eq. 3.4 defines the
-   fusion's ``zeta`` (§3.1: the fusion is initialised at ``argmin zeta``, ``t = 1.05 zeta(X*)``);
-   the SLAM that feeds it keeps its k-BA (§3.7: the fusion is "a brick of a more general
-   localisation system"). Reading eq. 3.4 as the SLAM's only BA (``kba_window="hybrid"``, the
-   former behaviour) throws the BA window's pose-graph observations away for good: the ``l - n``
-   BA cameras then carry the scale alone (scale drift, 1.7 m vs 0.2 m vision-only on 160 m),
-   points leave the map unrefined, and the hybrids lost 16-54 % of the inliers.
+3. *k-BA* (the SLAM's own, unconstrained), ``X* = argmin zeta``. ``n = 0``: the plain window
+   of the ``l`` latest keyframes, all their observations, older observers fixed
+   (:mod:`slam_bridge.window`), by Levenberg-Marquardt. Hybrids (DPC, MPC, default
+   ``kba_window="hybrid"``): the hybrid window of eq. 3.4 with
+   ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras (the BA window keeps
+   ``l - n`` cameras while fewer than ``l`` keyframes exist) is the k-BA, so the fusion and
+   the next k-BA minimise the same ``zeta`` and a fusion is not undone by the next keyframe.
+   Three documented departures keep that SLAM as good as the plain one (``PipelineConfig``):
+   the pose-graph cameras keep their observations of the BA window's points
+   (``pose_graph_rows``, thinned to ``pose_graph_share``), each link keeps the reference it
+   had when it entered the pose graph (``freeze_links``), and DPC links are weighed by the
+   information the BA window had on them then (``dpc_weight``). Points only the pose-graph
+   cameras see leave the problem (eq. 3.4) and are carried along with their newest observer
+   (:func:`_carry_points`). ``kba_window="plain"`` runs the plain k-BA for every method and
+   uses eq. 3.4 only as the fusion's ``zeta`` (the next k-BA then undoes most of each hybrid
+   fusion: measured in ``PipelineConfig.kba_window``).
 4. *Fusion*: barrier GPS fusion of the most recent camera (eq. 3.1, :func:`slam_bridge.solvers.
    barrier.solve_barrier`) from ``X*`` over the fusion's ``zeta`` (plain reprojection for
    ``n = 0``, eq. 3.4 for the hybrids; its Hessian is the one the memory and time per iteration
@@ -79,6 +81,7 @@ from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
+from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.geometry import pnp, ray_parallax_deg, triangulate
 from slam_bridge.landmarks import LandmarkConfig, Observations
 from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
@@ -144,24 +147,27 @@ class PipelineConfig:
             0.1 mrad / 1 mm (160 m run, sigma_b = 0.75 and 1.5 m) the hybrid keeps the n = 0
             inlier count, while 0.2 mrad / 2 mm let the fusion bend the chain at the BA /
             pose-graph junction (4.5 % inlier loss) and 0.05 mrad / 0.5 mm make the chain so
-            stiff that the GPS moves the cameras less (xy error x2).
+            stiff that the GPS moves the cameras less (xy error x2) (plain k-BA; with the
+            hybrid k-BA see ``dpc_weight``).
         dpc_sigma_trans_m: DPC weight ``B = I / sigma_trans^2``.
         dpc_weight: ``"information"`` (default): each pose-graph link ``(z_i, z_{i+1})`` is
-            weighed by the information of its relative pose in this keyframe's k-BA
-            (:func:`_link_information`, the thesis's perspective §5.2), times
-            ``dpc_info_scale``; ``"constant"``: ``D = diag(I / sigma_rot^2, I / sigma_trans^2)``
-            for every link (``dpc_sigma_*``; MPC's DPC fallback links always use it). Measured
-            (640 m, sigma_b = 0.75 m, DPC): the constant D loses tracking at keyframe 247 (a
-            90 degree turn), the information weights x10 run through (xy 0.51 m, no inlier
-            loss vs n = 0).
-        dpc_info_scale: factor on the information weights. The marginal relative-pose
-            covariances (about 0.4 mrad, 10 mm per link on the 640 m run) overstate what a
-            chain of independent links may bend (a camera's noise enters its two links with
-            opposite signs), so the chain needs more than x1; the calibrated scale
-            (``dpc_info_calibrate``) makes it too stiff (tracking lost at keyframe 300, like a
-            constant 0.05 mrad); x10 is the one value measured to run through (others untried
-            for lack of time).
-        dpc_info_calibrate: rescale the information weights of the chain so that the
+            weighed by the information of its relative pose (the thesis's perspective §5.2),
+            times ``dpc_info_scale``: with ``kba_window="hybrid"`` the information the BA window
+            had on it when ``z_i`` left the window (:func:`_entry_information`, kept with the
+            link), with ``"plain"`` the one of this keyframe's k-BA (:func:`_link_information`).
+            ``"constant"``: ``D = diag(I / sigma_rot^2, I / sigma_trans^2)`` for every link
+            (``dpc_sigma_*``; MPC's DPC fallback links always use it). A constant ``D`` is
+            fragile: measured on the 640 m run (hybrid k-BA, frozen links, sigma_b = 0), 0.05
+            mrad / 0.5 mm gives 0.14 m mean translation error, 0.04 mrad / 0.4 mm 0.27 m and
+            0.025 mrad / 0.25 mm 1.03 m (too stiff: the barrier's slack no longer moves the
+            newest camera onto the fix), while softer constants lose inliers under GPS noise.
+        dpc_info_scale: factor on the information weights. A link stands for the points its
+            two cameras share, but the marginal relative-pose covariance counts a camera's
+            noise in both of its links, so x1 leaves the chain soft: measured (640 m, hybrid
+            k-BA, sigma_b = 0) x1: 0.48 m (z 0.48 m), x10: 0.24 m. With the plain k-BA the
+            calibrated scale (``dpc_info_calibrate``) made it too stiff (tracking lost at
+            keyframe 300) and x10 ran through.
+        dpc_info_calibrate: ``kba_window="plain"`` only: rescale the information weights of the chain so that the
             covariance of the chain's newest camera ``z_{n+1}`` about the fixed ``z_0`` (the
             translation block's trace) equals its covariance in the k-BA
             (:func:`_chain_scale`). The marginal relative-pose covariances count the noise of a
@@ -181,10 +187,11 @@ class PipelineConfig:
             ``dpc_info_scale`` (x10), the chain needs more weight than the measurement noise
             gives (with 1 px noise an epipolar distance errs by ~1.4 px): left soft, every later
             fusion bends it and the bend of its oldest link freezes into the fixed history.
-            Measured on the 640 m grid (sigma_b 0 / 0.75 / 1.5 / bias, mean translation error,
-            worst inlier loss vs n = 0): 1.0 px: 1.60 / 1.13 / 1.36 / 0.90 m, 3.2 %; 0.5 px:
-            1.20 / 1.15 / 1.02 / 4.04 m, 1.8 %; 0.25 px: 0.76 / 0.71 / 0.77 / 2.34 m, 0.5 %
-            (the bias run is the one that gets worse).
+            Measured on the 640 m grid with the plain k-BA (sigma_b 0 / 0.75 / 1.5 / bias, mean
+            translation error, worst inlier loss vs n = 0): 1.0 px: 1.60 / 1.13 / 1.36 / 0.90
+            m, 3.2 %; 0.5 px: 1.20 / 1.15 / 1.02 / 4.04 m, 1.8 %; 0.25 px: 0.76 / 0.71 / 0.77
+            / 2.34 m, 0.5 %. With the hybrid k-BA (sigma_b = 0.75 m): 0.5 px 0.40 m, 7.9 %
+            inlier loss; 0.25 px 0.21 m, 2.3 %; 0.15 px 0.20 m, 2.0 %.
         mpc_length_sigma_m: MPC only: sigma of a baseline-length term
             ``((||T_j - T_i|| - L_hat_ij) / sigma)^2`` added to zeta for every pose-graph pair
             (:class:`BaselineLengthFactor`, ``L_hat`` from the pre-fusion poses). The epipolar
@@ -192,32 +199,55 @@ class PipelineConfig:
             link of the chain, and the scale of the BA window behind it, is free: the barrier
             lets the GPS slide the reconstruction along those directions at no vision cost (the
             sequence drifts by tens of metres). ``None`` = the thesis's pure MPC.
-        mpc_match_share: MPC only: share ``s`` of the points (a fixed subset, chosen by point
-            id) whose 2D correspondences between successive pose-graph keyframes enter eq. 3.18
-            (the thesis does not say how many; all of them make MPC slower than n = 0); their
-            rows are weighted by ``1 / s`` (:func:`_hybrid_problem`).
+        pose_graph_share: share ``s`` of the points (a fixed subset, chosen by point id) whose
+            observations in the pose-graph keyframes stay in the window: MPC's 2D
+            correspondences between successive pose-graph keyframes (eq. 3.18; the thesis does
+            not say how many; all of them make MPC slower than n = 0) and the
+            ``pose_graph_rows``. Their rows are weighted by ``1 / s`` (:func:`_hybrid_problem`).
+            Measured (640 m, DPC, sigma_b = 0.75 m): all pose-graph rows: Hessian memory 2.4x
+            smaller than n = 0 (fig. 3.7 wants >= 3x), time per fusion iteration 0.46x; s =
+            0.25 with the 1 / s weight: memory 3.2x smaller, no inlier loss; s = 0.25 unweighted:
+            3.2 % inlier loss; s = 0.5 unweighted: 2.9x smaller.
+        refine_left_points: after the last keyframe, re-triangulate the points that left a
+            hybrid window with the final poses (:func:`_refine_points`), so that the returned
+            map matches the returned trajectory (which it does not change). Refitting them
+            during the run instead (every carried point at every keyframe) doubled the loop's
+            time, and refitted points tracked again changed the trajectory.
+        pose_graph_rows: the hybrid window keeps the pose-graph cameras' observations of the BA
+            window's points (:attr:`slam_bridge.window.HybridWindowConfig.pose_graph_rows`).
+            Measured (640 m, sigma_b = 0, hybrid k-BA, DPC, frozen constant links): 0.93 m mean
+            translation error without, 0.18 m with.
         ba_scale_sigma_m: hybrids only: sigma of a baseline-length term on the first pair of
             the BA window. With ``n > 0`` no fixed camera observes the BA window's points, so
             its scale (about ``z_{n+1}``) costs zeta nothing and the barrier lets each GPS fix
             rescale it, at the expense of its consistency with the pose-graph cameras' points
             (inlier loss). ``None`` (default) = eq. 3.4 as written.
-        freeze_links: keep each pose-graph link's ``S_hat`` (eq. 3.14) from the moment it
-            entered the pose graph rather than the thesis's relative pose *before this
-            keyframe's fusion* (after its k-BA). Off by default: with the plain k-BA
-            (``kba_window="plain"``) the k-BA re-estimates the pose-graph cameras at every
-            keyframe, and a frozen ``S_hat`` would fight it.
-        kba_window: ``"plain"`` (default): the SLAM's k-BA at every keyframe is the plain
-            ``n = 0`` window of the ``l`` latest keyframes (all their observations, older
-            observers fixed), for every method; the hybrid window (eq. 3.4) is only the
-            fusion's ``zeta``, built on the k-BA's output (``S_hat`` = the k-BA's relative
-            poses) and minimised (``zeta_iterations``) to get ``X*``. ``"hybrid"``: the former
-            reading, the hybrid window *is* the SLAM's k-BA (no other BA): its BA window's
-            points lose their pose-graph observations for good, so the l - n cameras carry
-            the scale alone and the map drifts (vision only, 160 m: 1.7 m vs 0.2 m for n = 0).
+        freeze_links: keep each pose-graph link's reference (DPC's ``S_hat``, eq. 3.14, MPC's
+            baseline lengths and epipolar offsets) from the moment it entered the pose graph
+            rather than re-taking it before every fusion (:func:`_pose_graph_references`). With
+            the hybrid k-BA a re-taken reference makes every fusion's bend permanent: measured
+            (640 m, sigma_b = 0.75 m, DPC, constant 0.1 mrad / 1 mm) 15 % inlier loss vs n = 0
+            re-taken, 3.4 % frozen; MPC 10 % vs 3.2 %. With the plain k-BA (which
+            re-estimates the pose-graph cameras at every keyframe) a frozen reference fights
+            it.
+        kba_window: ``"hybrid"`` (default, the thesis's reading: §3.5.0.1 takes ``S_hat``
+            "after the minimisation of zeta"): the hybrid window (eq. 3.4) *is* the SLAM's k-BA
+            of the hybrid methods, minimised by ``ba_iterations`` LM iterations, and the fusion
+            starts from its optimum. ``"plain"``: the SLAM's k-BA at every keyframe is the
+            plain ``n = 0`` window of the ``l`` latest keyframes for every method, and the
+            hybrid window is only the fusion's ``zeta``, built on the k-BA's output and
+            minimised (``zeta_iterations``) to get ``X*``. Then the fusion minimises a ``zeta``
+            other than the one the next k-BA minimises, and that k-BA undoes most of it:
+            measured (640 m, sigma_b = 0) the newest camera was 0.69 m (DPC) / 0.87 m (MPC)
+            from its exact GPS fix before each fusion (n = 0: 0.11 m) and the mean translation
+            error 0.66 / 0.76 m, vs 0.16 / 0.10 m with the hybrid k-BA (``pose_graph_rows``,
+            ``freeze_links``). Vision only (no GPS, 640 m): hybrid k-BA 1.0 m (DPC) / 1.1 m
+            (MPC) mean error, plain n = 0 1.8 m. ``"ba"``: the k-BA is the plain window of the
+            ``l - n`` BA cameras.
         mpc_relative: MPC's epipolar distances measured from their values after the k-BA
             (:attr:`slam_bridge.window.HybridWindowConfig.mpc_relative`).
-        zeta_iterations: LM iterations of ``X* = argmin zeta`` (hybrid ``zeta``, started from
-            the k-BA's output, so a few suffice).
+        zeta_iterations: ``kba_window="plain"`` only: LM iterations of ``X* = argmin zeta``
+            (hybrid ``zeta``, started from the k-BA's output, so a few suffice).
         cull_degenerate_points: after the gating, untriangulate the window's points whose
             observers' rays now meet at less than ``min_parallax_deg`` or that are behind one
             of them (:func:`_cull_degenerate_points`; they are triangulated anew when seen
@@ -257,14 +287,16 @@ class PipelineConfig:
     fusion_guard_px: float = 2.0
     mpc_sigma_px: float = 0.25
     mpc_length_sigma_m: float | None = 2e-3
-    mpc_match_share: float = 0.25
+    pose_graph_share: float = 0.25
     ba_scale_sigma_m: float | None = None
-    freeze_links: bool = False
-    kba_window: str = "plain"
+    freeze_links: bool = True
+    kba_window: str = "hybrid"
     mpc_relative: bool = True
     zeta_iterations: int = 5
     blas_threads: int | None = 1
     cull_degenerate_points: bool = True
+    pose_graph_rows: bool = True
+    refine_left_points: bool = True
 
     def __post_init__(self) -> None:
         if self.blas_threads is not None and self.blas_threads < 1:
@@ -279,6 +311,8 @@ class PipelineConfig:
             raise SlamError(
                 f"dpc_weight: expected 'information' or 'constant', got {self.dpc_weight!r}"
             )
+        if not 0 < self.pose_graph_share <= 1:
+            raise SlamError(f"pose_graph_share: expected in (0, 1], got {self.pose_graph_share}")
         if not self.dpc_info_scale > 0:
             raise SlamError(f"dpc_info_scale: expected > 0, got {self.dpc_info_scale}")
         if self.kba_window not in ("plain", "ba", "hybrid"):
@@ -465,8 +499,9 @@ def hessian_bytes(problem) -> int:
     st = problem.state
     cmap, pmap = st.camera_index_map, st.point_index_map
     Cf, Pf = int(st.free_cameras.size), int(st.free_points.size)
-    rep = problem.vision[0]
-    c, p = cmap[rep.cameras], pmap[rep.points]
+    reps = [f for f in problem.vision if isinstance(f, ReprojectionFactor)]
+    c = cmap[np.concatenate([f.cameras for f in reps])]
+    p = pmap[np.concatenate([f.points for f in reps])]
     keep = (c >= 0) & (p >= 0)
     n_w = int(np.unique(c[keep] * max(Pf, 1) + p[keep]).size)
     q = 0
@@ -478,37 +513,104 @@ def hessian_bytes(problem) -> int:
     return 8 * (36 * Cf + 36 * q + 18 * n_w + 9 * Pf)
 
 
-def _freeze_links(
+def _pose_graph_references(
     problem,
     links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]],
-    R_wc: np.ndarray,
-    t_wc: np.ndarray,
+    link_info: dict[tuple[int, int], np.ndarray],
     D: np.ndarray,
     cfg: PipelineConfig,
 ) -> None:
-    """Record ``S_hat`` of new pose-graph links and, when frozen, rebuild the DPC factor.
+    """Record ``S_hat`` of new pose-graph links; rebuild the pose-graph terms on the frozen
+    references and the links' entry information.
 
     A link ``(z_i, z_{i+1})`` enters the pose graph when ``z_i`` leaves the BA window; its
-    relative pose at that moment (eq. 3.2, the k-BA's estimate, before this keyframe's fusion)
-    is stored. With ``freeze_links`` the DPC terms (and MPC's baseline lengths) of every later
-    keyframe keep that ``S_hat`` instead of re-taking it from the current, already fused, poses:
-    otherwise each fusion's bend of the chain becomes the next keyframe's reference and the
-    bends accumulate over the ``n`` keyframes a camera spends in the pose graph.
+    relative pose at that moment (eq. 3.2, the last estimate before this keyframe's k-BA and
+    fusion) is stored. With ``freeze_links`` every later keyframe keeps that ``S_hat`` instead
+    of re-taking it from the current, already fused, poses: otherwise each fusion's bend of the
+    chain becomes the next keyframe's reference and the bends accumulate over the ``n``
+    keyframes a camera spends in the pose graph. It applies to the DPC terms, MPC's baseline
+    lengths and MPC's epipolar offsets (their rest position is the chain rebuilt from ``z_0``
+    with the frozen relative poses, :func:`_frozen_chain_state`). DPC links with an entry
+    information (``link_info``, :func:`_entry_information`) are weighed by it, the others by
+    the constant ``D``.
     """
+    from slam_bridge.factors.pose_graph_mpc import MPCFactor
+
     pg = problem.window.pose_graph_pairs
+    st = problem.state
     for a, b in pg:
         key = (int(a), int(b))
         if key not in links:
-            links[key] = (R_wc[a].T @ R_wc[b], R_wc[a].T @ (t_wc[b] - t_wc[a]))
-    if not cfg.freeze_links or not pg.size:
+            i, j = problem.camera_index(a), problem.camera_index(b)
+            R_i = st.R_wc[i]
+            links[key] = (R_i.T @ st.R_wc[j], R_i.T @ (st.t_wc[j] - st.t_wc[i]))
+    if not pg.size:
         return
     ids = problem.camera_ids
+    D_const = np.diag(D) if D.ndim == 1 else D
     for i, f in enumerate(problem.vision):
-        if isinstance(f, DPCFactor):
+        if isinstance(f, DPCFactor) and (cfg.freeze_links or link_info):
             kp = [(int(ids[a]), int(ids[b])) for a, b in f.pairs]
-            R_h = np.stack([links[p][0] for p in kp])
-            t_h = np.stack([links[p][1] for p in kp])
-            problem.vision[i] = DPCFactor(f.pairs, R_h, t_h, D)
+            R_h, t_h = f.R_hat_ij, f.t_hat_ij
+            if cfg.freeze_links:
+                R_h = np.stack([links[q][0] for q in kp])
+                t_h = np.stack([links[q][1] for q in kp])
+            W = np.stack([link_info.get(q, D_const) for q in kp])
+            problem.vision[i] = DPCFactor(f.pairs, R_h, t_h, W, kernel=f.kernel, name=f.name)
+        elif isinstance(f, MPCFactor) and cfg.freeze_links and f.offset is not None:
+            problem.vision[i] = f.relative_to(_frozen_chain_state(problem, links))
+
+
+def _frozen_chain_state(problem, links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]):
+    """``problem.state`` with the pose-graph chain rebuilt from ``z_0`` (or ``z_1``) by the
+    frozen relative poses: every link's relative pose is its ``S_hat`` there."""
+    st = problem.state
+    R, t = st.R_wc.copy(), st.t_wc.copy()
+    for a, b in problem.window.pose_graph_pairs:
+        i, j = problem.camera_index(a), problem.camera_index(b)
+        R_h, t_h = links[(int(a), int(b))]
+        R[j], t[j] = R[i] @ R_h, R[i] @ t_h + t[i]
+    return dataclasses.replace(st, R_wc=R, t_wc=t)
+
+
+def _entry_information(problem, cfg: PipelineConfig) -> tuple[tuple[int, int], np.ndarray] | None:
+    """Weight of the link the pose graph gains at the next keyframe (``kba_window="hybrid"``).
+
+    That link is the BA window's first pair ``(z_{n+1}, z_{n+2})``; ``z_{n+1}`` then leaves the
+    BA window with its points. The information this window (at its optimum ``X*``, undamped
+    normal equations, eq. 1.32) has on the pair's relative pose is what those points and rows
+    gave it (:func:`slam_bridge.factors.pose_graph_dpc.relative_pose_information`), times
+    ``dpc_info_scale``; the link keeps it while it stays in the pose graph.
+
+    Returns:
+        ``((id_{n+1}, id_{n+2}), D (6, 6))`` or None (fewer than 2 BA cameras, a fixed camera,
+        or a system that cannot be factorised: the link then gets the constant ``D``).
+    """
+    from slam_bridge.factors.pose_graph_dpc import relative_pose_information
+    from slam_bridge.problem import assemble
+    from slam_bridge.solvers.schur import SchurFactorization
+
+    ba = problem.window.ba_cameras
+    if ba.size < 2:
+        return None
+    st = problem.state
+    ia, ib = problem.camera_index(ba[0]), problem.camera_index(ba[1])
+    fa, fb = int(st.camera_index_map[ia]), int(st.camera_index_map[ib])
+    if fa < 0 or fb < 0:
+        return None
+    try:
+        fac = SchurFactorization(assemble(problem.vision, st), 0.0)
+        cov = fac.camera_covariance_full()
+    except SlamError as exc:
+        logger.debug("entry information: system not factorisable (%s)", exc)
+        return None
+    idx = np.r_[6 * fa : 6 * fa + 6, 6 * fb : 6 * fb + 6]
+    cov_pair = cov[np.ix_(idx, idx)][None]
+    R, t = st.R_wc[[ia, ib]], st.t_wc[[ia, ib]]
+    info = relative_pose_information(
+        R[:1], t[:1], R[1:], t[1:], cov_pair, min_sigma=cfg.dpc_min_sigma
+    )
+    return (int(ba[0]), int(ba[1])), cfg.dpc_info_scale * info[0]
 
 
 def _link_information(kba, problem, cfg: PipelineConfig) -> int:
@@ -684,12 +786,13 @@ def _hybrid_problem(
 ):
     """The hybrid window of keyframe ``k`` (eq. 3.4) over the observations ``sel``.
 
-    MPC: the pose-graph keyframes only contribute correspondences; they are thinned to the
-    ``mpc_match_share`` ``s`` of the points (by point id), keyframes left with fewer than 40
-    observations keeping them all; if the thinned window is invalid the full one is used. The
-    rows' pixel sigma becomes ``mpc_sigma_px sqrt(s)``: each kept correspondence stands for the
-    ``1 / s`` it represents, so the chain is about as stiff as with all of them (measured on
-    160 m, sigma_b = 0.75 m: 3.5 % inlier loss vs 8.8 % with sigma 1 px, same time).
+    The pose-graph keyframes' observations (MPC's correspondences, the ``pose_graph_rows``) are
+    thinned to the ``pose_graph_share`` ``s`` of the points (by point id), keyframes left with
+    fewer than 40 observations keeping them all; if the thinned window is invalid the full one
+    is used. The kept rows' pixel sigma is multiplied by ``sqrt(s)``: each kept row stands for
+    the ``1 / s`` it represents, so the chain and its tie to the BA window are about as stiff as
+    with all of them (MPC, measured on 160 m, sigma_b = 0.75 m: 3.5 % inlier loss vs 8.8 % with
+    sigma 1 px, same time).
 
     Returns:
         ``(observations used, problem)``.
@@ -697,12 +800,13 @@ def _hybrid_problem(
     obs = data.observations
     kf_obs, pt_obs, uv = obs.keyframe, obs.point, obs.uv
     sel_all = sel
-    thinned = kind == "mpc" and cfg.mpc_match_share < 1.0
+    share = cfg.pose_graph_share
+    thinned = (kind == "mpc" or cfg.pose_graph_rows) and share < 1.0
     if thinned:
         pg_end = k + 1 - (l_eff - n_eff)
         in_pg = kf_obs[sel] < pg_end
         h = (pt_obs[sel] * 2654435761) % 1000
-        thin = in_pg & (h >= 1000 * cfg.mpc_match_share)
+        thin = in_pg & (h >= 1000 * share)
         left = np.bincount(kf_obs[sel][~thin], minlength=k + 1)
         thin &= left[kf_obs[sel]] >= 40
         sel = sel[~thin]
@@ -711,8 +815,10 @@ def _hybrid_problem(
         n=n_eff,
         pose_graph=kind,
         D=D,
-        mpc_sigma=cfg.mpc_sigma_px * (np.sqrt(cfg.mpc_match_share) if thinned else 1.0),
+        mpc_sigma=cfg.mpc_sigma_px * (np.sqrt(share) if thinned else 1.0),
         mpc_relative=cfg.mpc_relative,
+        pose_graph_rows=cfg.pose_graph_rows,
+        pose_graph_row_sigma=float(np.sqrt(share)) if thinned and cfg.pose_graph_rows else None,
     )
     try:
         problem = build_hybrid_problem(
@@ -723,7 +829,7 @@ def _hybrid_problem(
             raise
         logger.debug("keyframe %d: MPC window without thinning", k)
         sel = sel_all
-        wcfg = dataclasses.replace(wcfg, mpc_sigma=cfg.mpc_sigma_px)
+        wcfg = dataclasses.replace(wcfg, mpc_sigma=cfg.mpc_sigma_px, pose_graph_row_sigma=None)
         problem = build_hybrid_problem(
             R_wc, t_wc, X_w, data.K, keyframes, kf_obs[sel], pt_obs[sel], uv[sel], wcfg
         )
@@ -740,7 +846,7 @@ def _carry_points(
     R_wc: np.ndarray,
     t_wc: np.ndarray,
     X_w: np.ndarray,
-) -> int:
+) -> np.ndarray:
     """Move the points only the pose-graph cameras see along with their newest observer.
 
     The hybrid fusion moves the pose-graph cameras ``pg_ids`` (from ``R_ref, t_ref``, their
@@ -753,11 +859,11 @@ def _carry_points(
     it.
 
     Returns:
-        The number of points moved (``X_w`` is updated in place).
+        ``(M,)`` ids of the points moved (``X_w`` is updated in place).
     """
     in_pg = np.isin(obs_keyframes, pg_ids) & ~np.isin(obs_points, fused_points)
     if not np.any(in_pg):
-        return 0
+        return np.zeros(0, dtype=np.int64)
     pts, kfs = obs_points[in_pg], obs_keyframes[in_pg]
     newest = np.full(X_w.shape[0], -1, dtype=np.int64)
     np.maximum.at(newest, pts, kfs)
@@ -765,7 +871,60 @@ def _carry_points(
     c = np.searchsorted(pg_ids, newest[moved])
     X_c = np.einsum("mba,mb->ma", R_ref[c], X_w[moved] - t_ref[c])
     X_w[moved] = np.einsum("mab,mb->ma", R_wc[pg_ids[c]], X_c) + t_wc[pg_ids[c]]
-    return int(moved.size)
+    return moved
+
+
+def _refine_points(
+    data: SequenceData,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    X_w: np.ndarray,
+    active: np.ndarray,
+    upto: int,
+    points: np.ndarray,
+) -> int:
+    """Re-triangulate ``points`` from all their active observations with the current poses.
+
+    The points that left the hybrid window are only carried rigidly (:func:`_carry_points`)
+    while the pose graph bends under later fusions, so the stored map drifts from what its
+    cameras see (measured, 640 m, sigma_b = 0.75 m, DPC: half of the stored points erred by
+    2 px or more somewhere). The loop refits them once, after its last keyframe, with the
+    final poses (``refine_left_points``). A point takes its refit (DLT + Gauss-Newton,
+    :func:`slam_bridge.geometry.triangulate`) only when that lowers its worst reprojection
+    error.
+
+    Args:
+        upto: observations of keyframes ``< upto`` count (``starts[k + 1]``, data order).
+        points: ``(M,)`` point ids.
+
+    Returns:
+        The number of points updated (``X_w`` in place).
+    """
+    obs = data.observations
+    if points.size == 0:
+        return 0
+    o = np.arange(upto)
+    o = o[active[o] & np.isin(obs.point[o], points)]
+    if o.size == 0:
+        return 0
+    pts_u, local = np.unique(obs.point[o], return_inverse=True)
+    kf = obs.keyframe[o]
+    res = triangulate(
+        data.K, R_wc, t_wc, kf, local, obs.uv[o], num_points=pts_u.size, min_parallax_deg=0.0
+    )
+
+    def worst_error(X: np.ndarray) -> np.ndarray:
+        uv_hat, _, front = project(data.K, R_wc[kf], t_wc[kf], np.nan_to_num(X[local]))
+        err = np.where(
+            front, np.linalg.norm(np.nan_to_num(uv_hat - obs.uv[o], nan=1e9), axis=1), 1e9
+        )
+        worst = np.zeros(pts_u.size)
+        np.maximum.at(worst, local, err)
+        return worst
+
+    better = res.valid & (worst_error(res.X_w) < worst_error(X_w[pts_u]))
+    X_w[pts_u[better]] = res.X_w[better]
+    return int(better.sum())
 
 
 def _window_n(method: str, cfg: PipelineConfig, l_eff: int) -> int:
@@ -836,6 +995,8 @@ def _run_pipeline(
         [np.full(3, cfg.dpc_sigma_rot_rad**-2), np.full(3, cfg.dpc_sigma_trans_m**-2)]
     )
     links: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+    link_info: dict[tuple[int, int], np.ndarray] = {}
+    left = np.zeros(P, dtype=bool)  # points that left a hybrid window (carried)
     records: list[KeyframeRecord] = []
     n0 = _triangulate_new(
         data, cfg, R_wc, t_wc, X_w, tri_ok, active, starts, cfg.anchor_keyframes - 1
@@ -901,7 +1062,7 @@ def _run_pipeline(
                 data, cfg, kind, D, R_wc, t_wc, X_w, keyframes, sel, l_eff, n_eff, k
             )
             problem.state.camera_fixed[np.isin(problem.camera_ids, anchors)] = True
-            _freeze_links(problem, links, R_wc, t_wc, D, cfg)
+            _pose_graph_references(problem, links, link_info, D, cfg)
             if cfg.dpc_weight == "information" and kba is not None and kind == "dpc":
                 _link_information(kba, problem, cfg)
             _add_length_terms(problem, kind, cfg, links)
@@ -910,6 +1071,10 @@ def _run_pipeline(
             it = cfg.zeta_iterations if kba is not None else cfg.ba_iterations
             problem, lm = minimize_zeta(problem, LMConfig(max_iterations=it))
             rec.ba_iterations += int(lm.iterations)
+            if kba is None and kind == "dpc" and cfg.dpc_weight == "information":
+                got = _entry_information(problem, cfg)
+                if got is not None:
+                    link_info[got[0]] = got[1]
         rec.ba_seconds = time.perf_counter() - t0
         st = problem.state
         rec.n_pose_graph = n_eff
@@ -951,10 +1116,11 @@ def _run_pipeline(
             logger.debug("keyframe %d: no GPS fix (dropout), not fused", k)
         problem.write_back(state, R_wc, t_wc, X_w)
         if n_eff > 0:
-            _carry_points(
+            moved = _carry_points(
                 pt_obs[sel_window], kf_obs[sel_window], problem.point_ids, pg_ids, R_ref,
                 t_ref, R_wc, t_wc, X_w,
             )  # fmt: skip
+            left[moved] = True
         if not (np.all(np.isfinite(t_wc[: k + 1])) and np.all(np.isfinite(R_wc[: k + 1]))):
             raise SlamError(f"keyframe {k}: non-finite pose estimate")
         R_on[k], t_on[k] = R_wc[k], t_wc[k]
@@ -985,6 +1151,9 @@ def _run_pipeline(
                 rec.fusion_iterations,
                 1e3 * rec.fusion_seconds,
             )
+    if cfg.refine_left_points and np.any(left):
+        n_ref = _refine_points(data, R_wc, t_wc, X_w, active, starts[C], np.flatnonzero(left))
+        logger.debug("%s: %d carried points re-triangulated with the final poses", method, n_ref)
     return PipelineResult(
         method=method,
         R_wc=R_wc[:C],

@@ -256,7 +256,9 @@ def combine_normal_equations(
     Cf = ne_v.num_free_cameras
     keys = np.concatenate([ne_v.pairs, ne_c.pairs])
     blocks = np.concatenate([alpha * ne_v.U_pairs, ne_c.U_pairs])
-    if keys.shape[0]:
+    if not ne_c.pairs.shape[0]:  # e.g. GPS only: ne_v's pairs are already unique (assemble)
+        pairs, U_pairs = ne_v.pairs, blocks
+    elif keys.shape[0]:
         uniq, inv = np.unique(keys[:, 0] * max(Cf, 1) + keys[:, 1], return_inverse=True)
         U_pairs = np.zeros((uniq.size, 6, 6))
         np.add.at(U_pairs, inv.reshape(-1), blocks)

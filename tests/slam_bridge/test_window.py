@@ -69,6 +69,44 @@ def test_window_split_and_pose_graph_pairs(scene) -> None:
     assert w2.z0 is None and w2.pose_graph_pairs.tolist() == [[0, 1], [1, 2], [2, 3]]
 
 
+def test_pose_graph_rows_keep_the_junction_and_their_own_sigma(scene) -> None:
+    """``pose_graph_rows``: the pose-graph cameras keep their rows of the BA window's points
+    (and only those); with ``pose_graph_row_sigma`` they form a second reprojection family
+    whose whitened residuals are divided by that sigma, and the Hessian memory counts them."""
+    from slam_bridge.pipeline import hessian_bytes
+
+    plain = hybrid_window(np.arange(12), scene.obs_cameras, scene.obs_points, l=8, n=3)
+    rows = hybrid_window(
+        np.arange(12), scene.obs_cameras, scene.obs_points, l=8, n=3, pose_graph_rows=True
+    )
+    assert rows.points.tolist() == plain.points.tolist()
+    extra = np.setdiff1d(rows.observations, plain.observations)
+    assert extra.size > 0 and np.isin(plain.observations, rows.observations).all()
+    assert np.isin(scene.obs_cameras[extra], rows.pose_graph_cameras).all()
+    assert np.isin(scene.obs_points[extra], rows.points).all()
+    expected = np.isin(scene.obs_cameras, rows.pose_graph_cameras) & np.isin(
+        scene.obs_points, rows.points
+    )
+    assert np.flatnonzero(expected).tolist() == extra.tolist()
+
+    one = _build(scene, l=8, n=3, pose_graph_rows=True)
+    two = _build(scene, l=8, n=3, pose_graph_rows=True, pose_graph_row_sigma=0.5)
+    assert [f.name for f in two.vision[:2]] == ["reprojection", "reprojection_pose_graph"]
+    junction = two.vision[1]
+    built = np.setdiff1d(one.window.observations, _build(scene, l=8, n=3).window.observations)
+    assert junction.sigma == 0.5 and junction.cameras.size == built.size > 0
+    assert np.isin(two.camera_ids[junction.cameras], rows.pose_graph_cameras).all()
+    r1, _ = one.vision[0].residuals(one.state)
+    r0, _ = two.vision[0].residuals(two.state)
+    rj, _ = junction.residuals(two.state)
+    assert np.sum(r0**2) + 0.25 * np.sum(rj**2) == pytest.approx(np.sum(r1**2))
+    # each junction row adds a (pose-graph camera, point) W block: 18 float64 each
+    base = _build(scene, l=8, n=3)
+    pairs = np.unique(scene.obs_cameras[built] * 10_000 + scene.obs_points[built]).size
+    assert hessian_bytes(one) - hessian_bytes(base) == 8 * 18 * pairs
+    assert hessian_bytes(two) == hessian_bytes(one)
+
+
 def test_window_bad_inputs(scene) -> None:
     obs_c, obs_p = scene.obs_cameras, scene.obs_points
     with pytest.raises(WindowError, match="empty"):
