@@ -190,8 +190,12 @@ class PipelineConfig:
             Measured on the 640 m grid with the plain k-BA (sigma_b 0 / 0.75 / 1.5 / bias, mean
             translation error, worst inlier loss vs n = 0): 1.0 px: 1.60 / 1.13 / 1.36 / 0.90
             m, 3.2 %; 0.5 px: 1.20 / 1.15 / 1.02 / 4.04 m, 1.8 %; 0.25 px: 0.76 / 0.71 / 0.77
-            / 2.34 m, 0.5 %. With the hybrid k-BA (sigma_b = 0.75 m): 0.5 px 0.40 m, 7.9 %
-            inlier loss; 0.25 px 0.21 m, 2.3 %; 0.15 px 0.20 m, 2.0 %.
+            / 2.34 m, 0.5 %. With the hybrid k-BA (sigma_b = 0.75 m, 2 mm lengths): 0.5 px
+            0.40 m, 7.9 % inlier loss; 0.25 px 0.21 m, 2.3 %; 0.15 px 0.20 m, 2.0 %. With 5 mm
+            lengths, per setting (sigma_b 0 / 0.75 / 1.5 / bias): 0.25 px 0.14 / 0.16 / 0.34 /
+            1.24 m, 0.5 / 1.2 / 1.35 / 3.3 %; 0.15 px 0.18 / 0.20 / 0.41 / 1.11 m, 1.1 / 1.1 /
+            0.5 / 1.4 %. Differences of this size change from run to run of one sequence with
+            any small change (the height drift is chaotic), so neither is clearly better.
         mpc_length_sigma_m: MPC only: sigma of a baseline-length term
             ``((||T_j - T_i|| - L_hat_ij) / sigma)^2`` added to zeta for every pose-graph pair
             (:class:`BaselineLengthFactor`, ``L_hat`` from the pre-fusion poses). The epipolar
@@ -211,7 +215,10 @@ class PipelineConfig:
             Measured (640 m, DPC, sigma_b = 0.75 m): all pose-graph rows: Hessian memory 2.4x
             smaller than n = 0 (fig. 3.7 wants >= 3x), time per fusion iteration 0.46x; s =
             0.25 with the 1 / s weight: memory 3.2x smaller, no inlier loss; s = 0.25 unweighted:
-            3.2 % inlier loss; s = 0.5 unweighted: 2.9x smaller.
+            3.2 % inlier loss; s = 0.5 unweighted: 2.9x smaller. The thinning costs height: on
+            a second drive (``sequence.seed = 3``, sigma_b = 0) DPC's mean height error is 0.57
+            m with s = 0.25 and 0.30 m with s = 1 (memory then 2.3x smaller), n = 0's 0.26 m
+            (the GPS fixes x, y only; the horizontal error is 0.04 m either way).
         refine_left_points: after the last keyframe, re-triangulate the points that left a
             hybrid window with the final poses (:func:`_refine_points`), so that the returned
             map matches the returned trajectory (which it does not change). Refitting them
