@@ -134,6 +134,10 @@ class HybridWindowConfig:
             )
         if self.l < 1:
             raise WindowError(f"l: expected >= 1, got {self.l}")
+        if self.pose_graph_row_sigma is not None and not self.pose_graph_row_sigma > 0:
+            raise WindowError(
+                f"pose_graph_row_sigma: expected > 0 or None, got {self.pose_graph_row_sigma}"
+            )
         if self.n < 0:
             raise WindowError(f"n: expected >= 0, got {self.n}")
         if self.l - self.n < self.min_ba_cameras:

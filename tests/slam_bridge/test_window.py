@@ -105,6 +105,8 @@ def test_pose_graph_rows_keep_the_junction_and_their_own_sigma(scene) -> None:
     pairs = np.unique(scene.obs_cameras[built] * 10_000 + scene.obs_points[built]).size
     assert hessian_bytes(one) - hessian_bytes(base) == 8 * 18 * pairs
     assert hessian_bytes(two) == hessian_bytes(one)
+    with pytest.raises(WindowError, match="pose_graph_row_sigma"):
+        HybridWindowConfig(l=8, n=3, pose_graph_row_sigma=0.0)
 
 
 def test_window_bad_inputs(scene) -> None:
