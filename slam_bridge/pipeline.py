@@ -907,7 +907,8 @@ def _refine_points(
     error.
 
     Args:
-        upto: observations of keyframes ``< upto`` count (``starts[k + 1]``, data order).
+        upto: the first ``upto`` observations count (data order, by keyframe: ``starts[C]``
+            for all of ``C`` keyframes).
         points: ``(M,)`` point ids.
 
     Returns:

@@ -223,6 +223,32 @@ def test_entry_information_is_the_windows_marginal_on_the_next_link():
     assert 1.5 < ratio <= 4.0 + 1e-6
 
 
+def test_refine_points_only_takes_better_fits(noiseless):
+    """``_refine_points`` re-triangulates displaced points from their observations with the
+    given poses, and leaves a point alone when its refit would not lower its worst error."""
+    cfg, data = noiseless
+    res = run_pipeline(data, "ba", cfg.pipeline)
+    obs = data.observations
+    pts = np.flatnonzero(
+        res.triangulated & (np.bincount(obs.point, minlength=res.X_w.shape[0]) >= 3)
+    )
+    assert pts.size > 20
+    X = res.X_w.copy()
+    moved, kept = pts[:10], pts[10:20]
+    X[moved] += np.array([0.5, -0.3, 0.4])
+    before = X.copy()
+    n = pipeline._refine_points(
+        data, data.R_wc_true, data.t_wc_true, X, res.active, len(obs), np.r_[moved, kept]
+    )
+    assert n >= moved.size
+    np.testing.assert_allclose(X[moved], res.X_w[moved], atol=5e-3)
+    # noiseless points already fit to rounding: any refit is no better by more than rounding
+    np.testing.assert_allclose(X[kept], before[kept], atol=1e-6)
+    assert (
+        pipeline._refine_points(data, data.R_wc_true, data.t_wc_true, X, res.active, 0, moved) == 0
+    )
+
+
 def test_gps_dropout_is_skipped_not_nan(noisy):
     cfg, seq = noisy
     gps = gps_for_setting(cfg, seq, "sigma=0.75")
