@@ -253,10 +253,11 @@ class PipelineConfig:
             other than the one the next k-BA minimises, and that k-BA undoes most of it:
             measured (640 m, sigma_b = 0) the newest camera was 0.69 m (DPC) / 0.87 m (MPC)
             from its exact GPS fix before each fusion (n = 0: 0.11 m) and the mean translation
-            error 0.66 / 0.76 m, vs 0.16 / 0.10 m with the hybrid k-BA (``pose_graph_rows``,
+            error 0.66 / 0.76 m, vs 0.16 / 0.14 m with the hybrid k-BA (``pose_graph_rows``,
             ``freeze_links``). Vision only (no GPS, 640 m): hybrid k-BA 1.0 m (DPC) / 1.1 m
-            (MPC) mean error, plain n = 0 1.8 m. ``"ba"``: the k-BA is the plain window of the
-            ``l - n`` BA cameras.
+            (MPC, 2 mm lengths) mean error, plain n = 0 1.8 m; over seven drives with GPS the
+            hybrids drift more in height (``pose_graph_share``). ``"ba"``: the k-BA is the
+            plain window of the ``l - n`` BA cameras.
         mpc_relative: MPC's epipolar distances measured from their values after the k-BA
             (:attr:`slam_bridge.window.HybridWindowConfig.mpc_relative`).
         zeta_iterations: ``kba_window="plain"`` only: LM iterations of ``X* = argmin zeta``
