@@ -587,6 +587,24 @@ def _frozen_chain_state(problem, links: dict[tuple[int, int], tuple[np.ndarray, 
     return dataclasses.replace(st, R_wc=R, t_wc=t)
 
 
+def _camera_covariance(problem) -> np.ndarray | None:
+    """``S^-1`` of ``problem``'s undamped vision system (eq. 1.32), ``(6 Cf, 6 Cf)``, or None
+    when it cannot be factorised (logged)."""
+    from slam_bridge.problem import assemble
+    from slam_bridge.solvers.schur import SchurFactorization
+
+    neq = assemble(problem.vision, problem.state)
+    try:
+        try:
+            fac = SchurFactorization(neq, 0.0)
+        except SlamError:  # a point left with one valid row: a whisker of damping
+            fac = SchurFactorization(neq, 1e-6, "marquardt")
+        return fac.camera_covariance_full()
+    except SlamError as exc:
+        logger.warning("camera covariance: system not factorisable (%s)", exc)
+        return None
+
+
 def _entry_information(problem, cfg: PipelineConfig) -> tuple[tuple[int, int], np.ndarray] | None:
     """Weight of the link the pose graph gains at the next keyframe (``kba_window="hybrid"``).
 
@@ -601,8 +619,6 @@ def _entry_information(problem, cfg: PipelineConfig) -> tuple[tuple[int, int], n
         or a system that cannot be factorised: the link then gets the constant ``D``).
     """
     from slam_bridge.factors.pose_graph_dpc import relative_pose_information
-    from slam_bridge.problem import assemble
-    from slam_bridge.solvers.schur import SchurFactorization
 
     ba = problem.window.ba_cameras
     if ba.size < 2:
@@ -612,11 +628,8 @@ def _entry_information(problem, cfg: PipelineConfig) -> tuple[tuple[int, int], n
     fa, fb = int(st.camera_index_map[ia]), int(st.camera_index_map[ib])
     if fa < 0 or fb < 0:
         return None
-    try:
-        fac = SchurFactorization(assemble(problem.vision, st), 0.0)
-        cov = fac.camera_covariance_full()
-    except SlamError as exc:
-        logger.debug("entry information: system not factorisable (%s)", exc)
+    cov = _camera_covariance(problem)
+    if cov is None:
         return None
     idx = np.r_[6 * fa : 6 * fa + 6, 6 * fb : 6 * fb + 6]
     cov_pair = cov[np.ix_(idx, idx)][None]
@@ -646,22 +659,13 @@ def _link_information(kba, problem, cfg: PipelineConfig) -> int:
         The number of links reweighed.
     """
     from slam_bridge.factors.pose_graph_dpc import relative_pose_information
-    from slam_bridge.problem import assemble
-    from slam_bridge.solvers.schur import SchurFactorization
 
     idx = [i for i, f in enumerate(problem.vision) if isinstance(f, DPCFactor)]
     if not idx:
         return 0
     st = kba.state
-    neq = assemble(kba.vision, st)
-    try:
-        try:
-            fac = SchurFactorization(neq, 0.0)
-        except SlamError:  # a point left with one valid row: a whisker of damping
-            fac = SchurFactorization(neq, 1e-6, "marquardt")
-        cov = fac.camera_covariance_full()
-    except SlamError as exc:
-        logger.warning("DPC weights: k-BA system not factorisable (%s); constant D kept", exc)
+    cov = _camera_covariance(kba)
+    if cov is None:  # constant D kept
         return 0
     cmap = st.camera_index_map
     free_of = {int(c): int(cmap[i]) for i, c in enumerate(kba.camera_ids)}
