@@ -302,6 +302,13 @@ def pad_to_multiple(x: torch.Tensor, multiple: int = STRIDE) -> torch.Tensor:
     return F.pad(x, (0, pad_w, 0, pad_h), mode="replicate")
 
 
+def crop_to(x: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """The top-left `(B, C, h, w)` of `(B, C, H, W)`, H >= h, W >= w (undoes
+    :func:`pad_to_multiple`). A negative pad: one node in an ONNX graph, where ``x[..., :h, :w]``
+    is a ``Slice`` per axis, each a full copy in onnxruntime."""
+    return F.pad(x, (0, w - x.shape[-1], 0, h - x.shape[-2]))
+
+
 class ENet(nn.Module):
     """ENet semantic segmentation network.
 
@@ -327,7 +334,7 @@ class ENet(nn.Module):
         check_image_tensor("x", x, channels=self.in_channels)
         h, w = x.shape[-2], x.shape[-1]
         features, indices1, indices2 = self.trunk(pad_to_multiple(x))
-        logits = self.head(features, indices1, indices2)[..., :h, :w]
+        logits = crop_to(self.head(features, indices1, indices2), h, w)
         return {"logits": logits, "features": features}
 
 

@@ -33,7 +33,7 @@ from torch import nn
 from geoseg.classes import NUM_CLASSES
 from geoseg.errors import GeosegError, check_positive
 from geoseg.models.checks import check_image_tensor
-from geoseg.models.enet import ENet, ENetHead, ENetTrunk, pad_to_multiple
+from geoseg.models.enet import ENet, ENetHead, ENetTrunk, crop_to, pad_to_multiple
 
 logger = logging.getLogger(__name__)
 
@@ -125,8 +125,8 @@ class JointNet(nn.Module):
         check_image_tensor("x", x, channels=self.in_channels)
         h, w = x.shape[-2], x.shape[-1]
         features, indices1, indices2 = self.trunk(pad_to_multiple(x))
-        logits = self.label_head(features, indices1, indices2)[..., :h, :w]
-        raw = self.normal_head(features, indices1, indices2)[..., :h, :w]
+        logits = crop_to(self.label_head(features, indices1, indices2), h, w)
+        raw = crop_to(self.normal_head(features, indices1, indices2), h, w)
         normals = F.normalize(raw, dim=1, eps=1e-6)
         return {"logits": logits, "normals": normals, "features": features}
 

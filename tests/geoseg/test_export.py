@@ -105,7 +105,29 @@ def test_enet_is_exported_in_its_rewritten_form(tmp_path) -> None:
     }
     assert {"PRelu", "ScatterND"} <= plain
     assert not rewritten & {"PRelu", "ScatterND", "MaxUnpool"}
-    assert "DepthToSpace" in rewritten
+    # pixel shuffles run as Col2Im (DepthToSpace is slow in onnxruntime)
+    assert "DepthToSpace" not in rewritten
+    shuffles = [n for n in onnx.load(str(tmp_path / "a.onnx")).graph.node if n.op_type == "Col2Im"]
+    assert len(shuffles) == 4  # two switch masks, two sub-pixel transposed convolutions
+
+
+def test_switch_mask_keeps_torchs_tie_rule_in_onnxruntime(tmp_path) -> None:
+    from geoseg.export_rewrites import switch_mask
+
+    class Mask(torch.nn.Module):
+        def forward(self, x):
+            return {"mask": switch_mask(x)[1]}
+
+    # small integers: most 2x2 windows hold ties, where only the first maximum may be marked
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randint(0, 3, (2, 16, 12, 18), generator=gen).float()
+    path = export_onnx(Mask(), tmp_path / "mask.onnx", example_inputs=torch.zeros(1, 16, 8, 8))
+    got = OnnxModel(path, providers=["CPUExecutionProvider"])(x.numpy())["mask"]
+    pooled, indices = torch.nn.functional.max_pool2d(x, 2, 2, return_indices=True)
+    expected = torch.nn.functional.max_unpool2d(
+        torch.ones_like(pooled), indices, 2, 2, output_size=x.shape[-2:]
+    )
+    np.testing.assert_array_equal(got, expected.numpy())
 
 
 def test_default_example_inputs_for_heads() -> None:

@@ -7,8 +7,11 @@ import torch.nn.functional as F
 from geoseg.export_rewrites import (
     DepthwisePReLU,
     SubPixelTransposedConv,
+    depth_to_space,
     rewrite_for_onnxruntime,
+    space_to_depth,
     switch_mask,
+    window_taps,
 )
 from geoseg.models import get_model
 from geoseg.models.enet import DownsamplingBottleneck
@@ -39,6 +42,16 @@ def test_switch_mask_marks_torchs_pooling_index_even_on_ties() -> None:
     assert torch.equal(pooled, expected_pooled)
     assert torch.equal(mask, expected)
     assert mask.reshape(2, 5, 4, 2, 5, 2).sum((3, 5)).eq(1).all()  # one switch per window
+
+
+def test_space_to_depth_and_depth_to_space_are_exact_pixel_unshuffle_and_shuffle() -> None:
+    x = torch.randn(2, 3, 6, 8, generator=torch.Generator().manual_seed(3)) * 1e3
+    taps = window_taps(3)
+    assert taps.shape == (12, 1, 2, 2)
+    packed = space_to_depth(x, taps)
+    assert torch.equal(packed, F.pixel_unshuffle(x, 2))  # copies: bit-exact
+    assert torch.equal(depth_to_space(packed), x)
+    assert torch.equal(depth_to_space(packed), F.pixel_shuffle(packed, 2))
 
 
 @pytest.mark.parametrize("slopes", [1, 6])
