@@ -254,7 +254,11 @@ class OnnxModel:
     Args:
         path: ``.onnx`` file written by :func:`export_onnx` (or any ONNX model).
         providers: onnxruntime execution providers (default: CUDA when available, then CPU).
-        threads: intra-op threads (``None``: onnxruntime's default).
+        threads: intra-op threads (``None``: onnxruntime's default). The worker threads stop
+            spinning when a call returns (``session.force_spinning_stop``): sessions called in
+            turn, as a pipeline calls the joint network and then the relocalisation heads,
+            otherwise compete with each other's spinning threads (two sessions alternating on
+            this project's 2-core CPU: ~90 ms per joint-network call instead of ~56 ms).
 
     Raises:
         GeosegError: missing, corrupt or invalid file (the message names the file).
@@ -279,6 +283,7 @@ class OnnxModel:
         options = ort.SessionOptions()
         if threads is not None:
             options.intra_op_num_threads = threads
+        options.add_session_config_entry("session.force_spinning_stop", "1")
         try:
             self.session = ort.InferenceSession(
                 str(self.path),

@@ -27,7 +27,7 @@ plus a single-threaded col2im. The rewrites keep the computation and change its 
 Outputs equal the original module's up to float rounding (batch norms folded, ``x + (1 - a)(-x)``
 for ``a x``), so a near-tie in a max-pooling window can move a switch: compare by argmax agreement
 and mean errors, as for any export. Side by side on this project's 2-core CPU (640x480, batch 1,
-2 threads), the joint network's onnxruntime time drops by about 45 % (``joint_ort`` vs
+2 threads), the joint network's onnxruntime time is about halved (``joint_ort`` vs
 ``joint_ort_plain`` in ``bench/inference_speed.py``).
 
 The rewritten modules fold the batch-norm running statistics: they are for inference only.
