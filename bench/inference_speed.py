@@ -6,7 +6,12 @@ interleaved rounds, median per contender):
 - ``lraspp_torch``: ``lraspp_mobilenet_v3_large(weights=None, weights_backbone=None,
   num_classes=8)`` in torch eager (what a user would pick instead; no downloads);
 - ``joint_torch``: the joint network in torch eager;
-- ``joint_ort``: the joint network exported with :func:`geoseg.export.export_onnx`, onnxruntime;
+- ``joint_ort``: the joint network exported with :func:`geoseg.export.export_onnx`, onnxruntime
+  session fixed to the frame size (batch 1, 640x480: ``OnnxModel(..., fixed_dims=...)``, as
+  ``Segmenter.from_onnx(..., frame_size=...)`` opens it for a camera), which lets onnxruntime
+  plan memory and kernels for that size;
+- ``joint_ort_dynamic``: the same file in a session with dynamic batch and size (any input), as
+  are the sessions below;
 - ``joint_ort_plain``: the same exported without :mod:`geoseg.export_rewrites` (``rewrite=False``),
   to show what the rewrites buy;
 - ``joint_ort_int8``: the same, statically quantised to int8 (QDQ, per-channel weights) with
@@ -42,7 +47,8 @@ spinning when a call returns (:class:`geoseg.export.OnnxModel`'s default).
 
 This project's 2-core VM runs at about half speed in phases of tens of seconds (its host's doing:
 the joint network on onnxruntime went from 59 to 131 ms per call after 24 s of back-to-back calls,
-and back after a rest). A slow phase adds time to every contender, not in proportion
+and back after a rest; the script rests ``--rest`` seconds after its exports and quantisation
+before timing). A slow phase adds time to every contender, not in proportion
 (onnxruntime's threads suffer more than torch's), so the headline ratio
 ``ort_over_lraspp_640x480`` compares the contenders' *minima* (their unthrottled speeds); the
 ratio of medians is kept as ``ort_over_lraspp_median_640x480``, trustworthy only when the medians
@@ -305,6 +311,13 @@ def gpu_only(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="more repetitions")
+    parser.add_argument(
+        "--rest",
+        type=float,
+        default=45.0,
+        help="seconds idle between the exports and the timing, so that the timing does not start "
+        "in a throttled phase (see the module docstring)",
+    )
     parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument(
@@ -355,7 +368,11 @@ def main(argv: list[str] | None = None) -> int:
             calibration = smooth_images(4, seed=1)
         quantize_int8(tmp / "joint.onnx", tmp / "joint_int8.onnx", calibration, "x")
         cpu = ["CPUExecutionProvider"]
-        joint_ort = OnnxModel(tmp / "joint.onnx", providers=cpu, threads=args.threads)
+        frame = {"batch": 1, "height": H, "width": W}
+        joint_ort = OnnxModel(
+            tmp / "joint.onnx", providers=cpu, threads=args.threads, fixed_dims=frame
+        )
+        joint_dynamic = OnnxModel(tmp / "joint.onnx", providers=cpu, threads=args.threads)
         joint_plain = OnnxModel(tmp / "joint_plain.onnx", providers=cpu, threads=args.threads)
         joint_int8 = OnnxModel(tmp / "joint_int8.onnx", providers=cpu, threads=args.threads)
         enet_ort = OnnxModel(tmp / "enet.onnx", providers=cpu, threads=args.threads)
@@ -375,18 +392,20 @@ def main(argv: list[str] | None = None) -> int:
             "lraspp_torch": torch_call(lraspp),
             "joint_torch": torch_call(joint),
             "joint_ort": lambda: joint_ort(x_np),
+            "joint_ort_dynamic": lambda: joint_dynamic(x_np),
             "joint_ort_plain": lambda: joint_plain(x_np),
             "joint_ort_int8": lambda: joint_int8(x_np),
             "enet_ort": lambda: enet_ort(x_np),
             "lraspp_ort": lambda: lraspp_ort(x_np),
         }
+        time.sleep(args.rest)
         samples = time_interleaved(contenders, warmup=warmup, repeats=repeats)
         ms = {k: statistics.median(v) for k, v in samples.items()}
         ms_min = {k: min(v) for k, v in samples.items()}
 
         agreement, angles, majority = [], [], []
         for img in smooth_images(3, seed=3):
-            ref, q = joint_ort(img), joint_int8(img)
+            ref, q = joint_dynamic(img), joint_int8(img)
             labels = ref["logits"].argmax(1)
             agreement.append(float((q["logits"].argmax(1) == labels).mean()))
             angles.append(angle_deg(q["normals"], ref["normals"]))
@@ -394,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
         accuracy: dict[str, float] = {}
         if trained:
             images, truth = synthetic_frames("test", args.accuracy_frames)
-            fp32 = [joint_ort(x)["logits"].argmax(1)[0] for x in images]
+            fp32 = [joint_dynamic(x)["logits"].argmax(1)[0] for x in images]
             int8 = [joint_int8(x)["logits"].argmax(1)[0] for x in images]
             accuracy = {
                 "fp32_miou_heldout": miou(fp32, truth),
@@ -418,10 +437,12 @@ def main(argv: list[str] | None = None) -> int:
         # ratios of minima (see the module docstring), the headline's also of medians
         "ort_over_lraspp_640x480": ms_min["joint_ort"] / ms_min["lraspp_torch"],
         "ort_over_lraspp_median_640x480": ms["joint_ort"] / ms["lraspp_torch"],
+        "ort_dynamic_over_lraspp_640x480": ms_min["joint_ort_dynamic"] / ms_min["lraspp_torch"],
+        "fixed_over_dynamic_ort_640x480": ms_min["joint_ort"] / ms_min["joint_ort_dynamic"],
         "ort_over_lraspp_ort_640x480": ms_min["joint_ort"] / ms_min["lraspp_ort"],
         "joint_torch_over_lraspp_640x480": ms_min["joint_torch"] / ms_min["lraspp_torch"],
-        "int8_over_fp32_ort_640x480": ms_min["joint_ort_int8"] / ms_min["joint_ort"],
-        "rewritten_over_plain_ort_640x480": ms_min["joint_ort"] / ms_min["joint_ort_plain"],
+        "int8_over_fp32_ort_640x480": ms_min["joint_ort_int8"] / ms_min["joint_ort_dynamic"],
+        "rewritten_over_plain_ort_640x480": ms_min["joint_ort_dynamic"] / ms_min["joint_ort_plain"],
         "int8_label_agreement": float(np.mean(agreement)),
         "int8_normal_angle_deg": float(np.mean(angles)),
         "fp32_majority_label_fraction": float(np.mean(majority)),
@@ -452,6 +473,7 @@ def main(argv: list[str] | None = None) -> int:
         "lraspp_torch": results["lraspp_params"],
         "joint_torch": results["joint_params"],
         "joint_ort": results["joint_params"],
+        "joint_ort_dynamic": results["joint_params"],
         "joint_ort_plain": results["joint_params"],
         "joint_ort_int8": results["joint_params"],
         "enet_ort": results["enet_params"],

@@ -259,6 +259,11 @@ class OnnxModel:
             turn, as a pipeline calls the joint network and then the relocalisation heads,
             otherwise compete with each other's spinning threads (two sessions alternating on
             this project's 2-core CPU: ~90 ms per joint-network call instead of ~56 ms).
+        fixed_dims: symbolic input dimensions to fix for this session, e.g. ``{"batch": 1,
+            "height": 480, "width": 640}`` (the names :func:`export_onnx` gives; the file is
+            unchanged). onnxruntime then plans memory and kernels for that size: the joint
+            network at 640x480 runs in ~0.86x the time of the same file's dynamic session on this
+            project's CPU. Inputs of another size are rejected (:class:`GeosegError`).
 
     Raises:
         GeosegError: missing, corrupt or invalid file (the message names the file).
@@ -274,6 +279,7 @@ class OnnxModel:
         *,
         providers: Sequence[str] | None = None,
         threads: int | None = None,
+        fixed_dims: Mapping[str, int] | None = None,
     ) -> None:
         import onnxruntime as ort
 
@@ -284,6 +290,10 @@ class OnnxModel:
         if threads is not None:
             options.intra_op_num_threads = threads
         options.add_session_config_entry("session.force_spinning_stop", "1")
+        for name, size in (fixed_dims or {}).items():
+            if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1:
+                raise GeosegError(f"fixed_dims[{name!r}]: expected a positive int, got {size!r}")
+            options.add_free_dimension_override_by_name(name, int(size))
         try:
             self.session = ort.InferenceSession(
                 str(self.path),
@@ -301,8 +311,30 @@ class OnnxModel:
                 except json.JSONDecodeError:
                     self.metadata[key[len(META_PREFIX) :]] = value
         self._inputs = self.session.get_inputs()
+        if fixed_dims:
+            declared = self._declared_dims()
+            unknown = sorted(set(fixed_dims) - declared)
+            if unknown:
+                raise GeosegError(
+                    f"{self.path}: fixed_dims {unknown} are not symbolic input dimensions "
+                    f"(the file has {sorted(declared) or 'none'})"
+                )
         self.input_names = [i.name for i in self._inputs]
         self.output_names = [o.name for o in self.session.get_outputs()]
+
+    def _declared_dims(self) -> set[str]:
+        """The symbolic dimension names of the file's inputs (before any ``fixed_dims``)."""
+        import onnx
+
+        graph = onnx.load(str(self.path), load_external_data=False).graph
+        initializers = {t.name for t in graph.initializer}
+        return {
+            d.dim_param
+            for i in graph.input
+            if i.name not in initializers
+            for d in i.type.tensor_type.shape.dim
+            if d.dim_param
+        }
 
     @property
     def providers(self) -> list[str]:

@@ -162,3 +162,19 @@ def test_onnx_input_validation(tmp_path) -> None:
         m(np.full((1, 3, 8, 8), np.nan, np.float32))
     with pytest.raises(GeosegError, match="1 input"):
         m(np.zeros((1, 3, 8, 8), np.float32), np.zeros((1, 3, 8, 8), np.float32))
+
+
+def test_onnx_session_fixed_dims(tmp_path) -> None:
+    torch.manual_seed(0)
+    path = export_onnx(get_model("naive_cnn"), tmp_path / "naive.onnx")
+    x = np.random.default_rng(0).standard_normal((2, 3, 9, 11)).astype(np.float32)
+    fixed = OnnxModel(path, fixed_dims={"batch": 2, "height": 9, "width": 11})
+    assert fixed.session.get_inputs()[0].shape == [2, 3, 9, 11]
+    np.testing.assert_allclose(fixed(x)["log_probs"], OnnxModel(path)(x)["log_probs"], atol=1e-5)
+    with pytest.raises(GeosegError, match="size 9 in dim 2"):
+        fixed(x[:, :, :8])
+    with pytest.raises(GeosegError, match=r"\['hieght'\] are not symbolic.*'height'"):
+        OnnxModel(path, fixed_dims={"hieght": 9})
+    for bad in (0, 2.5, True):
+        with pytest.raises(GeosegError, match="positive int"):
+            OnnxModel(path, fixed_dims={"height": bad})

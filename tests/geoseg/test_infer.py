@@ -67,6 +67,24 @@ def test_segmenter_torch_and_onnx_agree(joint_files) -> None:
     np.testing.assert_array_equal(single.labels[0], a.labels[0])
 
 
+def test_segmenter_fixed_to_a_frame_size_matches_the_dynamic_session(joint_files) -> None:
+    _, onnx_path = joint_files
+    images = _images(2)
+    dynamic = Segmenter.from_onnx(onnx_path, providers=["CPUExecutionProvider"])(images[:1])
+    fixed = Segmenter.from_onnx(
+        onnx_path, providers=["CPUExecutionProvider"], frame_size=(37, 50), threads=1
+    )
+    got = fixed(images[:1])
+    np.testing.assert_allclose(got.probabilities, dynamic.probabilities, atol=1e-5)
+    np.testing.assert_array_equal(got.labels, dynamic.labels)
+    with pytest.raises(GeosegError, match="size 1 in dim 0"):  # fixed to one frame
+        fixed(images)
+    with pytest.raises(GeosegError, match="size 50 in dim 3"):
+        fixed(_images(1, 37, 52))
+    with pytest.raises(GeosegError, match="frame_size"):
+        Segmenter.from_onnx(onnx_path, frame_size=(37,))
+
+
 def test_segmenter_uses_stored_normalization(joint_files) -> None:
     ckpt, onnx_path = joint_files
     assert Segmenter.from_checkpoint(ckpt).normalization == NORM
