@@ -48,7 +48,8 @@ spinning when a call returns (:class:`geoseg.export.OnnxModel`'s default).
 This project's 2-core VM runs at about half speed in phases of tens of seconds (its host's doing:
 the joint network on onnxruntime went from 59 to 131 ms per call after 24 s of back-to-back calls,
 and back after a rest; the script rests ``--rest`` seconds after its exports and quantisation
-before timing). A slow phase adds time to every contender, not in proportion
+before timing, and after each round as long as the round took). A slow phase adds time to every
+contender, not in proportion
 (onnxruntime's threads suffer more than torch's), so the headline ratio
 ``ort_over_lraspp_640x480`` compares the contenders' *minima* (their unthrottled speeds); the
 ratio of medians is kept as ``ort_over_lraspp_median_640x480``, trustworthy only when the medians
@@ -174,23 +175,26 @@ def quantize_int8(src: Path, dst: Path, calibration: list[np.ndarray], input_nam
 
 
 def time_interleaved(
-    contenders: dict[str, Callable[[], object]], *, warmup: int, repeats: int
+    contenders: dict[str, Callable[[], object]], *, warmup: int, repeats: int, rest: float = 1.0
 ) -> dict[str, list[float]]:
     """Milliseconds per call (one list per contender), contenders interleaved round by round.
 
     Each timed call follows an untimed one of the same contender, so that no call is timed while
-    the previous contender's worker threads still spin.
+    the previous contender's worker threads still spin. After each round the machine idles for
+    ``rest`` times the round's duration (the host throttles long full loads; module docstring).
     """
     for fn in contenders.values():
         for _ in range(warmup):
             fn()
     samples: dict[str, list[float]] = {k: [] for k in contenders}
     for _ in range(repeats):
+        start = time.perf_counter()
         for name, fn in contenders.items():
             fn()
             t0 = time.perf_counter()
             fn()
             samples[name].append((time.perf_counter() - t0) * 1e3)
+        time.sleep(rest * (time.perf_counter() - start))
     return samples
 
 
