@@ -227,7 +227,7 @@ class Segmenter:
         path: str | os.PathLike,
         *,
         providers: Sequence[str] | None = None,
-        frame_size: tuple[int, int] | None = None,
+        frame_size: tuple[int, int] | str | None = "auto",
         threads: int | None = None,
     ) -> Segmenter:
         """Open an ONNX file written by :func:`geoseg.export.export_onnx`.
@@ -235,17 +235,24 @@ class Segmenter:
         Args:
             path: the ``.onnx`` file.
             providers: onnxruntime execution providers (default: CUDA when available, then CPU).
-            frame_size: ``(H, W)`` of a camera's frames: the session is fixed to one image of
-                that size (``OnnxModel``'s ``fixed_dims``), ~14 % faster at 640x480 on this
-                project's CPU; calls then take exactly one such image.
+            frame_size: how onnxruntime sessions are fixed to input sizes (a fixed session runs
+                the joint network at 640x480 in ~0.85x the dynamic session's time on this
+                project's CPU): ``"auto"`` (default) fixes one session per batch shape on first
+                use (``OnnxModel(fixed_dims="auto")``, a few shapes, ~0.2 s each); ``(H, W)``
+                fixes the session to one image of that size (other inputs are rejected);
+                ``None`` keeps one dynamic session.
             threads: onnxruntime intra-op threads (default: onnxruntime's).
         """
         from geoseg.export import OnnxModel
 
-        fixed = None
-        if frame_size is not None:
-            if len(frame_size) != 2:
-                raise GeosegError(f"frame_size: expected (height, width), got {frame_size!r}")
+        fixed: Mapping[str, int] | str | None = None
+        if frame_size == "auto":
+            fixed = "auto"
+        elif frame_size is not None:
+            if isinstance(frame_size, str) or len(frame_size) != 2:
+                raise GeosegError(
+                    f"frame_size: expected (height, width), 'auto' or None, got {frame_size!r}"
+                )
             height, width = frame_size
             fixed = {"batch": 1, "height": height, "width": width}
         onnx_model = OnnxModel(path, providers=providers, threads=threads, fixed_dims=fixed)

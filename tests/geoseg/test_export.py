@@ -178,3 +178,31 @@ def test_onnx_session_fixed_dims(tmp_path) -> None:
     for bad in (0, 2.5, True):
         with pytest.raises(GeosegError, match="positive int"):
             OnnxModel(path, fixed_dims={"height": bad})
+    with pytest.raises(GeosegError, match="'auto' or None"):
+        OnnxModel(path, fixed_dims="fixed")
+
+
+def test_onnx_auto_fixed_sessions_per_shape(tmp_path) -> None:
+    torch.manual_seed(0)
+    path = export_onnx(get_model("naive_cnn"), tmp_path / "naive.onnx")
+    dynamic, auto = OnnxModel(path), OnnxModel(path, fixed_dims="auto")
+    rng = np.random.default_rng(1)
+    shapes = [
+        (1, 3, 9, 11),
+        (2, 3, 9, 11),
+        (1, 3, 9, 11),
+        (1, 3, 12, 8),
+        (1, 3, 5, 5),
+        (1, 3, 6, 7),
+    ]
+    for shape in shapes:
+        x = rng.standard_normal(shape).astype(np.float32)
+        got = auto(x)["log_probs"]
+        np.testing.assert_allclose(got, dynamic(x)["log_probs"], atol=1e-5)
+    # one session per distinct shape, up to the cap; the fifth shape ran on the dynamic session
+    fixed = auto._fixed_sessions
+    assert len(fixed) == OnnxModel.MAX_FIXED_SESSIONS == 4
+    assert fixed[((1, 3, 9, 11),)].get_inputs()[0].shape == [1, 3, 9, 11]
+    assert ((1, 3, 6, 7),) not in fixed
+    with pytest.raises(GeosegError, match="size 3 in dim 1"):  # still validated
+        auto(np.zeros((1, 4, 9, 11), np.float32))

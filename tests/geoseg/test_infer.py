@@ -83,6 +83,9 @@ def test_segmenter_fixed_to_a_frame_size_matches_the_dynamic_session(joint_files
         fixed(_images(1, 37, 52))
     with pytest.raises(GeosegError, match="frame_size"):
         Segmenter.from_onnx(onnx_path, frame_size=(37,))
+    default = Segmenter.from_onnx(onnx_path, providers=["CPUExecutionProvider"])  # "auto"
+    np.testing.assert_allclose(default(images[:1]).probabilities, dynamic.probabilities, atol=1e-5)
+    assert len(default.backend._fixed_sessions) == 1
 
 
 def test_segmenter_uses_stored_normalization(joint_files) -> None:
