@@ -70,7 +70,9 @@ def test_segmenter_torch_and_onnx_agree(joint_files) -> None:
 def test_segmenter_fixed_to_a_frame_size_matches_the_dynamic_session(joint_files) -> None:
     _, onnx_path = joint_files
     images = _images(2)
-    dynamic = Segmenter.from_onnx(onnx_path, providers=["CPUExecutionProvider"])(images[:1])
+    dynamic = Segmenter.from_onnx(onnx_path, providers=["CPUExecutionProvider"], frame_size=None)(
+        images[:1]
+    )
     fixed = Segmenter.from_onnx(
         onnx_path, providers=["CPUExecutionProvider"], frame_size=(37, 50), threads=1
     )
