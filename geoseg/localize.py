@@ -18,7 +18,8 @@ Two steps:
    range and :func:`locate_from_ranged_rays` fuses rays and ranges by weighted least squares:
    one base image then suffices and bases collinear with the query (a straight street, where
    rays alone are degenerate) still place it. :func:`rerank_by_distance` orders retrieved
-   candidates by the predicted baseline (the nearest base first).
+   candidates by the predicted baseline (the nearest base first); with a GPS fix,
+   :func:`fuse_gps_distance` first fuses that baseline with the fix's distance to each base.
 
 Frames (DESIGN §4): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
 positions are in the world frame's ``(x, y)`` (projected), in metres.
@@ -679,3 +680,40 @@ def rerank_by_distance(ranked: Any, distances: Any) -> tuple[np.ndarray, np.ndar
         np.take_along_axis(key, order, axis=1),
         order.astype(np.int64),
     )
+
+
+def fuse_gps_distance(
+    predicted_m: Any, gps_m: Any, *, relative_sigma: float, gps_sigma_m: float
+) -> np.ndarray:
+    """Fuse the head's predicted baseline with the GPS fix's distance to each candidate.
+
+    Two independent readings of the same query-candidate distance: the relative-pose head's
+    ``d`` (its error grows with the distance: standard deviation ``relative_sigma * d``) and
+    ``|p_candidate - p_gps|`` (standard deviation ``gps_sigma_m``). Their inverse-variance
+    mean is what :func:`rerank_by_distance` should sort by when the query has a GPS fix: the
+    GPS alone cannot separate two neighbours ~9 m apart, but it breaks the head's near-ties
+    between a base 3 m behind the query and one 9 m ahead of it.
+
+    Args:
+        predicted_m: ``(...)`` predicted baselines, metres (> 0).
+        gps_m: ``(...)`` horizontal distances candidate <-> GPS fix, metres (same shape;
+            ``inf`` allowed: padding).
+        relative_sigma: the head's relative distance error (> 0).
+        gps_sigma_m: the GPS fix's standard deviation per axis, metres (> 0).
+
+    Returns:
+        ``(...)`` fused distances, metres.
+    """
+    d = _to_numpy("predicted_m", predicted_m)
+    g = _to_numpy("gps_m", gps_m)
+    check_shape("gps_m", g, d.shape)
+    for name, value in (("relative_sigma", relative_sigma), ("gps_sigma_m", gps_sigma_m)):
+        if not (np.isfinite(value) and value > 0):
+            raise GeosegError(f"{name}: expected a finite value > 0, got {value}")
+    if np.any(d <= 0) or np.isnan(d).any() or np.isnan(g).any():
+        raise GeosegError("predicted_m, gps_m: expected positive distances, no NaN")
+    w_head = 1.0 / np.square(relative_sigma * d)
+    w_gps = 1.0 / gps_sigma_m**2
+    with np.errstate(invalid="ignore"):
+        fused = (w_head * d + w_gps * g) / (w_head + w_gps)
+    return np.where(np.isfinite(d) & np.isfinite(g), fused, np.inf)

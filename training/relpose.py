@@ -21,6 +21,9 @@ the near one, while far pairs blur the direction (see configs/relpose.yaml). And
 orientation: other places) teach it a floor: their loss is ``mu (min(0, log d_est - log
 unrelated_floor_m))^2``, zero once the head reads them at least ``unrelated_floor_m`` away, so
 that re-ranking the whole base by predicted distance puts other places behind the query's.
+``turned_pairs_per_epoch`` pairs of nearby views that look elsewhere (axes at least
+``turned_min_angle_deg`` apart: the crossing street, the opposite direction) train the same
+kind of floor, ``turned_floor_m``: in a GPS window the nearest camera may face another street.
 
 Validation: eq. 5.2, and the median / mean rotation and direction errors (degrees; medians from
 a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs; with
@@ -47,7 +50,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
-from geoseg.data.pairs import sample_relpose_pairs
+from geoseg.data.pairs import NoEligiblePairError, sample_relpose_pairs
 from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
@@ -64,6 +67,9 @@ from training.heads import (
 from training.metrics import Meter
 
 logger = logging.getLogger(__name__)
+
+#: smallest baseline of a turned pair (sample_relpose_pairs needs a positive one)
+_TURNED_MIN_BASELINE_M = 0.01
 
 __all__ = [
     "CONFIG_CLASS",
@@ -97,6 +103,14 @@ class RelPoseConfig(HeadTrainConfig):
             ``predict_distance`` only; 0: none).
         unrelated_min_m: smallest distance between the views of an unrelated pair, metres.
         unrelated_floor_m: distance the head must predict at least for unrelated pairs, metres.
+        turned_pairs_per_epoch: extra pairs per epoch of views at most ``turned_max_m`` apart
+            whose optical axes are at least ``turned_min_angle_deg`` apart (the crossing street,
+            the opposite direction, the far side of a turn), that train the same floor,
+            ``turned_floor_m``: re-ranking by predicted distance must not prefer a nearby camera
+            that looks elsewhere (heads with ``predict_distance`` only; 0: none).
+        turned_max_m: largest distance between the views of a turned pair, metres.
+        turned_min_angle_deg: smallest angle between the optical axes of a turned pair.
+        turned_floor_m: distance the head must predict at least for turned pairs, metres.
     """
 
     trainer: ClassVar[str] = "relpose"
@@ -118,6 +132,10 @@ class RelPoseConfig(HeadTrainConfig):
     unrelated_pairs_per_epoch: int = 0
     unrelated_min_m: float = 60.0
     unrelated_floor_m: float = 40.0
+    turned_pairs_per_epoch: int = 0
+    turned_max_m: float = 25.0
+    turned_min_angle_deg: float = 45.0
+    turned_floor_m: float = 30.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -126,7 +144,7 @@ class RelPoseConfig(HeadTrainConfig):
         for name in ("lam", "mu"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: expected > 0, got {getattr(self, name)}")
-        for name in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch"):
+        for name in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch", "turned_pairs_per_epoch"):
             count = getattr(self, name)
             if count < 0:
                 raise ConfigError(f"{name}: expected >= 0, got {count}")
@@ -141,6 +159,16 @@ class RelPoseConfig(HeadTrainConfig):
             raise ConfigError(
                 "unrelated_floor_m, unrelated_min_m: expected 0 < floor <= min, got "
                 f"{self.unrelated_floor_m}, {self.unrelated_min_m}"
+            )
+        if self.turned_pairs_per_epoch and not (
+            self.turned_max_m > 0
+            and self.turned_floor_m > 0
+            and self.max_angle_deg < self.turned_min_angle_deg <= 180.0
+        ):
+            raise ConfigError(
+                "turned_max_m, turned_floor_m, turned_min_angle_deg: expected positive distances "
+                f"and an angle in (max_angle_deg ({self.max_angle_deg}), 180], got "
+                f"{self.turned_max_m}, {self.turned_floor_m}, {self.turned_min_angle_deg}"
             )
         if self.far_pairs_per_epoch:
             if not self.far_max_baseline_m > self.max_baseline_m:
@@ -280,6 +308,11 @@ class PairSet(Dataset):
             orientation), whose ``baseline_m`` is ``unrelated_floor_m``, a floor
             (``distance_floor`` true, ``pose_weight`` 0).
         unrelated_min_m, unrelated_floor_m: see :class:`RelPoseConfig`.
+        n_turned: extra pairs per draw of views at most ``turned_max_m`` apart whose optical
+            axes are at least ``turned_min_angle_deg`` apart, whose ``baseline_m`` is the floor
+            ``turned_floor_m`` (``distance_floor`` true, ``pose_weight`` 0); spread over the
+            route/traversal pairs that have such views.
+        turned_max_m, turned_min_angle_deg, turned_floor_m: see :class:`RelPoseConfig`.
         pair_kwargs: :func:`sample_relpose_pairs` thresholds.
 
     Items: ``{"image": (2, C, h, w) float32, "R_ab": (3, 3) float32, "t_dir_ab": (3,) float32,
@@ -299,6 +332,10 @@ class PairSet(Dataset):
         n_unrelated: int = 0,
         unrelated_min_m: float = 60.0,
         unrelated_floor_m: float = 40.0,
+        n_turned: int = 0,
+        turned_max_m: float = 25.0,
+        turned_min_angle_deg: float = 45.0,
+        turned_floor_m: float = 30.0,
         **pair_kwargs: Any,
     ) -> None:
         if not routes:
@@ -313,19 +350,47 @@ class PairSet(Dataset):
         self.n_unrelated = int(n_unrelated)
         self.unrelated_min_m = float(unrelated_min_m)
         self.unrelated_floor_m = float(unrelated_floor_m)
+        self.n_turned = int(n_turned)
+        self.turned_max_m = float(turned_max_m)
+        self.turned_min_angle_deg = float(turned_min_angle_deg)
+        self.turned_floor_m = float(turned_floor_m)
+        self._eligible: dict[tuple, list[tuple[int, int, int]]] = {}
         self.seed = int(seed)
         self.pair_kwargs = pair_kwargs
         self.resample(0)
 
-    def _draw(self, n: int, rng: np.random.Generator, **thresholds: Any) -> tuple:
-        """``n`` pairs spread over routes and ordered traversal pairs: ``(index (n, 5), R_ab,
-        t_dir_ab, baseline_m)`` as NumPy arrays."""
+    def _jobs(self, optional: bool, thresholds: dict[str, Any]) -> list[tuple[int, int, int]]:
+        """The (route, traversal a, traversal b) triples to draw from; ``optional``: only those
+        with an eligible pair (a route without a turn has no turned pair), computed once."""
         jobs = [
             (r, i, j)
             for r, route in enumerate(self.routes)
             for i in range(len(route.traversals))
             for j in range(len(route.traversals))
         ]
+        if not optional:
+            return jobs
+        key = tuple(sorted(thresholds.items()))
+        if key not in self._eligible:
+            eligible = []
+            for r, i, j in jobs:
+                travs = self.routes[r].traversals
+                try:
+                    sample_relpose_pairs(travs[i].poses, travs[j].poses, 1, **thresholds)
+                except NoEligiblePairError:
+                    continue
+                eligible.append((r, i, j))
+            if not eligible:
+                raise GeosegError(f"routes: no pair of views with {thresholds}")
+            self._eligible[key] = eligible
+        return self._eligible[key]
+
+    def _draw(
+        self, n: int, rng: np.random.Generator, *, optional: bool = False, **thresholds: Any
+    ) -> tuple:
+        """``n`` pairs spread over routes and ordered traversal pairs: ``(index (n, 5), R_ab,
+        t_dir_ab, baseline_m)`` as NumPy arrays (``optional``: over those that have one)."""
+        jobs = self._jobs(optional, thresholds)
         index, R, t, baseline = [], [], [], []
         for (r, i, j), count in zip(jobs, split_count(n, len(jobs))):
             if count == 0:
@@ -360,6 +425,17 @@ class PairSet(Dataset):
                 max_angle_deg=180.0,
             )
             parts.append((index, R, t, np.full(len(index), self.unrelated_floor_m)))
+        if self.n_turned:
+            index, R, t, _ = self._draw(
+                self.n_turned,
+                rng,
+                optional=True,
+                min_baseline_m=_TURNED_MIN_BASELINE_M,
+                max_baseline_m=self.turned_max_m,
+                min_angle_deg=self.turned_min_angle_deg,
+                max_angle_deg=180.0,
+            )
+            parts.append((index, R, t, np.full(len(index), self.turned_floor_m)))
         index, R, t, baseline = (np.concatenate(x) for x in zip(*parts))
         self.index = index.astype(np.int64)
         self.R_ab = torch.from_numpy(R).float()
@@ -369,7 +445,7 @@ class PairSet(Dataset):
         self.distance_floor = torch.arange(len(self)) >= self.n + self.n_far
 
     def __len__(self) -> int:
-        return self.n + self.n_far + self.n_unrelated
+        return self.n + self.n_far + self.n_unrelated + self.n_turned
 
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         r, i, j, a, b = (int(v) for v in self.index[k])
@@ -411,6 +487,10 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         n_unrelated=cfg.unrelated_pairs_per_epoch,
         unrelated_min_m=cfg.unrelated_min_m,
         unrelated_floor_m=cfg.unrelated_floor_m,
+        n_turned=cfg.turned_pairs_per_epoch,
+        turned_max_m=cfg.turned_max_m,
+        turned_min_angle_deg=cfg.turned_min_angle_deg,
+        turned_floor_m=cfg.turned_floor_m,
         **thresholds,
     )
     val_set = PairSet(data.val, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)

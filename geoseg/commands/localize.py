@@ -8,7 +8,9 @@ with its degeneracy flag. Prints a table; ``--out`` writes the same as JSON.
 
 A relative-pose head that predicts baselines (``predict_distance``) also gives each match its
 distance from the query: the matches are then re-ranked nearest first (``--no-rerank`` keeps
-the appearance order) and the position comes from ranged rays
+the appearance order; with ``--gps-sigma`` the distance is first fused with the GPS fix's
+distance to each match, :func:`geoseg.localize.fuse_gps_distance`) and the position comes from
+ranged rays
 (:func:`geoseg.localize.locate_from_ranged_rays`), which one match already determines and which
 stay determined when the bases are collinear with the query.
 
@@ -59,6 +61,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--relpose-head", type=Path, help="trained relative-pose head checkpoint (needs --model)"
+    )
+    parser.add_argument(
+        "--gps-sigma",
+        type=float,
+        help="GPS noise per axis in metres: re-rank by the predicted distance fused with the "
+        "fix's distance to each match (needs --gps and a distance head)",
+    )
+    parser.add_argument(
+        "--distance-rel-sigma",
+        type=float,
+        default=0.3,
+        help="relative error of the head's predicted distance, for --gps-sigma (default 0.3)",
     )
     parser.add_argument(
         "--no-rerank",
@@ -253,7 +267,7 @@ def run(args: argparse.Namespace) -> int:
         raw_layer21_embedder,
         read_rgb,
     )
-    from geoseg.localize import absolute_position, rerank_by_distance
+    from geoseg.localize import absolute_position, fuse_gps_distance, rerank_by_distance
 
     # ---- arguments
     if isinstance(args.k, bool) or args.k < 1:
@@ -262,6 +276,8 @@ def run(args: argparse.Namespace) -> int:
         raise GeosegError("--gps and --radius: the GPS window needs both (or neither)")
     if args.radius is not None:
         check_positive("--radius", args.radius)
+    if args.gps_sigma is not None and args.gps is None:
+        raise GeosegError("--gps-sigma: needs --gps (the query positions)")
     if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
         raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
     if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
@@ -395,6 +411,18 @@ def run(args: argparse.Namespace) -> int:
         )
         if ranged and not args.no_rerank:
             dist = np.array([[m["relative_pose"]["distance_m"] for m in matches]])
+            if args.gps_sigma is not None:
+                gps_m = np.array(
+                    [[np.linalg.norm(m["base_t_wc"][:2] - np.asarray(gps[j])) for m in matches]]
+                )
+                dist = fuse_gps_distance(
+                    dist,
+                    gps_m,
+                    relative_sigma=args.distance_rel_sigma,
+                    gps_sigma_m=args.gps_sigma,
+                )
+                for m, d in zip(matches, dist[0]):
+                    m["gps_fused_distance_m"] = float(d)
             order = rerank_by_distance(np.arange(len(matches))[None], dist)[2][0]
             matches = [matches[i] for i in order]
         for r, m in enumerate(matches, start=1):

@@ -40,6 +40,7 @@ from geoseg.models.relpose import relative_pose_labels
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "NoEligiblePairError",
     "RelPosePairDataset",
     "RelPosePairs",
     "Traversal",
@@ -284,6 +285,10 @@ def sample_triplets(
 # ============================================================================ relative pose
 
 
+class NoEligiblePairError(GeosegError):
+    """Two traversals have no pair of views meeting the baseline and angle thresholds."""
+
+
 @dataclass(frozen=True)
 class RelPosePairs:
     """Index pairs with their relative-pose targets (:func:`relative_pose_labels`).
@@ -315,12 +320,15 @@ def sample_relpose_pairs(
     min_baseline_m: float = 0.5,
     max_baseline_m: float = 10.0,
     max_angle_deg: float = 30.0,
+    min_angle_deg: float = 0.0,
 ) -> RelPosePairs:
     """Sample ``n`` pairs ``(a_i, b_j)`` of overlapping views for the relative-pose head.
 
     A pair is eligible when the baseline ``|t_wc_b - t_wc_a|`` lies in
     ``[min_baseline_m, max_baseline_m]`` (a non-zero baseline: the direction is defined) and the
-    optical axes are within ``max_angle_deg`` (the views overlap). Pairs are drawn uniformly
+    angle between the optical axes lies in ``[min_angle_deg, max_angle_deg]`` (with the default
+    ``min_angle_deg`` 0: the views overlap; a positive one asks for turned views, e.g. the
+    crossing street or the opposite direction at the same place). Pairs are drawn uniformly
     with replacement among eligible pairs. ``a`` and ``b`` may be the same traversal (the
     baseline bound already excludes ``i == j``).
 
@@ -332,6 +340,7 @@ def sample_relpose_pairs(
         min_baseline_m: minimum baseline (metres), > 0.
         max_baseline_m: maximum baseline (metres), ``>= min_baseline_m``.
         max_angle_deg: maximum angle between the optical axes (degrees).
+        min_angle_deg: minimum angle between the optical axes (degrees), ``<= max_angle_deg``.
 
     Returns:
         :class:`RelPosePairs` with labels from :func:`relative_pose_labels`.
@@ -348,14 +357,19 @@ def sample_relpose_pairs(
         raise GeosegError(
             f"max_baseline_m: expected >= min_baseline_m ({min_baseline_m}), got {max_baseline_m}"
         )
+    if not 0.0 <= min_angle_deg <= max_angle_deg:
+        raise GeosegError(
+            f"min_angle_deg: expected in [0, max_angle_deg ({max_angle_deg})], got {min_angle_deg}"
+        )
     dist = _distances(ta, tb).T  # (Na, Nb)
     ang = _axis_angles_deg(ta, tb).T
-    ok = (dist >= min_baseline_m) & (dist <= max_baseline_m) & (ang <= max_angle_deg)
+    ok = (dist >= min_baseline_m) & (dist <= max_baseline_m)
+    ok &= (ang >= min_angle_deg) & (ang <= max_angle_deg)
     ia, ib = np.nonzero(ok)
     if ia.size == 0:
-        raise GeosegError(
+        raise NoEligiblePairError(
             f"a, b: no pair with a baseline in [{min_baseline_m}, {max_baseline_m}] m and "
-            f"viewing directions within {max_angle_deg} deg"
+            f"viewing directions {min_angle_deg}-{max_angle_deg} deg apart"
         )
     pick = _rng(rng).integers(0, ia.size, size=n)
     ia, ib = ia[pick].astype(np.int64), ib[pick].astype(np.int64)

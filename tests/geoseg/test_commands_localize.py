@@ -252,6 +252,21 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     want = base.t_wc[i] + 5.0 * base.R_wc[i] @ np.asarray(first["relative_pose"]["t_dir_ab"])
     np.testing.assert_allclose(pos["xyz"], want, atol=1e-5)
     assert "5.0 m away" in capsys.readouterr().out
+    # with the GPS noise given, the equal head distances are fused with the fix's distances:
+    # the base at x = 20 m, nearest the fix, comes first
+    gps = tmp_path / "gps.csv"
+    gps.write_text("image,x,y\nq.png,19.0,0.0\n")
+    gps_args = ["--gps", str(gps), "--radius", "100", "--gps-sigma", "2.0"]
+    distance_head = ["--relpose-head", str(checkpoints["relpose_distance"])]
+    assert main([*head_args, *distance_head, *gps_args]) == 0
+    matches = json.loads(out.read_text())["queries"][0]["matches"]
+    assert [m["image"] for m in matches] == ["img_2.png", "img_1.png", "img_0.png"]
+    w_head, w_gps = 1 / (0.3 * 5.0) ** 2, 1 / 2.0**2
+    assert matches[0]["gps_fused_distance_m"] == pytest.approx(
+        (w_head * 5.0 + w_gps * 1.0) / (w_head + w_gps)
+    )
+    err = _error(capsys, [*head_args, *distance_head, "--gps-sigma", "2.0"])
+    assert "--gps-sigma" in err and "--gps" in err
     # a head of the wrong kind
     err = _error(
         capsys,

@@ -11,6 +11,7 @@ from geoseg.localize import (
     RetrievalIndex,
     absolute_position,
     evaluate_retrieval,
+    fuse_gps_distance,
     intersect_rays,
     locate_from_ranged_rays,
     recall_at_k,
@@ -328,6 +329,34 @@ def test_rerank_by_distance() -> None:
         rerank_by_distance(ranked, dist[:, :2])
     with pytest.raises(GeosegError, match="integer"):
         rerank_by_distance(ranked.astype(float), dist)
+
+
+def test_fuse_gps_distance_is_the_inverse_variance_mean() -> None:
+    # equal variances (0.5 * 4 m = 2 m): the plain mean; a vague GPS leaves the head's reading
+    fused = fuse_gps_distance([4.0], [8.0], relative_sigma=0.5, gps_sigma_m=2.0)
+    np.testing.assert_allclose(fused, [6.0])
+    vague = fuse_gps_distance([4.0, 9.0], [30.0, 1.0], relative_sigma=0.3, gps_sigma_m=1e6)
+    np.testing.assert_allclose(vague, [4.0, 9.0], rtol=1e-9)
+    # the head's near-tie between the base 3 m behind the query (true) and the one 9 m ahead
+    # is broken by the fix; a far reading barely moves a near candidate (its variance grows)
+    ranked = np.array([[11, 10, 12, -1]])
+    head = np.array([[3.05, 3.08, 12.0, np.inf]])
+    gps = np.array([[8.1, 2.6, 14.0, np.inf]])
+    fused = fuse_gps_distance(head, gps, relative_sigma=0.3, gps_sigma_m=2.0)
+    assert rerank_by_distance(ranked, fused)[0].tolist() == [[10, 11, 12, -1]]
+    assert np.isinf(fused[0, 3])
+    w_head, w_gps = 1 / (0.3 * 3.08) ** 2, 1 / 4.0
+    assert fused[0, 1] == pytest.approx((w_head * 3.08 + w_gps * 2.6) / (w_head + w_gps))
+    for kw, match in (
+        ({"relative_sigma": 0.0, "gps_sigma_m": 2.0}, "relative_sigma"),
+        ({"relative_sigma": 0.3, "gps_sigma_m": float("nan")}, "gps_sigma_m"),
+    ):
+        with pytest.raises(GeosegError, match=match):
+            fuse_gps_distance([3.0], [2.0], **kw)
+    with pytest.raises(GeosegError, match="positive"):
+        fuse_gps_distance([0.0], [2.0], relative_sigma=0.3, gps_sigma_m=2.0)
+    with pytest.raises(GeosegError, match="gps_m"):
+        fuse_gps_distance([1.0, 2.0], [2.0], relative_sigma=0.3, gps_sigma_m=2.0)
 
 
 def test_evaluate_retrieval_with_and_without_window() -> None:

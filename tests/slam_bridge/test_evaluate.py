@@ -98,6 +98,7 @@ def _run(method, setting, t_mean, inliers, sec, its, mem):
         vertical=stats,
         inliers=inliers,
         inliers_raw=inliers,
+        inliers_truth=inliers,
         points=2000,
         rejected_observations=10,
         fusion_iterations=its,

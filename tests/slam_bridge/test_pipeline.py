@@ -110,7 +110,7 @@ def test_hybrids_keep_the_inliers_of_n0(noisy):
     multi-view consistency (thesis Table 3.2: <= 1.3 % inlier loss); the first reading (hybrid
     window as eq. 3.4 verbatim, re-taken references, MPC as eq. 3.18 verbatim) lost 8-16 % on
     this drive."""
-    from slam_bridge.evaluate import count_inliers
+    from slam_bridge.evaluate import count_inliers, summarize_run
 
     cfg, seq = noisy
     data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
@@ -122,7 +122,15 @@ def test_hybrids_keep_the_inliers_of_n0(noisy):
             used=res.active, triangulated=res.triangulated, retriangulate=True,
         )  # fmt: skip
 
-    n0 = inliers(run_pipeline(data, "ba", cfg.pipeline))
+    ba = run_pipeline(data, "ba", cfg.pipeline)
+    n0 = inliers(ba)
+    # the reference count at the true poses: a run sitting on the truth scores exactly it
+    summary = summarize_run(ba, data, "sigma=0.75")
+    assert summary.inliers == n0 and 0 < summary.inliers_truth <= summary.points
+    C = ba.t_wc.shape[0]
+    exact = dataclasses.replace(ba, R_wc=data.R_wc_true[:C], t_wc=data.t_wc_true[:C])
+    summary = summarize_run(exact, data, "sigma=0.75")
+    assert summary.inliers == summary.inliers_truth
     for method in ("dpc", "mpc"):
         res = run_pipeline(data, method, cfg.pipeline)
         assert max(r.n_pose_graph for r in res.records) == cfg.pipeline.n

@@ -6,6 +6,7 @@ import importlib.util
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import onnxruntime as ort
@@ -317,10 +318,48 @@ def test_hard_negatives_are_true_negatives_and_resampling_is_seeded(shared):
     assert unrelated[16]["distance_floor"].item() is True
 
 
+def _turning_route(turn_deg: float) -> SimpleNamespace:
+    """A route of 24 cameras 2 m apart: 12 looking along +x, then 12 turned by ``turn_deg``
+    along their new heading (two traversals, 0.5 m apart), with zero features."""
+    from scipy.spatial.transform import Rotation
+
+    R_x = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # OpenCV, looking +x
+    yaw = Rotation.from_euler("z", np.r_[[0.0] * 12, [turn_deg] * 12][:, None], degrees=True)
+    yaw = yaw.as_matrix()
+    R = yaw @ R_x
+    heading = yaw[:, :, 0]
+    t = np.cumsum(np.r_[np.zeros((1, 3)), 2.0 * heading[:-1]], axis=0)
+    travs = [
+        SimpleNamespace(poses=(R, t + [0.0, dy, 0.0]), R_wc=R, t_wc=t + [0.0, dy, 0.0])
+        for dy in (0.0, 0.5)
+    ]
+    return SimpleNamespace(traversals=travs, features=[torch.zeros(24, 128, 2, 3)] * 2)
+
+
+def test_turned_pairs_are_near_turned_views_with_a_distance_floor():
+    routes = [_turning_route(0.0), _turning_route(90.0)]  # a straight route has no turned pair
+    kw = {"min_baseline_m": 0.5, "max_baseline_m": 10.0, "max_angle_deg": 30.0}
+    pairs = relpose_trainer.PairSet(
+        routes, 8, seed=0, n_turned=6, turned_max_m=15.0, turned_min_angle_deg=45.0,
+        turned_floor_m=30.0, **kw,
+    )  # fmt: skip
+    assert len(pairs) == 14 and pairs.index.shape == (14, 5)
+    assert pairs.distance_floor.tolist() == [False] * 8 + [True] * 6
+    assert pairs.pose_weight[8:].eq(0).all() and pairs.baseline_m[8:].eq(30.0).all()
+    for r, i, j, a, b in pairs.index[8:]:
+        assert r == 1  # the turning route
+        ta, tb = routes[r].traversals[i], routes[r].traversals[j]
+        assert np.linalg.norm(ta.t_wc[a] - tb.t_wc[b]) <= 15.0
+        axis_cos = ta.R_wc[a][:, 2] @ tb.R_wc[b][:, 2]
+        assert axis_cos <= math.cos(math.radians(45.0)) + 1e-9
+    with pytest.raises(GeosegError, match="no pair of views"):
+        relpose_trainer.PairSet(routes[:1], 8, n_turned=6, **kw)
+
+
 def test_far_pairs_need_a_distance_head(shared, tmp_path):
     from geoseg.errors import ConfigError
 
-    for key in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch"):
+    for key in ("far_pairs_per_epoch", "unrelated_pairs_per_epoch", "turned_pairs_per_epoch"):
         with pytest.raises(ConfigError, match=f"{key}.*predict_distance"):
             load_config(
                 relpose_trainer.RelPoseConfig,
@@ -331,6 +370,8 @@ def test_far_pairs_need_a_distance_head(shared, tmp_path):
     for match, bad in (
         ("unrelated_floor_m", {"unrelated_pairs_per_epoch": 8, "unrelated_floor_m": 80.0}),
         ("far_max_baseline_m", {"far_pairs_per_epoch": 8, "far_max_baseline_m": 5.0}),
+        ("turned_min_angle_deg", {"turned_pairs_per_epoch": 8, "turned_min_angle_deg": 20.0}),
+        ("turned_max_m", {"turned_pairs_per_epoch": 8, "turned_max_m": 0.0}),
     ):
         with pytest.raises(ConfigError, match=match):
             load_config(
@@ -433,7 +474,8 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
         assert res["abs_position_degenerate_share_top1"] <= res["abs_position_degenerate_share"]
         assert "abs_position_median_m_rays_only" in res
         assert 0.0 <= res["recall_at_1_gps_window_reranked"] <= 1.0
-        assert 0.0 <= res["recall_at_1_reranked"] <= 1.0
+        assert 0.0 <= res["recall_at_1_reranked"] <= res["recall_at_3_reranked"] <= 1.0
+        assert 0.0 <= res["recall_at_1_gps_window_reranked_gps"] <= 1.0
         assert res["relpose_dist_median_rel"] is not None
     else:
         assert "abs_position_median_m_top1" not in res and "rays" in res["abs_position_method"]

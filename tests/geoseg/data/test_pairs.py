@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from geoseg.data.pairs import (
+    NoEligiblePairError,
     RelPosePairDataset,
     Traversal,
     TripletDataset,
@@ -132,6 +133,16 @@ def test_relpose_pairs_labels_equal_relative_pose_labels() -> None:
     c = _route(30, 1.5, yaw_deg=90.0)
     with pytest.raises(GeosegError, match="no pair"):
         sample_relpose_pairs(a, c, 5, max_angle_deg=30.0)
+    # a minimum angle asks for turned views: only c (90 deg) has them, never b (10 deg)
+    turned = sample_relpose_pairs(a, c, 20, rng=0, min_angle_deg=45.0, max_angle_deg=180.0)
+    angles = np.degrees(
+        np.arccos(np.clip((np.trace(turned.R_ab, axis1=1, axis2=2) - 1) / 2, -1, 1))
+    )
+    np.testing.assert_allclose(angles, 90.0, atol=1e-6)
+    with pytest.raises(NoEligiblePairError, match="45.0-180.0 deg"):
+        sample_relpose_pairs(a, b, 5, min_angle_deg=45.0, max_angle_deg=180.0)
+    with pytest.raises(GeosegError, match="min_angle_deg"):
+        sample_relpose_pairs(a, c, 5, min_angle_deg=40.0, max_angle_deg=30.0)
 
 
 def test_datasets_over_features_and_over_items() -> None:
