@@ -76,3 +76,26 @@ def test_bad_override_is_a_clear_error(tiny_yaml, tmp_path, capsys):
     )
     assert rc == 2
     assert "methods" in capsys.readouterr().err
+
+
+def test_bench_other_drives_mean_and_worst(tiny_yaml, tmp_path, capsys):
+    """bench/fusion_ch3.py --drives: the grid on each drive, then per-figure mean and worst."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "bench" / "fusion_ch3.py"
+    spec = importlib.util.spec_from_file_location("fusion_ch3_bench", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    cfg = load_config(ExperimentConfig, tiny_yaml).quick()
+    drives = bench.other_drives(cfg, [1, 2], tmp_path)
+    assert drives["seeds"] == [1, 2] and set(drives["failures"]) == {"1", "2"}
+    per_drive = [
+        json.loads((tmp_path / f"drive_{s}" / "fusion_ch3.json").read_text()) for s in (1, 2)
+    ]
+    assert per_drive[0]["ba_sigma0_t_mean"] != per_drive[1]["ba_sigma0_t_mean"]  # other drives
+    for key in ("ba_sigma0_t_mean", "mpc_time_ratio", "inlier_loss_max"):
+        values = [d[key] for d in per_drive]
+        assert drives["mean"][key] == pytest.approx(sum(values) / 2)
+        assert drives["max"][key] == pytest.approx(max(values))
+    assert "ba_sigma0_t_mean" in capsys.readouterr().out
