@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.config import load_config
+from slam_bridge.errors import SlamError
 from slam_bridge.pipeline import ExperimentConfig, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,17 +40,27 @@ ROOT = Path(__file__).resolve().parents[1]
 def other_drives(cfg: ExperimentConfig, seeds: list[int], out_dir: Path) -> dict:
     """Run the grid of ``cfg`` on each drive ``sequence.seed = s`` (into ``out_dir/drive_<s>``)
     and return ``{"seeds", "failures" (per seed), "mean", "max"}``, the last two over the drives
-    of every numeric figure that they all report. Prints the mean translation errors and
-    inlier losses."""
+    that produced results, of every numeric figure that they all report. Prints the mean
+    translation errors and inlier losses.
+
+    Raises:
+        SlamError: no drive produced a result.
+    """
     figures, failures = [], {}
     for seed in seeds:
         cfg_s = dataclasses.replace(cfg, sequence=dataclasses.replace(cfg.sequence, seed=seed))
-        out = run_experiment(cfg_s, out_dir / f"drive_{seed}", force=True)
+        try:
+            out = run_experiment(cfg_s, out_dir / f"drive_{seed}", force=True)
+        except SlamError as err:  # every run of the drive failed (e.g. lost tracking)
+            failures[str(seed)] = [{"error": str(err)}]
+            continue
         summary = json.loads((out / "fusion_ch3.json").read_text())
         failures[str(seed)] = summary.get("failures", [])
         figures.append(
             {k: v for k, v in summary.items() if isinstance(v, int | float) and k != "wall_seconds"}
         )
+    if not figures:
+        raise SlamError(f"drives {seeds}: every run failed: {failures}")
     common = sorted(set.intersection(*(set(f) for f in figures)))
     mean = {k: float(np.mean([f[k] for f in figures])) for k in common}
     worst = {k: float(np.max([f[k] for f in figures])) for k in common}

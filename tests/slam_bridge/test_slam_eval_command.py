@@ -99,3 +99,19 @@ def test_bench_other_drives_mean_and_worst(tiny_yaml, tmp_path, capsys):
         assert drives["mean"][key] == pytest.approx(sum(values) / 2)
         assert drives["max"][key] == pytest.approx(max(values))
     assert "ba_sigma0_t_mean" in capsys.readouterr().out
+    # a drive where every run fails is reported, not averaged; none left is a clear error
+    from slam_bridge.errors import SlamError
+
+    real = bench.run_experiment
+
+    def lost_on_drive_2(cfg_s, out, force):
+        if cfg_s.sequence.seed == 2:
+            raise SlamError("every run failed: tracking lost")
+        return real(cfg_s, out, force=force)
+
+    bench.run_experiment = lost_on_drive_2
+    one = bench.other_drives(cfg, [1, 2], tmp_path / "again")
+    assert "tracking lost" in one["failures"]["2"][0]["error"]
+    assert one["mean"]["ba_sigma0_t_mean"] == pytest.approx(per_drive[0]["ba_sigma0_t_mean"])
+    with pytest.raises(SlamError, match="every run failed"):
+        bench.other_drives(cfg, [2], tmp_path / "none")
