@@ -276,8 +276,11 @@ def run(args: argparse.Namespace) -> int:
         raise GeosegError("--gps and --radius: the GPS window needs both (or neither)")
     if args.radius is not None:
         check_positive("--radius", args.radius)
-    if args.gps_sigma is not None and args.gps is None:
-        raise GeosegError("--gps-sigma: needs --gps (the query positions)")
+    if args.gps_sigma is not None:
+        if args.gps is None:
+            raise GeosegError("--gps-sigma: needs --gps (the query positions)")
+        check_positive("--gps-sigma", args.gps_sigma)
+        check_positive("--distance-rel-sigma", args.distance_rel_sigma)
     if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
         raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
     if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
@@ -295,6 +298,8 @@ def run(args: argparse.Namespace) -> int:
     relpose_head = None
     if args.relpose_head is not None:
         relpose_head = _load_head(args.relpose_head, "relpose", args.device)
+    if args.gps_sigma is not None and not getattr(relpose_head, "predict_distance", False):
+        raise GeosegError("--gps-sigma: needs a --relpose-head that predicts distances")
     if args.model is not None:
         from geoseg.export import available_providers
         from geoseg.infer import Segmenter

@@ -267,6 +267,11 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     )
     err = _error(capsys, [*head_args, *distance_head, "--gps-sigma", "2.0"])
     assert "--gps-sigma" in err and "--gps" in err
+    err = _error(capsys, [*head_args, *distance_head, *gps_args[:-1], "-1"])
+    assert "--gps-sigma" in err
+    no_distance = ["--relpose-head", str(checkpoints["relpose"])]
+    err = _error(capsys, [*head_args, *no_distance, *gps_args])
+    assert "--gps-sigma" in err and "predicts distances" in err
     # a head of the wrong kind
     err = _error(
         capsys,
