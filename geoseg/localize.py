@@ -707,9 +707,8 @@ def fuse_gps_distance(
     d = _to_numpy("predicted_m", predicted_m)
     g = _to_numpy("gps_m", gps_m)
     check_shape("gps_m", g, d.shape)
-    for name, value in (("relative_sigma", relative_sigma), ("gps_sigma_m", gps_sigma_m)):
-        if not (np.isfinite(value) and value > 0):
-            raise GeosegError(f"{name}: expected a finite value > 0, got {value}")
+    check_positive("relative_sigma", relative_sigma)
+    check_positive("gps_sigma_m", gps_sigma_m)
     if np.any(d <= 0) or np.isnan(d).any() or np.isnan(g).any():
         raise GeosegError("predicted_m, gps_m: expected positive distances, no NaN")
     w_head = 1.0 / np.square(relative_sigma * d)
