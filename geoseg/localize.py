@@ -646,23 +646,36 @@ def locate_from_ranged_rays(
     )
 
 
-def rerank_by_distance(ranked: Any, distances: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def rerank_by_distance(
+    ranked: Any,
+    distances: Any,
+    *,
+    appearance: Any | None = None,
+    appearance_weight: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Reorder each query's retrieved candidates by the predicted baseline, nearest first.
 
     Retrieval ranks base images by appearance; on a street of regularly spaced base images the
     two neighbours of a query look alike and the farther one can win. The relative-pose head's
-    distance output tells which of them is nearer.
+    distance output tells which of them is nearer. Where the head nearly ties (the base 3 m
+    behind the query against the one 9 m ahead), the appearance distance is independent
+    evidence: with ``appearance_weight`` ``w > 0`` the order is by
+    ``log(distance) + w * appearance`` (a log so that the weight means the same at 3 m and at
+    20 m: the head's error is relative).
 
     Args:
         ranked: ``(Q, K)`` base indices per query, best first (``-1`` = padding).
         distances: ``(Q, K)`` predicted baselines (metres) query <-> candidate; ignored at
             padding slots.
+        appearance: ``(Q, K)`` retrieval distances of the same candidates (embedding space,
+            :meth:`RetrievalIndex.query`); needed when ``appearance_weight > 0``.
+        appearance_weight: ``w >= 0``, log-distance units per unit of appearance distance.
 
     Returns:
-        ``(ranked (Q, K) int64, distances (Q, K) float64, order (Q, K) int64)``: sorted by
-        increasing predicted distance per query (stable: ties keep the appearance order),
-        padding last; ``order`` is the permutation (``ranked_out = take(ranked, order)``), to
-        reorder anything else held per candidate.
+        ``(ranked (Q, K) int64, distances (Q, K) float64, order (Q, K) int64)``: sorted by the
+        key above per query (stable: ties keep the appearance order), padding last; ``order``
+        is the permutation (``ranked_out = take(ranked, order)``), to reorder anything else
+        held per candidate.
     """
     idx = np.asarray(ranked)
     check_shape("ranked", idx, (None, None))
@@ -673,11 +686,24 @@ def rerank_by_distance(ranked: Any, distances: Any) -> tuple[np.ndarray, np.ndar
     valid = idx >= 0
     if not np.isfinite(dist[valid]).all():
         raise GeosegError("distances: NaN or inf at a candidate slot")
+    if not (np.isfinite(appearance_weight) and appearance_weight >= 0):
+        raise GeosegError(f"appearance_weight: expected >= 0, got {appearance_weight}")
     key = np.where(valid, dist, np.inf)
+    if appearance_weight > 0:
+        if appearance is None:
+            raise GeosegError("appearance: required with appearance_weight > 0")
+        app = _to_numpy("appearance", appearance)
+        check_shape("appearance", app, idx.shape)
+        if not np.isfinite(app[valid]).all():
+            raise GeosegError("appearance: NaN or inf at a candidate slot")
+        if (dist[valid] <= 0).any():
+            raise GeosegError("distances: expected > 0 m with appearance_weight > 0 (a log)")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            key = np.where(valid, np.log(key) + appearance_weight * app, np.inf)
     order = np.argsort(key, axis=1, kind="stable")
     return (
         np.take_along_axis(idx, order, axis=1).astype(np.int64),
-        np.take_along_axis(key, order, axis=1),
+        np.take_along_axis(np.where(valid, dist, np.inf), order, axis=1),
         order.astype(np.int64),
     )
 

@@ -9,8 +9,9 @@ with its degeneracy flag. Prints a table; ``--out`` writes the same as JSON.
 A relative-pose head that predicts baselines (``predict_distance``) also gives each match its
 distance from the query: the matches are then re-ranked nearest first (``--no-rerank`` keeps
 the appearance order; with ``--gps-sigma`` the distance is first fused with the GPS fix's
-distance to each match, :func:`geoseg.localize.fuse_gps_distance`) and the position comes from
-ranged rays
+distance to each match, :func:`geoseg.localize.fuse_gps_distance`; with the learned embedding
+``--appearance-weight`` adds the retrieval distance to the log-distance key as a tie-break,
+:func:`geoseg.localize.rerank_by_distance`) and the position comes from ranged rays
 (:func:`geoseg.localize.locate_from_ranged_rays`), which one match already determines and which
 stay determined when the bases are collinear with the query.
 
@@ -73,6 +74,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         type=float,
         default=0.3,
         help="relative error of the head's predicted distance, for --gps-sigma (default 0.3)",
+    )
+    parser.add_argument(
+        "--appearance-weight",
+        type=float,
+        help="re-rank by log(distance) + this x the embedding distance (default 0.5 with "
+        "--reloc-head, chosen on the validation city; 0 otherwise: distance only)",
     )
     parser.add_argument(
         "--no-rerank",
@@ -281,6 +288,11 @@ def run(args: argparse.Namespace) -> int:
             raise GeosegError("--gps-sigma: needs --gps (the query positions)")
         check_positive("--gps-sigma", args.gps_sigma)
         check_positive("--distance-rel-sigma", args.distance_rel_sigma)
+    appearance_weight = args.appearance_weight
+    if appearance_weight is None:
+        appearance_weight = 0.5 if args.reloc_head is not None else 0.0
+    elif not (math.isfinite(appearance_weight) and appearance_weight >= 0):
+        raise GeosegError(f"--appearance-weight: expected >= 0, got {appearance_weight}")
     if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
         raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
     if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
@@ -428,7 +440,12 @@ def run(args: argparse.Namespace) -> int:
                 )
                 for m, d in zip(matches, dist[0]):
                     m["gps_fused_distance_m"] = float(d)
-            order = rerank_by_distance(np.arange(len(matches))[None], dist)[2][0]
+            order = rerank_by_distance(
+                np.arange(len(matches))[None],
+                dist,
+                appearance=np.array([[m["distance"] for m in matches]]),
+                appearance_weight=appearance_weight,
+            )[2][0]
             matches = [matches[i] for i in order]
         for r, m in enumerate(matches, start=1):
             m["appearance_rank"], m["rank"] = m["rank"], r

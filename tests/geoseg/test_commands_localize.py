@@ -265,6 +265,12 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     assert matches[0]["gps_fused_distance_m"] == pytest.approx(
         (w_head * 5.0 + w_gps * 1.0) / (w_head + w_gps)
     )
+    # a dominant appearance weight restores the embedding's order; a negative one is refused
+    assert main([*head_args, *distance_head, *gps_args, "--appearance-weight", "1e6"]) == 0
+    matches = json.loads(out.read_text())["queries"][0]["matches"]
+    assert [m["appearance_rank"] for m in matches] == [1, 2, 3]
+    err = _error(capsys, [*head_args, *distance_head, *gps_args, "--appearance-weight", "-1"])
+    assert "--appearance-weight" in err
     err = _error(capsys, [*head_args, *distance_head, "--gps-sigma", "2.0"])
     assert "--gps-sigma" in err and "--gps" in err
     err = _error(capsys, [*head_args, *distance_head, *gps_args[:-1], "-1"])

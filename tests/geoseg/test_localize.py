@@ -331,6 +331,34 @@ def test_rerank_by_distance() -> None:
         rerank_by_distance(ranked.astype(float), dist)
 
 
+def test_rerank_appearance_breaks_the_heads_near_ties() -> None:
+    # candidate 7 is 3 m behind the query, 8 is 9 m ahead: the head nearly ties them (4.1 vs
+    # 4.0 m) while the embedding clearly prefers 7; a clear distance gap (2 m vs 20 m) still wins
+    ranked = np.array([[8, 7, -1], [5, 6, 4]])
+    dist = np.array([[4.0, 4.1, np.nan], [20.0, 2.0, 9.0]])
+    app = np.array([[0.9, 0.6, np.nan], [0.5, 0.9, 0.7]])
+    assert rerank_by_distance(ranked, dist)[0].tolist() == [[8, 7, -1], [6, 4, 5]]
+    out, d, _ = rerank_by_distance(ranked, dist, appearance=app, appearance_weight=0.5)
+    assert out.tolist() == [[7, 8, -1], [6, 4, 5]]
+    np.testing.assert_array_equal(d[0], [4.1, 4.0, np.inf])  # the distances, not the key
+    # the key: log(4.0) + 0.5 * 0.9 = 1.836 > log(4.1) + 0.5 * 0.6 = 1.711; with w = 0.05 the
+    # head's 2.5 % lead holds (log 4.1 - log 4.0 = 0.0247 > 0.05 * 0.3 = 0.015)
+    weak = rerank_by_distance(ranked, dist, appearance=app, appearance_weight=0.05)[0]
+    assert weak[0].tolist() == [8, 7, -1]
+    with pytest.raises(GeosegError, match="appearance: required"):
+        rerank_by_distance(ranked, dist, appearance_weight=0.5)
+    with pytest.raises(GeosegError, match="appearance_weight"):
+        rerank_by_distance(ranked, dist, appearance=app, appearance_weight=-1.0)
+    with pytest.raises(GeosegError, match="appearance"):
+        rerank_by_distance(ranked, dist, appearance=app[:, :2], appearance_weight=0.5)
+    with pytest.raises(GeosegError, match="appearance: NaN"):
+        rerank_by_distance(
+            ranked, dist, appearance=np.where(ranked >= 0, np.nan, 0.0), appearance_weight=0.5
+        )
+    with pytest.raises(GeosegError, match="distances: expected > 0"):
+        rerank_by_distance(ranked, np.abs(dist) * 0.0, appearance=app, appearance_weight=0.5)
+
+
 def test_fuse_gps_distance_is_the_inverse_variance_mean() -> None:
     # equal variances (0.5 * 4 m = 2 m): the plain mean; a vague GPS leaves the head's reading
     fused = fuse_gps_distance([4.0], [8.0], relative_sigma=0.5, gps_sigma_m=2.0)

@@ -476,6 +476,9 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
         assert 0.0 <= res["recall_at_1_gps_window_reranked"] <= 1.0
         assert 0.0 <= res["recall_at_1_reranked"] <= res["recall_at_3_reranked"] <= 1.0
         assert 0.0 <= res["recall_at_1_gps_window_reranked_gps"] <= 1.0
+        assert res["rerank_appearance_weight"] == 0.5
+        for key in ("recall_at_1_gps_window_reranked", "recall_at_1_reranked"):
+            assert 0.0 <= res[f"{key}_distance_only"] <= 1.0
         assert res["relpose_dist_median_rel"] is not None
     else:
         assert "abs_position_median_m_top1" not in res and "rays" in res["abs_position_method"]
