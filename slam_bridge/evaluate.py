@@ -20,7 +20,12 @@
   the count a perfect trajectory would score. With 1 px noise per axis a correct observation
   fails the 2 px test with probability ``exp(-2) = 13.5 %``, so most points seen ~12 times fail
   even at the truth: the count measures small departures from the truth's consistency (on the
-  bench drive ~400 points have their worst error within 0.1 px of the threshold).
+  bench drive ~400 points have their worst error within 0.1 px of the threshold). So the net
+  loss is the difference of two large churns: ``<method>_<setting>_inliers_lost`` (inliers of
+  ``n = 0`` that the method's poses fail) and ``..._inliers_gained`` (the reverse), and
+  ``..._inlier_loss_noise`` is ``sqrt(lost + gained) / N_0``, the standard deviation the net
+  loss would have if each of those points had flipped either way by chance (a sign test): a
+  loss within one or two of it is not evidence of a worse trajectory.
 * **Time** per fusion iteration relative to ``n = 0`` (Table 3.3): the total fusion wall time
   over the total number of barrier iterations, divided by the same for ``n = 0``, over the
   keyframes whose window is full (``l`` free cameras: the regime the thesis's ratio describes;
@@ -35,7 +40,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +61,9 @@ __all__ = [
     "error_stats",
     "align_similarity",
     "count_inliers",
+    "inlier_mask",
     "inlier_loss",
+    "inlier_churn",
     "RunSummary",
     "summarize_run",
     "build_summary",
@@ -169,7 +176,7 @@ def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
     return s, R, md - s * R @ ms
 
 
-def count_inliers(
+def inlier_mask(
     K: np.ndarray,
     R_wc: np.ndarray,
     t_wc: np.ndarray,
@@ -182,7 +189,7 @@ def count_inliers(
     triangulated: np.ndarray | None = None,
     threshold_px: float = 2.0,
     retriangulate: bool = False,
-) -> int:
+) -> np.ndarray:
     """Points whose reprojection errors are all below ``threshold_px`` (§3.7).
 
     Args:
@@ -200,7 +207,7 @@ def count_inliers(
             poses (DLT + Gauss-Newton, no parallax requirement) before the test.
 
     Returns:
-        The number of inlier points (points with at least one kept observation).
+        ``(P,)`` bool: the inlier points (each with at least one kept observation).
     """
     X_w = np.asarray(X_w, dtype=np.float64)
     P = X_w.shape[0]
@@ -220,7 +227,12 @@ def count_inliers(
     err = np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv[keep], nan=1e9), axis=1), 1e9)
     seen = np.bincount(pt, minlength=P) > 0
     bad = np.bincount(pt, weights=(err >= threshold_px).astype(float), minlength=P) > 0
-    return int(np.sum(seen & ~bad))
+    return seen & ~bad
+
+
+def count_inliers(*args, **kwargs) -> int:
+    """The number of inlier points: :func:`inlier_mask` (same arguments) summed."""
+    return int(np.sum(inlier_mask(*args, **kwargs)))
 
 
 def inlier_loss(n_method: int, n_reference: int) -> float:
@@ -228,6 +240,22 @@ def inlier_loss(n_method: int, n_reference: int) -> float:
     if n_reference <= 0:
         raise SlamError("inlier_loss: the reference has no inlier")
     return max(0.0, (n_reference - n_method) / n_reference)
+
+
+def inlier_churn(reference: np.ndarray | None, method: np.ndarray | None) -> tuple[int, int] | None:
+    """``(lost, gained)``: points inlier for the reference (``n = 0``) but not for the method,
+    and the reverse (module docstring), from two ``(P,)`` bool masks of the same points; None
+    when a mask is missing.
+
+    Raises:
+        SlamError: masks of different lengths (runs of different sequences).
+    """
+    if reference is None or method is None:
+        return None
+    ref, met = np.asarray(reference, dtype=bool), np.asarray(method, dtype=bool)
+    if ref.shape != met.shape:
+        raise SlamError(f"inlier masks of shapes {ref.shape} and {met.shape}: not the same points")
+    return int(np.sum(ref & ~met)), int(np.sum(~ref & met))
 
 
 @dataclass
@@ -257,6 +285,8 @@ class RunSummary:
         seconds: total wall time of the run.
         keyframes: keyframes processed.
         gps_fused: keyframes fused with a GPS fix.
+        inlier_points: ``(P,)`` bool, which points make ``inliers`` (for the churn against
+            ``n = 0``; left out of the JSON), or None.
     """
 
     method: str
@@ -281,6 +311,7 @@ class RunSummary:
     seconds: float
     keyframes: int
     gps_fused: int
+    inlier_points: np.ndarray | None = field(default=None, repr=False)
 
     def short(self) -> str:
         """One line for logs."""
@@ -311,7 +342,7 @@ def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
     obs = data.observations
     args = (data.K, result.R_wc, result.t_wc, result.X_w, obs.keyframe, obs.point, obs.uv)
     kw = dict(used=result.active, triangulated=result.triangulated)
-    n_in = count_inliers(*args, retriangulate=True, **kw)
+    in_mask = inlier_mask(*args, retriangulate=True, **kw)
     n_raw = count_inliers(*args, **kw)
     truth = (data.R_wc_true[:C], data.t_wc_true[:C])
     n_truth = count_inliers(data.K, *truth, *args[3:], retriangulate=True, **kw)
@@ -330,7 +361,7 @@ def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
             np.linalg.norm(result.t_wc[sl, :2] - data.t_wc_true[:C][sl, :2], axis=1)
         ),
         vertical=error_stats(np.abs(result.t_wc[sl, 2] - data.t_wc_true[:C][sl, 2])),
-        inliers=n_in,
+        inliers=int(in_mask.sum()),
         inliers_raw=n_raw,
         inliers_truth=n_truth,
         points=int(result.triangulated.sum()),
@@ -352,6 +383,7 @@ def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
         seconds=float(result.seconds),
         keyframes=int(C),
         gps_fused=int(sum(r.gps_used for r in recs)),
+        inlier_points=in_mask,
     )
 
 
@@ -407,8 +439,16 @@ def build_summary(runs: list[RunSummary], methods: list[str], settings: list[str
             ls = []
             for s in settings:
                 loss = inlier_loss(by[(m, s)].inliers, by[("ba", s)].inliers)
-                out[f"{m}_{s.replace('sigma=', 'sigma')}_inlier_loss"] = loss
+                key = f"{m}_{s.replace('sigma=', 'sigma')}"
+                out[f"{key}_inlier_loss"] = loss
                 ls.append(loss)
+                churn = inlier_churn(by[("ba", s)].inlier_points, by[(m, s)].inlier_points)
+                if churn is not None:
+                    lost, gained = churn
+                    out[f"{key}_inliers_lost"], out[f"{key}_inliers_gained"] = lost, gained
+                    out[f"{key}_inlier_loss_noise"] = float(
+                        np.sqrt(lost + gained) / by[("ba", s)].inliers
+                    )
             out[f"{m}_inlier_loss_max"] = max(ls)
             out[f"{m}_inlier_loss_raw_max"] = max(
                 inlier_loss(by[(m, s)].inliers_raw, by[("ba", s)].inliers_raw) for s in settings
@@ -421,7 +461,7 @@ def build_summary(runs: list[RunSummary], methods: list[str], settings: list[str
         out["inlier_loss_max"] = float(max(losses))
     out["methods"] = list(methods)
     out["settings"] = list(settings)
-    out["runs"] = [asdict(r) for r in runs]
+    out["runs"] = [{k: v for k, v in asdict(r).items() if k != "inlier_points"} for r in runs]
     return out
 
 
@@ -475,14 +515,24 @@ def markdown_tables(summary: dict) -> str:
         "",
         "### Table 3.2: inlier loss vs n = 0 (%) (re-triangulated with the final poses; stored)",
         "",
-        "| method | GPS | ours | ours (stored points) | thesis |",
-        "|---|---|---|---|---|",
+        "Chance sd: sqrt(lost + gained) / N_0, the spread of the net loss if those points had "
+        "flipped either way by chance (module docstring).",
+        "",
+        "| method | GPS | ours | ours (stored points) | points lost / gained | chance sd | thesis |",
+        "|---|---|---|---|---|---|---|",
     ]
     for m in summary["methods"]:
         if m == "ba":
             continue
         for s in summary["settings"]:
-            v = summary.get(f"{m}_{s.replace('sigma=', 'sigma')}_inlier_loss")
+            key = f"{m}_{s.replace('sigma=', 'sigma')}"
+            v = summary.get(f"{key}_inlier_loss")
+            noise = summary.get(f"{key}_inlier_loss_noise")
+            churn = (
+                f"{summary[f'{key}_inliers_lost']} / {summary[f'{key}_inliers_gained']}"
+                if f"{key}_inliers_lost" in summary
+                else "-"
+            )
             rr = {(r["method"], r["setting"]): r["inliers_raw"] for r in runs}
             raw = (
                 inlier_loss(rr[(m, s)], rr[("ba", s)]) if ("ba", s) in rr and (m, s) in rr else None
@@ -490,7 +540,8 @@ def markdown_tables(summary: dict) -> str:
             th = THESIS_TABLE_3_2.get((m, _sigma_of(s))) if _sigma_of(s) is not None else None
             lines.append(
                 f"| {METHOD_LABEL[m]} | {s} | {_f(None if v is None else 100 * v)} | "
-                f"{_f(None if raw is None else 100 * raw)} | {_f(th)} |"
+                f"{_f(None if raw is None else 100 * raw)} | {churn} | "
+                f"{_f(None if noise is None else 100 * noise)} | {_f(th)} |"
             )
     lines += [
         "",

@@ -87,6 +87,15 @@ def test_inlier_loss():
         ev.inlier_loss(1, 0)
 
 
+def test_inlier_churn_counts_the_flips_both_ways():
+    ref = np.array([True, True, True, False, False, True])
+    met = np.array([True, False, False, True, False, True])
+    assert ev.inlier_churn(ref, met) == (2, 1)
+    assert ev.inlier_churn(ref, None) is None
+    with pytest.raises(SlamError, match="not the same points"):
+        ev.inlier_churn(ref, met[:4])
+
+
 def _run(method, setting, t_mean, inliers, sec, its, mem):
     stats = {"mean": t_mean, "std": 0.1, "median": t_mean, "max": 2 * t_mean}
     return ev.RunSummary(
@@ -122,7 +131,17 @@ def test_summary_tables_and_files(tmp_path):
         runs.append(_run("ba", s, 0.5, 1000, 10.0, 100, 3e6))
         runs.append(_run("dpc", s, 0.4, 990, 4.0, 100, 1e6))
         runs.append(_run("mpc", s, 0.6, 995, 6.0, 100, 1e6))
+    # the bias runs carry their inlier masks: n = 0 1000 inliers, MPC loses 30 and gains 25
+    mask = np.zeros(1100, bool)
+    mask[:1000] = True
+    mpc_mask = mask.copy()
+    mpc_mask[:30], mpc_mask[1000:1025] = False, True
+    runs[3].inlier_points, runs[5].inlier_points = mask, mpc_mask
     summ = ev.build_summary(runs, ["ba", "dpc", "mpc"], settings)
+    assert (summ["mpc_bias_inliers_lost"], summ["mpc_bias_inliers_gained"]) == (30, 25)
+    assert summ["mpc_bias_inlier_loss_noise"] == pytest.approx(np.sqrt(55) / 1000)
+    assert "mpc_sigma0.75_inliers_lost" not in summ  # no masks: no churn
+    assert all("inlier_points" not in r for r in summ["runs"])
     assert summ["dpc_time_ratio"] == pytest.approx(0.4)
     assert summ["mpc_time_ratio"] == pytest.approx(0.6)
     assert summ["memory_ratio"] == pytest.approx(3.0)
@@ -130,6 +149,7 @@ def test_summary_tables_and_files(tmp_path):
     assert summ["dpc_sigma0.75_t_mean"] == pytest.approx(0.4)
     md = ev.markdown_tables(summ)
     assert "Table 3.1" in md and "0.63" in md  # the thesis's DPC mu_T at sigma_b = 0.75
+    assert "| 30 / 25 | 0.74 |" in md  # the churn and its chance sd (%)
     ev.write_markdown(summ, tmp_path / "t.md")
     ev.write_json(summ, tmp_path / "t.json")
     assert json.loads((tmp_path / "t.json").read_text())["memory_ratio"] == pytest.approx(3.0)
