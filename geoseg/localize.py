@@ -686,8 +686,7 @@ def rerank_by_distance(
     valid = idx >= 0
     if not np.isfinite(dist[valid]).all():
         raise GeosegError("distances: NaN or inf at a candidate slot")
-    if not (np.isfinite(appearance_weight) and appearance_weight >= 0):
-        raise GeosegError(f"appearance_weight: expected >= 0, got {appearance_weight}")
+    check_positive("appearance_weight", appearance_weight, strict=False)
     key = np.where(valid, dist, np.inf)
     if appearance_weight > 0:
         if appearance is None:

@@ -291,8 +291,8 @@ def run(args: argparse.Namespace) -> int:
     appearance_weight = args.appearance_weight
     if appearance_weight is None:
         appearance_weight = 0.5 if args.reloc_head is not None else 0.0
-    elif not (math.isfinite(appearance_weight) and appearance_weight >= 0):
-        raise GeosegError(f"--appearance-weight: expected >= 0, got {appearance_weight}")
+    else:
+        check_positive("--appearance-weight", appearance_weight, strict=False)
     if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
         raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
     if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
