@@ -285,6 +285,9 @@ class RunSummary:
         seconds: total wall time of the run.
         keyframes: keyframes processed.
         gps_fused: keyframes fused with a GPS fix.
+        fallbacks: hybrid keyframes run as ``n = 0`` after failing the window consistency check
+            (:attr:`slam_bridge.pipeline.PipelineConfig.consistency_share`); they count in the
+            time and memory figures.
         inlier_points: ``(P,)`` bool, which points make ``inliers`` (for the churn against
             ``n = 0``; left out of the JSON), or None.
     """
@@ -311,6 +314,7 @@ class RunSummary:
     seconds: float
     keyframes: int
     gps_fused: int
+    fallbacks: int = 0
     inlier_points: np.ndarray | None = field(default=None, repr=False)
 
     def short(self) -> str:
@@ -383,6 +387,7 @@ def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
         seconds=float(result.seconds),
         keyframes=int(C),
         gps_fused=int(sum(r.gps_used for r in recs)),
+        fallbacks=int(sum(r.fallback for r in recs)),
         inlier_points=in_mask,
     )
 
@@ -414,6 +419,8 @@ def build_summary(runs: list[RunSummary], methods: list[str], settings: list[str
         out[f"{key}_tz_mean"] = r.vertical["mean"]
         out[f"{key}_inliers"] = r.inliers
         out[f"{key}_inliers_raw"] = r.inliers_raw
+        if r.method != "ba":
+            out[f"{key}_fallbacks"] = r.fallbacks
         out[f"{key}_inliers_truth"] = r.inliers_truth
     losses, mem_ratios = [], []
     if "ba" in methods:
@@ -558,6 +565,23 @@ def markdown_tables(summary: dict) -> str:
             f"{_f(THESIS_TABLE_3_3.get(m))} | <= {_f(TARGETS[f'{m}_time_ratio'])} | "
             f"{_f(summary.get(f'{m}_memory_ratio'))} | >= 3 |"
         )
+    falls = {
+        m: [(r["setting"], r["fallbacks"]) for r in runs if r["method"] == m and r.get("fallbacks")]
+        for m in summary["methods"]
+        if m != "ba"
+    }
+    if any(falls.values()):
+        lines += [
+            "",
+            "Keyframes run as n = 0 after failing the window consistency check (counted in the "
+            "time and memory ratios): "
+            + "; ".join(
+                f"{METHOD_LABEL[m]}: " + ", ".join(f"{s} {c}" for s, c in v)
+                for m, v in falls.items()
+                if v
+            )
+            + ".",
+        ]
     for fail in summary.get("failures", []):
         lines.append(f"\nFAILED: {fail['method']} / {fail['setting']}: {fail['error']}")
     ba_runs = [r for r in runs if r["method"] == "ba"]

@@ -79,7 +79,10 @@ class HybridWindowConfig:
         min_ba_cameras: ``l_b``, the fewest BA-window cameras (``>= 3``, §3.3).
         reprojection_sigma: pixel sigma of the reprojection rows.
         reprojection_kernel: robust kernel of the reprojection rows (None = least squares).
-        reprojection_kernel_scale: its threshold.
+        reprojection_kernel_scale: its threshold in pixels (Huber's ``delta``, Geman-McClure's
+            ``sigma``); each reprojection family gets it over its own pixel sigma, so the
+            down-weighted rows are the same pixel errors in the BA window and in the thinned
+            (re-weighted) pose-graph rows. None: the kernel's default in whitened units.
         mpc_sigma: pixel sigma of the MPC rows.
         mpc_min_correspondences: fewest 2D matches a pose-graph pair needs under MPC (pairs
             with fewer get a DPC link, :func:`_mpc_factor`).
@@ -416,7 +419,11 @@ def build_hybrid_problem(
             uv[rows],
             sigma=sigma,
             kernel=cfg.reprojection_kernel,
-            kernel_scale=cfg.reprojection_kernel_scale,
+            kernel_scale=(
+                None
+                if cfg.reprojection_kernel_scale is None
+                else cfg.reprojection_kernel_scale / sigma
+            ),
             name=name,
         )
         for rows, sigma, name in families

@@ -9,8 +9,10 @@ import pytest
 from threadpoolctl import threadpool_info
 
 import slam_bridge.pipeline as pipeline
+from geoseg.errors import GeosegError
 from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.errors import SlamError
+from slam_bridge.evaluate import summarize_run
 from slam_bridge.landmarks import LandmarkConfig
 from slam_bridge.pipeline import (
     BaselineLengthFactor,
@@ -400,3 +402,51 @@ def test_baseline_length_factor_jacobian():
                         ana[row] += blk.J_cameras[row, slot, 0, k]
             np.testing.assert_allclose(ana, num, atol=1e-6)
     assert f.cost(st) == pytest.approx(float(np.sum(blk.residuals**2)))
+
+
+@pytest.mark.parametrize("kind", ["dpc", "mpc"])
+def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, kind, caplog):
+    """A hybrid window failing the consistency check runs that keyframe as n = 0: with a check
+    every window fails (any row over 1e-3 px) and the fallback's iterations equal to the k-BA's,
+    the hybrid's trajectory is the plain barrier BA's, keyframe by keyframe."""
+    cfg, seq = noisy
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
+    strict = dataclasses.replace(
+        cfg.pipeline,
+        consistency_share=0.0,
+        consistency_px=1e-3,
+        consistency_iterations=cfg.pipeline.ba_iterations,
+    )
+    plain = run_pipeline(data, "ba", strict, num_keyframes=16)
+    with caplog.at_level("WARNING", logger="slam_bridge.pipeline"):
+        hybrid = run_pipeline(data, kind, strict, num_keyframes=16)
+    fell_back = [r.keyframe for r in hybrid.records if r.fallback]
+    hybrid_kf = [
+        r.keyframe
+        for r in hybrid.records
+        if pipeline._window_n(kind, strict, min(strict.l, r.keyframe + 1)) > 0
+    ]
+    assert hybrid_kf and fell_back == hybrid_kf
+    assert all(r.n_pose_graph == 0 for r in hybrid.records)
+    assert "window inconsistent" in caplog.text
+    assert summarize_run(hybrid, data, "sigma=0.75").fallbacks == len(fell_back)
+    np.testing.assert_allclose(hybrid.t_wc, plain.t_wc, atol=1e-9)
+    np.testing.assert_allclose(hybrid.R_wc, plain.R_wc, atol=1e-9)
+    # the default check: a consistent tiny drive never falls back
+    default = run_pipeline(data, kind, cfg.pipeline, num_keyframes=16)
+    assert not any(r.fallback for r in default.records)
+    assert any(r.n_pose_graph > 0 for r in default.records)
+
+
+def test_consistency_and_kernel_settings_are_checked():
+    with pytest.raises(SlamError, match="consistency_share"):
+        PipelineConfig(consistency_share=1.5)
+    with pytest.raises(SlamError, match="consistency_iterations"):
+        PipelineConfig(consistency_iterations=0)
+    with pytest.raises(GeosegError, match="consistency_px"):
+        PipelineConfig(consistency_px=0.0)
+    with pytest.raises(SlamError, match="unknown robust kernel"):
+        PipelineConfig(reprojection_kernel="hubr")
+    with pytest.raises(GeosegError, match="reprojection_kernel_px"):
+        PipelineConfig(reprojection_kernel="huber", reprojection_kernel_px=-1.0)
+    PipelineConfig(reprojection_kernel="huber", reprojection_kernel_px=2.45, consistency_share=None)

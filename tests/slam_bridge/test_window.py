@@ -109,6 +109,28 @@ def test_pose_graph_rows_keep_the_junction_and_their_own_sigma(scene) -> None:
         HybridWindowConfig(l=8, n=3, pose_graph_row_sigma=0.0)
 
 
+def test_reprojection_kernel_threshold_is_in_pixels_in_every_family(scene) -> None:
+    """The kernel threshold is a pixel error: the thinned pose-graph rows (sigma 0.5) start
+    being down-weighted at the same pixel error as the BA window's rows (sigma 1)."""
+    prob = _build(
+        scene,
+        l=8,
+        n=3,
+        pose_graph_rows=True,
+        pose_graph_row_sigma=0.5,
+        reprojection_kernel="huber",
+        reprojection_kernel_scale=2.45,
+    )
+    ba_rows, pg_rows = prob.vision[:2]
+    for fam in (ba_rows, pg_rows):
+        s_in = (np.array([2.4]) / fam.sigma) ** 2  # whitened squared norm of a 2.4 px error
+        s_out = (np.array([2.5]) / fam.sigma) ** 2
+        assert fam.kernel.weight(s_in)[0] == 1.0
+        assert fam.kernel.weight(s_out)[0] < 1.0
+    least_squares = _build(scene, l=8, n=3, pose_graph_rows=True, pose_graph_row_sigma=0.5)
+    assert least_squares.vision[1].kernel.weight(np.array([1e6]))[0] == 1.0
+
+
 def test_window_bad_inputs(scene) -> None:
     obs_c, obs_p = scene.obs_cameras, scene.obs_points
     with pytest.raises(WindowError, match="empty"):
