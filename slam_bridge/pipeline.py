@@ -1008,8 +1008,6 @@ def _refine_points(
 def _plain_kba(
     data: SequenceData,
     cfg: PipelineConfig,
-    kind: str,
-    D: np.ndarray,
     R_wc: np.ndarray,
     t_wc: np.ndarray,
     X_w: np.ndarray,
@@ -1029,7 +1027,7 @@ def _plain_kba(
     kba = build_hybrid_problem(
         R_wc, t_wc, X_w, data.K, keyframes, obs.keyframe[sel], obs.point[sel], obs.uv[sel],
         HybridWindowConfig(
-            l=l, n=0, pose_graph=kind, D=D,
+            l=l, n=0,
             reprojection_kernel=cfg.reprojection_kernel,
             reprojection_kernel_scale=cfg.reprojection_kernel_px,
         ),
@@ -1155,7 +1153,7 @@ def _run_pipeline(
         if n_eff == 0 or cfg.kba_window in ("plain", "ba"):
             l_kba = cfg.l if (n_eff == 0 or cfg.kba_window == "plain") else l_eff - n_eff
             kba, lm = _plain_kba(
-                data, cfg, kind, D, R_wc, t_wc, X_w, keyframes, sel, l_kba, k, cfg.ba_iterations
+                data, cfg, R_wc, t_wc, X_w, keyframes, sel, l_kba, k, cfg.ba_iterations
             )
             rec.ba_iterations = int(lm.iterations)
             problem = kba
@@ -1195,7 +1193,7 @@ def _run_pipeline(
                     link_info.pop(key, None)
                 sel = sel_window
                 problem, lm = _plain_kba(
-                    data, cfg, kind, D, R_wc, t_wc, X_w, keyframes, sel, cfg.l, k,
+                    data, cfg, R_wc, t_wc, X_w, keyframes, sel, cfg.l, k,
                     cfg.consistency_iterations,
                 )  # fmt: skip
                 rec.ba_iterations += int(lm.iterations)
