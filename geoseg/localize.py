@@ -137,6 +137,23 @@ class RetrievalIndex:
         d2 = np.einsum("qd,qd->q", q, q)[:, None] + sq[None, :] - 2.0 * q @ base.T
         return np.sqrt(np.maximum(d2, 0.0))
 
+    def distances(self, embeddings: Any) -> np.ndarray:
+        """Every query's distance to every base image (for :mod:`geoseg.route_filter`).
+
+        Args:
+            embeddings: ``(Q, D)`` query embeddings.
+
+        Returns:
+            ``(Q, M)`` Euclidean distances, float64.
+        """
+        q = _to_numpy("embeddings", embeddings)
+        check_shape("embeddings", q, (None, self.dim))
+        check_finite("embeddings", q)
+        blocks = [
+            self._dense_dist(q[s : s + _QUERY_BLOCK]) for s in range(0, q.shape[0], _QUERY_BLOCK)
+        ]
+        return np.concatenate(blocks) if blocks else np.zeros((0, len(self)))
+
     def query(
         self,
         embeddings: Any,

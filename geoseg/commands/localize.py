@@ -15,6 +15,14 @@ distance to each match, :func:`geoseg.localize.fuse_gps_distance`; with the lear
 (:func:`geoseg.localize.locate_from_ranged_rays`), which one match already determines and which
 stay determined when the bases are collinear with the query.
 
+Sequence (``--sequence filter|smooth``): the queries are one drive, in the order given, along the
+base's route (:mod:`geoseg.route_filter`): each query's matches are the most probable base
+images under the route HMM (appearance, motion by ``--step-m`` metres between consecutive
+queries, the GPS window when given), causal (``filter``, what a vehicle knows at that query) or
+using the whole drive (``smooth``). Each match then carries its ``sequence_probability``; the
+posterior already separates neighbouring base images, so the matches keep its order (the
+relative-pose head still gives their poses, distances and the position).
+
 Embeddings: ``--model`` (a segmentation checkpoint or ONNX file exposing layer-21 features)
 gives the raw layer-21 matching of §5.1.1, ``--model`` + ``--reloc-head`` the learned embedding;
 without ``--model`` a normalised grey thumbnail is used, a placeholder baseline that only
@@ -106,6 +114,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--focal", type=float, help="focal length in pixels when the base has no camera.json"
+    )
+    parser.add_argument(
+        "--sequence",
+        choices=["filter", "smooth"],
+        help="the queries are one drive in this order: rank by the route filter's posterior "
+        "(causal 'filter' or whole-drive 'smooth')",
+    )
+    parser.add_argument(
+        "--step-m",
+        type=float,
+        help="with --sequence: metres driven between consecutive queries (default: the base's "
+        "median spacing)",
+    )
+    parser.add_argument(
+        "--appearance-scale",
+        type=float,
+        help="with --sequence: tau of the appearance likelihood exp(-d / tau) (default 0.4, "
+        "chosen for the shipped embedding head on the validation city)",
     )
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     parser.add_argument(
@@ -242,6 +268,8 @@ def _print_table(result: dict[str, Any]) -> None:
                     pose += f", {rp['distance_m']:.1f} m away"
             else:
                 pose = f"failed: {rp['reason']}"
+            if m.get("sequence_probability") is not None:
+                pose = f"p {m['sequence_probability']:.3f}, {pose}"
             print(
                 f"{name[:24]:<24} {m['rank']:>4}  {Path(m['image']).name[:24]:<24} "
                 f"{m['distance']:>9.4g}  {pose}"
@@ -299,6 +327,17 @@ def run(args: argparse.Namespace) -> int:
         raise GeosegError(f"--position-k: expected an int >= 1, got {args.position_k}")
     if args.pool is not None and (args.model is None or min(args.pool) < 1):
         raise GeosegError("--pool: needs --model and two sizes >= 1")
+    if args.sequence is None and (args.step_m is not None or args.appearance_scale is not None):
+        raise GeosegError("--step-m/--appearance-scale: only with --sequence")
+    if args.step_m is not None:
+        check_positive("--step-m", args.step_m, strict=False)
+    route_cfg = None
+    if args.sequence is not None:
+        from geoseg.route_filter import RouteFilterConfig
+
+        route_cfg = RouteFilterConfig(
+            **({} if args.appearance_scale is None else {"appearance_scale": args.appearance_scale})
+        )
 
     base = load_image_base(args.base)
     queries: list[Path] = list(args.queries)
@@ -347,12 +386,31 @@ def run(args: argparse.Namespace) -> int:
                 "(feature maps of mismatched sizes: query and base images of different sizes?)"
             )
         q_emb.append(e[0])
-    ranked, dists = index.query(
-        np.stack(q_emb),
-        k=args.k,
-        gps=None if gps is None else np.asarray(gps),
-        radius_m=args.radius,
-    )
+    sequence_prob = None
+    if route_cfg is not None:
+        from geoseg.route_filter import RouteFilter
+
+        stamps = base.timestamps if np.isfinite(base.timestamps).all() else None
+        if stamps is None:
+            logger.info("the base has no timestamps: its route is the order of poses.csv")
+        route = RouteFilter(base.t_wc, timestamps=stamps, config=route_cfg)
+        all_dist = index.distances(np.stack(q_emb))
+        steps = None if args.step_m is None else np.full(len(queries) - 1, args.step_m)
+        run_filter = route.filter if args.sequence == "filter" else route.smooth
+        post = run_filter(
+            all_dist, steps, gps=None if gps is None else np.asarray(gps), radius_m=args.radius
+        )
+        ranked, sequence_prob = post.top(min(args.k, len(base)))
+        dists = np.take_along_axis(all_dist, ranked, axis=1)
+        if args.radius is not None:  # the window's outside has probability 0: not a match
+            ranked = np.where(sequence_prob > 0, ranked, -1)
+    else:
+        ranked, dists = index.query(
+            np.stack(q_emb),
+            k=args.k,
+            gps=None if gps is None else np.asarray(gps),
+            radius_m=args.radius,
+        )
 
     # ---- relative poses
     if relpose_head is not None:
@@ -404,7 +462,7 @@ def run(args: argparse.Namespace) -> int:
     results = []
     for j, (q, img) in enumerate(zip(queries, query_images)):
         matches = []
-        for r in range(args.k):
+        for r in range(ranked.shape[1]):
             i = int(ranked[j, r])
             if i < 0:
                 continue
@@ -421,12 +479,17 @@ def run(args: argparse.Namespace) -> int:
                     "distance": float(dists[j, r]),
                     "base_t_wc": base.t_wc[i],
                     "relative_pose": rp,
+                    **(
+                        {}
+                        if sequence_prob is None
+                        else {"sequence_probability": float(sequence_prob[j, r])}
+                    ),
                 }
             )
         ranged = bool(matches) and all(
             m["relative_pose"]["distance_m"] is not None for m in matches
         )
-        if ranged and not args.no_rerank:
+        if ranged and not args.no_rerank and args.sequence is None:
             dist = np.array([[m["relative_pose"]["distance_m"] for m in matches]])
             if args.gps_sigma is not None:
                 gps_m = np.array(
@@ -495,6 +558,7 @@ def run(args: argparse.Namespace) -> int:
             "base_size": len(base),
             "k": args.k,
             "gps_window_m": args.radius,
+            "sequence": args.sequence,
             "embedding": embedding_name,
             "relative_pose_method": method,
             "intrinsics": k_source,

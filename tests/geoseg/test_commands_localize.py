@@ -81,6 +81,35 @@ def test_gps_window(tmp_path: Path) -> None:
     assert [m["image"] for m in q_res["matches"]] == ["img_0.png"]
 
 
+def test_sequence_overrules_an_aliased_query(tmp_path: Path) -> None:
+    """A drive past base images 2-5 whose third view looks exactly like base image 7 (an
+    aliased facade): alone it matches image 7; as a drive the route filter places it at 4."""
+    images = random_base(tmp_path / "base", m=8)
+    names = []
+    rng = np.random.default_rng(5)
+    for j, i in enumerate([2, 3, 7, 5]):
+        noisy = np.clip(images[i] + rng.normal(0, 8, images[i].shape), 0, 255).astype(np.uint8)
+        names.append(str(tmp_path / f"q{j}.png"))
+        _save(Path(names[-1]), noisy)
+    out = tmp_path / "res.json"
+    args = ["localize", *names, "--base", str(tmp_path / "base"), "--out", str(out)]
+    assert main(args) == 0
+    single = json.loads(out.read_text())["queries"]
+    assert [q["matches"][0]["image"] for q in single] == [f"img_{i}.png" for i in (2, 3, 7, 5)]
+    for mode in ("filter", "smooth"):
+        seq = [*args, "--sequence", mode, "--step-m", "10"]
+        assert main(seq) == 0
+        res = json.loads(out.read_text())
+        assert res["sequence"] == mode
+        third = res["queries"][2]["matches"]
+        assert third[0]["image"] == "img_4.png" and third[0]["sequence_probability"] > 0.5
+        probs = [m["sequence_probability"] for m in third]
+        assert probs == sorted(probs, reverse=True) and sum(probs) <= 1 + 1e-9
+        assert [q["matches"][0]["image"] for q in res["queries"]] == [
+            f"img_{i}.png" for i in (2, 3, 4, 5)
+        ]
+
+
 # ----------------------------------------------------------------------------- geometry
 
 W, H = 640, 480
@@ -341,4 +370,13 @@ def test_bad_inputs_exit_2_with_a_message(tmp_path: Path, capsys) -> None:
     )
     assert "--radius" in _error(
         capsys, ["localize", str(q), "--base", base, "--gps", str(gps), "--radius", "-1"]
+    )
+    # sequence options without --sequence, or out of range
+    assert "--sequence" in _error(capsys, ["localize", str(q), "--base", base, "--step-m", "5"])
+    assert "--step-m" in _error(
+        capsys, ["localize", str(q), "--base", base, "--sequence", "filter", "--step-m", "-5"]
+    )
+    assert "appearance_scale" in _error(
+        capsys,
+        ["localize", str(q), "--base", base, "--sequence", "smooth", "--appearance-scale", "0"],
     )

@@ -459,6 +459,9 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
     ):
         assert key in res, key
     assert 0.0 <= res["recall_at_1"] <= res["recall_at_3"] <= 1.0
+    for tail in ("", "_smoothed", "_no_odometry", "_irregular"):
+        assert 0.0 <= res[f"recall_at_1_sequence{tail}"] <= res[f"recall_at_3_sequence{tail}"] <= 1
+    assert 0.0 <= res["recall_at_1_gps_window_sequence"] <= 1.0
     assert res["untrained"] == (["reloc"] if distance else ["reloc", "relpose"])
     assert "warning" in res
     assert (out / "accuracy_reloc_tsne.png").stat().st_size > 0
