@@ -330,13 +330,7 @@ class RouteFilter:
         Returns:
             A :class:`RouteFilterResult` (original base indexing).
         """
-        lik, empty = self.likelihoods(
-            distances, gps=gps, radius_m=radius_m, gps_sigma_m=gps_sigma_m
-        )
-        if lik.shape[0] == 0:
-            raise GeosegError("distances: no queries")
-        steps = self._steps(steps_m, lik.shape[0])
-        return self._result(self._forward(lik, steps), empty)
+        return self._run(distances, steps_m, (gps, radius_m, gps_sigma_m), smooth=False)
 
     def smooth(
         self,
@@ -349,6 +343,12 @@ class RouteFilter:
     ) -> RouteFilterResult:
         """Forward-backward posterior ``p(b_t | q_0..q_{T-1})`` of a recorded drive (same
         arguments as :meth:`filter`)."""
+        return self._run(distances, steps_m, (gps, radius_m, gps_sigma_m), smooth=True)
+
+    def _run(
+        self, distances: Any, steps_m: Any, gps_args: tuple, *, smooth: bool
+    ) -> RouteFilterResult:
+        gps, radius_m, gps_sigma_m = gps_args
         lik, empty = self.likelihoods(
             distances, gps=gps, radius_m=radius_m, gps_sigma_m=gps_sigma_m
         )
@@ -356,6 +356,8 @@ class RouteFilter:
             raise GeosegError("distances: no queries")
         steps = self._steps(steps_m, lik.shape[0])
         alpha = self._forward(lik, steps)
+        if not smooth:
+            return self._result(alpha, empty)
         beta = np.ones_like(alpha)
         for t in range(lik.shape[0] - 2, -1, -1):
             b = self._back(lik[t + 1] * beta[t + 1], float(steps[t]))

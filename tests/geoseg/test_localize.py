@@ -46,6 +46,19 @@ def test_planted_duplicate_is_rank_one(m: int) -> None:
     )
 
 
+def test_distances_are_every_pair_and_agree_with_query() -> None:
+    emb, pos = _base()
+    index = RetrievalIndex(emb, positions=pos)
+    q = np.random.default_rng(1).normal(size=(4, emb.shape[1]))
+    d = index.distances(q)
+    np.testing.assert_allclose(d, np.linalg.norm(q[:, None] - emb[None], axis=2), atol=1e-9)
+    idx, dist = index.query(q, k=3)
+    np.testing.assert_array_equal(idx, np.argsort(d, axis=1)[:, :3])
+    assert index.distances(np.zeros((0, emb.shape[1]))).shape == (0, len(emb))
+    with pytest.raises(GeosegError, match="embeddings"):
+        index.distances(q[:, :3])
+
+
 def test_gps_window_excludes_far_candidates() -> None:
     emb, pos = _base()
     index = RetrievalIndex(emb, positions=pos)
