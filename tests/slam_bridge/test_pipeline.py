@@ -438,6 +438,38 @@ def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, kind, cap
     assert any(r.n_pose_graph > 0 for r in default.records)
 
 
+@pytest.mark.parametrize("kind", ["dpc", "mpc"])
+def test_weakly_tracked_keyframes_keep_the_window_plain(noisy, kind, caplog):
+    """While a keyframe tracked with fewer PnP inliers than ``weak_track_inliers`` is in the BA
+    window, the window is plain: with every keyframe weak the hybrid is the plain barrier BA;
+    with a threshold between the tracked counts, exactly the windows holding a weaker one."""
+    cfg, seq = noisy
+    data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
+    every = dataclasses.replace(cfg.pipeline, weak_track_inliers=10**9)
+    plain = run_pipeline(data, "ba", every, num_keyframes=16)
+    with caplog.at_level("INFO", logger="slam_bridge.pipeline"):
+        hybrid = run_pipeline(data, kind, every, num_keyframes=16)
+    assert "tracked with" in caplog.text
+    assert all(r.n_pose_graph == 0 for r in hybrid.records)
+    np.testing.assert_allclose(hybrid.t_wc, plain.t_wc, atol=1e-9)
+    np.testing.assert_allclose(hybrid.R_wc, plain.R_wc, atol=1e-9)
+    default = run_pipeline(data, kind, cfg.pipeline, num_keyframes=16)
+    threshold = int(np.median([r.n_tracked for r in default.records]))
+    some = dataclasses.replace(cfg.pipeline, weak_track_inliers=threshold)
+    part = run_pipeline(data, kind, some, num_keyframes=16)
+    tracked = {r.keyframe: r.n_tracked for r in part.records}
+    expected = []
+    for r in part.records:
+        k = r.keyframe
+        n_eff = pipeline._window_n(kind, some, min(some.l, k + 1))
+        ba_window = range(k + 1 - (min(some.l, k + 1) - n_eff), k + 1)
+        weak = n_eff > 0 and min(tracked.get(j, 10**9) for j in ba_window) < threshold
+        expected.append(weak)
+    assert any(expected) and not all(expected)
+    assert [r.fallback for r in part.records] == expected
+    assert all(r.n_pose_graph == 0 for r, weak in zip(part.records, expected) if weak)
+
+
 def test_consistency_and_kernel_settings_are_checked():
     with pytest.raises(SlamError, match="consistency_share"):
         PipelineConfig(consistency_share=1.5)
@@ -450,3 +482,5 @@ def test_consistency_and_kernel_settings_are_checked():
     with pytest.raises(GeosegError, match="reprojection_kernel_px"):
         PipelineConfig(reprojection_kernel="huber", reprojection_kernel_px=-1.0)
     PipelineConfig(reprojection_kernel="huber", reprojection_kernel_px=2.45, consistency_share=None)
+    with pytest.raises(SlamError, match="weak_track_inliers"):
+        PipelineConfig(weak_track_inliers=0)
