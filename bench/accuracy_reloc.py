@@ -26,7 +26,7 @@ database image. Measured:
   ``--rerank-k-whole`` by the predicted baseline;
 * sequence localisation (:mod:`geoseg.route_filter`, not in the thesis: the single-image
   figures above stay the thesis's protocol): the queries taken as one drive in order, the
-  learned embedding's distances through the route HMM, with odometry steps (the true distance
+  learned embedding's distances through the route HMM, with odometry steps (the distance driven
   between consecutive queries with a constant scale error drawn in +-2 % and 5 % noise per
   step, ``--odometry-noise``): Recall@1/3 of the causal filter over the whole base and in the
   GPS window, of the forward-backward smoother, without odometry (one base spacing assumed per
@@ -327,6 +327,7 @@ def measure_sequence(res: dict, db, qr, retrieval: dict, args) -> None:
     rng = np.random.default_rng(args.seed + 11)
     dist = retrieval["index"]["learned"].distances(retrieval["q_learned"])
     true_steps = np.linalg.norm(np.diff(qr.t_wc[:, :2], axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(true_steps)])  # distance driven, as odometry sees it
     scale = 1.0 + rng.uniform(-0.02, 0.02)
     odometry = true_steps * scale * (1.0 + rng.normal(0.0, args.odometry_noise, true_steps.shape))
     odometry = np.maximum(odometry, 0.0)
@@ -353,7 +354,7 @@ def measure_sequence(res: dict, db, qr, retrieval: dict, args) -> None:
         n = len(qr)
         sel = np.sort(rng.choice(n, int(0.7 * n), replace=False))
         sel = sel[sel >= rng.integers(0, n // 4)]
-        steps = np.linalg.norm(np.diff(qr.t_wc[sel, :2], axis=0), axis=1)
+        steps = np.diff(arc[sel])
         steps = np.maximum(steps * scale * (1 + rng.normal(0, args.odometry_noise, steps.shape)), 0)
         result = flt.filter(dist[sel], steps)
         rows = np.flatnonzero(keep[sel])

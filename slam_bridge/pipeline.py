@@ -330,6 +330,16 @@ class PipelineConfig:
             sigma_b 1.5). But every drive has one to four turns tracked with 8-29 inliers, so
             14-53 keyframes per run fell back: mean time ratios 0.44 / 0.71 -> 0.47 / 0.74, mean
             memory ratio 3.24 -> 2.91 (below the 3x target). A trade, left off by default.
+        weak_track_span: with ``weak_track_inliers``, how many keyframes from the weak one on
+            stay plain (``None``: while it is in the BA window, ``l - n``; 1: only the weak
+            keyframe itself, whose plain k-BA places it with the whole window). Measured at
+            30 / 1 (same drives, off -> on): 2.5-4.3 keyframes per run fall back, memory ratio
+            3.21, time ratios 0.46 / 0.75; DPC translation 0.33 / 0.59 / 0.70 / 1.88 -> 0.23 /
+            0.64 / 0.87 / 1.35 m (drive 7 bias 4.45 -> 2.20 m), loss 0.9 / 1.7 / 1.7 / 2.1 ->
+            0.9 / 1.1 / 1.4 / 1.4 %; MPC 0.28 / 0.58 / 0.83 / 1.47 -> 0.23 / 0.65 / - / 1.63 m,
+            loss 1.4 / 2.6 / 3.5 / 2.9 -> 1.1 / 2.1 / - / 3.0 % (again lost tracking on drive
+            9 at sigma_b 1.5; worst MPC bias run 1.7 -> 2.9 m). Better at sigma_b 0 and in the
+            bias runs of DPC, worse elsewhere: not a default either.
     """
 
     l: int = 40
@@ -373,6 +383,7 @@ class PipelineConfig:
     consistency_px: float = 4.0
     consistency_iterations: int = 50
     weak_track_inliers: int | None = None
+    weak_track_span: int | None = None
 
     def __post_init__(self) -> None:
         if self.blas_threads is not None and self.blas_threads < 1:
@@ -407,6 +418,8 @@ class PipelineConfig:
             raise SlamError(
                 f"weak_track_inliers: expected >= 1 or None, got {self.weak_track_inliers}"
             )
+        if self.weak_track_span is not None and self.weak_track_span < 1:
+            raise SlamError(f"weak_track_span: expected >= 1 or None, got {self.weak_track_span}")
         if self.kba_window not in ("plain", "ba", "hybrid"):
             raise SlamError(
                 f"kba_window: expected 'plain', 'ba' or 'hybrid', got {self.kba_window!r}"
@@ -1173,7 +1186,8 @@ def _run_pipeline(
         l_eff = min(cfg.l, k + 1)
         n_eff = _window_n(method, cfg, l_eff)
         if n_eff > 0 and cfg.weak_track_inliers is not None:
-            weakest = int(tracked[k + 1 - (l_eff - n_eff) : k + 1].min())
+            span = l_eff - n_eff if cfg.weak_track_span is None else cfg.weak_track_span
+            weakest = int(tracked[max(0, k + 1 - span) : k + 1].min())
             if weakest < cfg.weak_track_inliers:
                 logger.info(
                     "keyframe %d: %s window holds a keyframe tracked with %d PnP inliers: "

@@ -18,8 +18,8 @@ stay determined when the bases are collinear with the query.
 Sequence (``--sequence filter|smooth``): the queries are one drive, in the order given, along the
 base's route (:mod:`geoseg.route_filter`): each query's matches are the most probable base
 images under the route HMM (appearance, motion by ``--step-m`` metres between consecutive
-queries, the GPS window when given), causal (``filter``, what a vehicle knows at that query) or
-using the whole drive (``smooth``). Each match then carries its ``sequence_probability``; the
+queries, the GPS window when given, and with ``--gps-sigma`` a Gaussian of each fix's distance),
+causal (``filter``, what a vehicle knows at that query) or using the whole drive (``smooth``). Each match then carries its ``sequence_probability``; the
 posterior already separates neighbouring base images, so the matches keep its order (the
 relative-pose head still gives their poses, distances and the position).
 
@@ -75,7 +75,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--gps-sigma",
         type=float,
         help="GPS noise per axis in metres: re-rank by the predicted distance fused with the "
-        "fix's distance to each match (needs --gps and a distance head)",
+        "fix's distance to each match (needs --gps and a distance head); with --sequence, the "
+        "route filter's Gaussian GPS likelihood",
     )
     parser.add_argument(
         "--distance-rel-sigma",
@@ -130,8 +131,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--appearance-scale",
         type=float,
-        help="with --sequence: tau of the appearance likelihood exp(-d / tau) (default 0.4, "
-        "chosen for the shipped embedding head on the validation city)",
+        help="with --sequence: tau of the appearance likelihood exp(-d / tau) (default: 0.29 x "
+        "the median query-base distance, chosen for the shipped embedding head on the "
+        "validation city)",
     )
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     parser.add_argument(
@@ -307,8 +309,12 @@ def run(args: argparse.Namespace) -> int:
     # ---- arguments
     if isinstance(args.k, bool) or args.k < 1:
         raise GeosegError(f"--k: expected an int >= 1, got {args.k}")
-    if (args.radius is None) != (args.gps is None):
-        raise GeosegError("--gps and --radius: the GPS window needs both (or neither)")
+    gps_likelihood = args.sequence is not None and args.gps_sigma is not None
+    if (args.radius is None) != (args.gps is None) and not (gps_likelihood and args.gps):
+        raise GeosegError(
+            "--gps and --radius: the GPS window needs both (or neither; with --sequence, "
+            "--gps and --gps-sigma weigh the fixes without a window)"
+        )
     if args.radius is not None:
         check_positive("--radius", args.radius)
     if args.gps_sigma is not None:
@@ -329,6 +335,10 @@ def run(args: argparse.Namespace) -> int:
         raise GeosegError("--pool: needs --model and two sizes >= 1")
     if args.sequence is None and (args.step_m is not None or args.appearance_scale is not None):
         raise GeosegError("--step-m/--appearance-scale: only with --sequence")
+    if args.sequence is not None and args.appearance_weight is not None:
+        raise GeosegError(
+            "--appearance-weight: weighs the distance re-ranking, which --sequence replaces"
+        )
     if args.step_m is not None:
         check_positive("--step-m", args.step_m, strict=False)
     route_cfg = None
@@ -349,7 +359,11 @@ def run(args: argparse.Namespace) -> int:
     relpose_head = None
     if args.relpose_head is not None:
         relpose_head = _load_head(args.relpose_head, "relpose", args.device)
-    if args.gps_sigma is not None and not getattr(relpose_head, "predict_distance", False):
+    if (
+        args.gps_sigma is not None
+        and args.sequence is None
+        and not getattr(relpose_head, "predict_distance", False)
+    ):
         raise GeosegError("--gps-sigma: needs a --relpose-head that predicts distances")
     if args.model is not None:
         from geoseg.export import available_providers
@@ -398,7 +412,11 @@ def run(args: argparse.Namespace) -> int:
         steps = None if args.step_m is None else np.full(len(queries) - 1, args.step_m)
         run_filter = route.filter if args.sequence == "filter" else route.smooth
         post = run_filter(
-            all_dist, steps, gps=None if gps is None else np.asarray(gps), radius_m=args.radius
+            all_dist,
+            steps,
+            gps=None if gps is None else np.asarray(gps),
+            radius_m=args.radius,
+            gps_sigma_m=args.gps_sigma,
         )
         ranked, sequence_prob = post.top(min(args.k, len(base)))
         dists = np.take_along_axis(all_dist, ranked, axis=1)

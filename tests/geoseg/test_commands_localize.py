@@ -108,6 +108,14 @@ def test_sequence_overrules_an_aliased_query(tmp_path: Path) -> None:
         assert [q["matches"][0]["image"] for q in res["queries"]] == [
             f"img_{i}.png" for i in (2, 3, 4, 5)
         ]
+    # --gps-sigma is the filter's GPS likelihood: the aliased view alone, its fix at image 4
+    gps = tmp_path / "gps.csv"
+    gps.write_text("image,x,y\nq2.png,40,0\n")
+    one = ["localize", names[2], "--base", str(tmp_path / "base"), "--out", str(out)]
+    assert main([*one, "--sequence", "filter"]) == 0
+    assert json.loads(out.read_text())["queries"][0]["matches"][0]["image"] == "img_7.png"
+    assert main([*one, "--sequence", "filter", "--gps", str(gps), "--gps-sigma", "3"]) == 0
+    assert json.loads(out.read_text())["queries"][0]["matches"][0]["image"] == "img_4.png"
 
 
 # ----------------------------------------------------------------------------- geometry
@@ -375,6 +383,10 @@ def test_bad_inputs_exit_2_with_a_message(tmp_path: Path, capsys) -> None:
     assert "--sequence" in _error(capsys, ["localize", str(q), "--base", base, "--step-m", "5"])
     assert "--step-m" in _error(
         capsys, ["localize", str(q), "--base", base, "--sequence", "filter", "--step-m", "-5"]
+    )
+    assert "--appearance-weight" in _error(
+        capsys,
+        ["localize", str(q), "--base", base, "--sequence", "filter", "--appearance-weight", "1"],
     )
     assert "appearance_scale" in _error(
         capsys,

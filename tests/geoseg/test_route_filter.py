@@ -98,6 +98,18 @@ def test_sequence_resolves_what_single_images_cannot() -> None:
     assert idx.shape == prob.shape == (80, 3) and (np.diff(prob, axis=1) <= 0).all()
 
 
+def test_default_appearance_scale_is_scale_free() -> None:
+    """By default ``tau`` follows the distances' median: any embedding scale, same posterior."""
+    pos, dist, _ = _ambiguous_drive()
+    f = RouteFilter(pos)
+    a = f.filter(dist).posterior
+    np.testing.assert_allclose(f.filter(100.0 * dist).posterior, a, rtol=1e-9, atol=1e-12)
+    assert f.appearance_scale(dist) == pytest.approx(0.29 * np.median(dist))
+    fixed = RouteFilter(pos, config=RouteFilterConfig(appearance_scale=0.3))
+    assert fixed.appearance_scale(100.0 * dist) == 0.3
+    assert f.appearance_scale(np.zeros((3, 80))) == 1.0  # all duplicates: no scale to take
+
+
 def test_gps_window_zeroes_far_base_images() -> None:
     pos, dist, _ = _ambiguous_drive()
     f = RouteFilter(pos)
@@ -158,7 +170,13 @@ def test_bad_inputs() -> None:
         f.filter(dist, radius_m=20.0)
     with pytest.raises(GeosegError, match="radius_m"):
         f.filter(dist, gps=pos[:, :2], radius_m=0.0)
-    for key, value in (("appearance_scale", 0.0), ("off_route", 1.0), ("step_sigma_rel", -1)):
+    bad_config = (
+        ("appearance_scale", 0.0),
+        ("appearance_scale_rel", -1.0),
+        ("off_route", 1.0),
+        ("step_sigma_rel", -1),
+    )
+    for key, value in bad_config:
         with pytest.raises(GeosegError, match=key):
             RouteFilterConfig(**{key: value})
     with pytest.raises(GeosegError, match="k"):

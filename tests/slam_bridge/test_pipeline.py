@@ -455,19 +455,20 @@ def test_weakly_tracked_keyframes_keep_the_window_plain(noisy, kind, caplog):
     np.testing.assert_allclose(hybrid.R_wc, plain.R_wc, atol=1e-9)
     default = run_pipeline(data, kind, cfg.pipeline, num_keyframes=16)
     threshold = int(np.median([r.n_tracked for r in default.records]))
-    some = dataclasses.replace(cfg.pipeline, weak_track_inliers=threshold)
-    part = run_pipeline(data, kind, some, num_keyframes=16)
-    tracked = {r.keyframe: r.n_tracked for r in part.records}
-    expected = []
-    for r in part.records:
-        k = r.keyframe
-        n_eff = pipeline._window_n(kind, some, min(some.l, k + 1))
-        ba_window = range(k + 1 - (min(some.l, k + 1) - n_eff), k + 1)
-        weak = n_eff > 0 and min(tracked.get(j, 10**9) for j in ba_window) < threshold
-        expected.append(weak)
-    assert any(expected) and not all(expected)
-    assert [r.fallback for r in part.records] == expected
-    assert all(r.n_pose_graph == 0 for r, weak in zip(part.records, expected) if weak)
+    for span in (None, 1):  # while in the BA window; the weak keyframe alone
+        some = dataclasses.replace(cfg.pipeline, weak_track_inliers=threshold, weak_track_span=span)
+        part = run_pipeline(data, kind, some, num_keyframes=16)
+        tracked = {r.keyframe: r.n_tracked for r in part.records}
+        expected = []
+        for r in part.records:
+            k = r.keyframe
+            n_eff = pipeline._window_n(kind, some, min(some.l, k + 1))
+            reach = min(some.l, k + 1) - n_eff if span is None else span
+            weakest = min(tracked.get(j, 10**9) for j in range(k + 1 - reach, k + 1))
+            expected.append(n_eff > 0 and weakest < threshold)
+        assert any(expected) and not all(expected)
+        assert [r.fallback for r in part.records] == expected
+        assert all(r.n_pose_graph == 0 for r, weak in zip(part.records, expected) if weak)
 
 
 def test_consistency_and_kernel_settings_are_checked():
@@ -484,3 +485,5 @@ def test_consistency_and_kernel_settings_are_checked():
     PipelineConfig(reprojection_kernel="huber", reprojection_kernel_px=2.45, consistency_share=None)
     with pytest.raises(SlamError, match="weak_track_inliers"):
         PipelineConfig(weak_track_inliers=0)
+    with pytest.raises(SlamError, match="weak_track_span"):
+        PipelineConfig(weak_track_inliers=30, weak_track_span=0)
