@@ -291,26 +291,26 @@ class RouteFilter:
         return cfg.appearance_scale_rel * median
 
     # ------------------------------------------------------------------ inference
-    def _predict(self, alpha: np.ndarray, step_m: float) -> np.ndarray:
-        """``T^T alpha``: one motion step of a distribution in route order."""
-        K, leave = self._motion(step_m)
+    def _predict(self, alpha: np.ndarray, motion: tuple) -> np.ndarray:
+        """``T^T alpha``: one motion step (:meth:`_motion`) of a distribution in route order."""
+        K, leave = motion
         eps = self.config.off_route
         jump = eps * alpha.sum() + (1.0 - eps) * (leave @ alpha)
         return (1.0 - eps) * (K.T @ alpha) + jump / alpha.size
 
-    def _back(self, beta: np.ndarray, step_m: float) -> np.ndarray:
-        """``T beta``: the backward message through one motion step."""
-        K, leave = self._motion(step_m)
+    def _back(self, beta: np.ndarray, motion: tuple) -> np.ndarray:
+        """``T beta``: the backward message through one motion step (:meth:`_motion`)."""
+        K, leave = motion
         eps = self.config.off_route
         return (1.0 - eps) * (K @ beta) + (eps + (1.0 - eps) * leave) * beta.mean()
 
-    def _forward(self, lik: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    def _forward(self, lik: np.ndarray, motions: list) -> np.ndarray:
         n, m = lik.shape
         alpha = np.empty((n, m))
         prior = np.full(m, 1.0 / m)
         for t in range(n):
             if t:
-                prior = self._predict(alpha[t - 1], float(steps[t - 1]))
+                prior = self._predict(alpha[t - 1], motions[t - 1])
             a = prior * lik[t]
             total = a.sum()
             if not total > 0:  # the observation contradicts every reachable state
@@ -372,12 +372,13 @@ class RouteFilter:
         )
         if lik.shape[0] == 0:
             raise GeosegError("distances: no queries")
-        steps = self._steps(steps_m, lik.shape[0])
-        alpha = self._forward(lik, steps)
+        # one motion model per step, shared by the forward and backward passes
+        motions = [self._motion(float(s)) for s in self._steps(steps_m, lik.shape[0])]
+        alpha = self._forward(lik, motions)
         if not smooth:
             return self._result(alpha, empty)
         beta = np.ones_like(alpha)
         for t in range(lik.shape[0] - 2, -1, -1):
-            b = self._back(lik[t + 1] * beta[t + 1], float(steps[t]))
+            b = self._back(lik[t + 1] * beta[t + 1], motions[t])
             beta[t] = b / b.max() if b.max() > 0 else 1.0
         return self._result(alpha * beta, empty)

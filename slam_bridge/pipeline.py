@@ -1076,6 +1076,14 @@ def _plain_kba(
     return minimize_zeta(kba, LMConfig(max_iterations=iterations))
 
 
+def _forget_links(links: dict, link_info: dict, first: int) -> None:
+    """Drop the frozen references (and DPC weights) of the links ending at keyframe ``first``
+    or later: a plain k-BA moved those cameras, the hybrid re-takes them when it resumes."""
+    for key in [q for q in links if q[1] >= first]:
+        del links[key]
+        link_info.pop(key, None)
+
+
 def _window_n(method: str, cfg: PipelineConfig, l_eff: int) -> int:
     if not METHODS[method][1]:
         return 0
@@ -1194,9 +1202,7 @@ def _run_pipeline(
                     "plain k-BA (n = 0), its links re-taken",
                     k, method, weakest,
                 )  # fmt: skip
-                for key in [q for q in links if q[1] >= k + 1 - l_eff]:
-                    del links[key]
-                    link_info.pop(key, None)
+                _forget_links(links, link_info, k + 1 - l_eff)
                 rec.fallback = True
                 n_eff = 0
         lo = starts[first]
@@ -1241,9 +1247,7 @@ def _run_pipeline(
                     "%.0f px at X*): plain k-BA (n = 0) for this keyframe, its links re-taken",
                     k, method, 100 * misfit, cfg.consistency_px,
                 )  # fmt: skip
-                for key in [q for q in links if q[1] >= pg_ids[0]]:
-                    del links[key]
-                    link_info.pop(key, None)
+                _forget_links(links, link_info, int(pg_ids[0]))
                 sel = sel_window
                 problem, lm = _plain_kba(
                     data, cfg, R_wc, t_wc, X_w, keyframes, sel, cfg.l, k,
