@@ -40,7 +40,8 @@ with one camera, one point and ``k = 2`` (reprojections) are accumulated by one 
 instead (``U``, ``V`` and the gradients summed in place, ``W`` written per row): the NumPy path
 needs ~10 passes over the rows and their temporaries. A family may also offer a private
 ``_normal_equations(state, cmap, pmap, Cf, Pf)`` that returns its blocks directly (the
-reprojection factor does, without materialising its Jacobians); it is used only with numba.
+reprojection and MPC factors do, without materialising their row blocks), optionally followed by
+its off-diagonal camera blocks ``(pairs, U_pairs)``; it is used only with numba.
 Both paths give the same blocks up to rounding.
 """
 
@@ -67,7 +68,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BAState", "NormalEquations", "assemble", "total_cost"]
+__all__ = ["BAState", "NormalEquations", "assemble", "pair_normal_equations", "total_cost"]
 
 #: Use the compiled (numba) kernels of :func:`assemble`, the Schur solver and the reprojection
 #: factor when numba is installed. ``False`` (or the environment variable
@@ -196,12 +197,22 @@ class BAState:
         check_shape("delta_points", dp, (fp.size, 3))
         check_finite("delta_cameras", dc)
         check_finite("delta_points", dp)
-        new = self.copy()
+        R_wc, t_wc, X_w = self.R_wc.copy(), self.t_wc.copy(), self.X_w.copy()
         if fc.size:
-            new.R_wc[fc] = so3_exp(dc[:, :3]) @ self.R_wc[fc]
-            new.t_wc[fc] = self.t_wc[fc] + dc[:, 3:]
+            R_wc[fc] = so3_exp(dc[:, :3]) @ self.R_wc[fc]
+            t_wc[fc] += dc[:, 3:]
         if fp.size:
-            new.X_w[fp] = self.X_w[fp] + dp
+            X_w[fp] += dp
+        for name, v in (("R_wc", R_wc), ("t_wc", t_wc), ("X_w", X_w)):
+            check_finite(name, v)  # finite + finite can still overflow
+        # the shapes and masks are this state's: skip the constructor's checks (a trial state
+        # per solver step, where they cost as much as the update)
+        new = object.__new__(BAState)
+        new.R_wc, new.t_wc, new.X_w = R_wc, t_wc, X_w
+        new.camera_fixed = self.camera_fixed.copy()
+        new.point_fixed = self.point_fixed.copy()
+        new._cam_map = self.camera_index_map.copy()
+        new._pt_map = self.point_index_map.copy()
         return new
 
 
@@ -458,6 +469,82 @@ def _one_cam_one_point_numba(
     return U, g_c, V, g_p, W, Wc, Wp
 
 
+@_njit
+def _pair_scatter_kernel(H, g, fi, fj, U, g_c, U_pair):  # pragma: no cover - compiled
+    """Per pair ``q`` of free indices ``(fi, fj)`` (``-1`` = fixed): ``U[fi] += H[q, :6, :6]``,
+    ``U[fj] += H[q, 6:, 6:]``, the gradients likewise, and ``U_pair[q]`` = the off-diagonal
+    block of the lower free index (``H[q, :6, 6:]``, transposed when ``fi > fj``); a pair of one
+    camera adds both cross blocks to its diagonal block."""
+    for q in range(H.shape[0]):
+        a = fi[q]
+        b = fj[q]
+        for i in range(6):
+            if a >= 0:
+                g_c[a, i] += g[q, i]
+            if b >= 0:
+                g_c[b, i] += g[q, 6 + i]
+            for j in range(6):
+                if a >= 0:
+                    U[a, i, j] += H[q, i, j]
+                if b >= 0:
+                    U[b, i, j] += H[q, 6 + i, 6 + j]
+                if a >= 0 and a == b:
+                    U[a, i, j] += H[q, i, 6 + j] + H[q, j, 6 + i]
+                U_pair[q, i, j] = H[q, i, 6 + j] if a <= b else H[q, j, 6 + i]
+
+
+def pair_normal_equations(
+    cost: float,
+    n_invalid: int,
+    H: np.ndarray,
+    g: np.ndarray,
+    cameras: np.ndarray,
+    cmap: np.ndarray,
+    Cf: int,
+    Pf: int,
+) -> tuple:
+    """The ``_normal_equations`` blocks (see :func:`assemble`) of a point-free family whose rows
+    each involve one camera pair, from its per-pair sums.
+
+    Args:
+        cost: the family's cost.
+        n_invalid: its invalid rows.
+        H: ``(Q, 12, 12)`` per pair ``sum w J^T J``, ``J = [J_i | J_j]``.
+        g: ``(Q, 12)`` per pair ``sum w J^T r``.
+        cameras: ``(Q, 2)`` state indices ``(i, j)`` of each pair.
+        cmap: ``(C,)`` free index of each camera (``-1`` = fixed).
+        Cf: free cameras.
+        Pf: free points.
+
+    Returns:
+        ``(cost, n_invalid, U (Cf, 6, 6), g_c (Cf, 6), V (Pf, 3, 3), g_p (Pf, 3), W (0, 6, 3),
+        W_cameras (0,), W_points (0,), pairs (Q', 2), U_pairs (Q', 6, 6))``: the off-diagonal
+        blocks of the pairs whose two cameras are free, ``pairs[:, 0] < pairs[:, 1]``.
+    """
+    fi, fj = cmap[cameras[:, 0]], cmap[cameras[:, 1]]
+    U, g_c = np.zeros((Cf, 6, 6)), np.zeros((Cf, 6))
+    H = np.ascontiguousarray(H, dtype=np.float64)
+    U_all = np.empty((H.shape[0], 6, 6))
+    _pair_scatter_kernel(H, np.ascontiguousarray(g, dtype=np.float64), fi, fj, U, g_c, U_all)
+    both = (fi >= 0) & (fj >= 0) & (fi != fj)
+    pairs = np.stack([np.minimum(fi, fj)[both], np.maximum(fi, fj)[both]], axis=1)
+    U_pairs = U_all[both]
+    no_index = np.zeros(0, dtype=np.int64)
+    return (
+        cost,
+        n_invalid,
+        U,
+        g_c,
+        np.zeros((Pf, 3, 3)),
+        np.zeros((Pf, 3)),
+        np.zeros((0, 6, 3)),
+        no_index,
+        no_index,
+        pairs,
+        U_pairs,
+    )
+
+
 def assemble(factors: Sequence[Factor] | Iterable[Factor], state: BAState) -> NormalEquations:
     """Evaluate every factor family and assemble the block normal equations.
 
@@ -486,7 +573,10 @@ def assemble(factors: Sequence[Factor] | Iterable[Factor], state: BAState) -> No
         fused = getattr(factor, "_normal_equations", None) if numba_enabled() else None
         out = fused(state, cmap, pmap, Cf, Pf) if fused is not None else None
         if out is not None:  # compiled family: blocks without materialised Jacobians
-            c, n_bad, Ub, gcb, Vb, gpb, Wb, Wcb, Wpb = out
+            c, n_bad, Ub, gcb, Vb, gpb, Wb, Wcb, Wpb = out[:9]
+            if len(out) == 11 and out[9].shape[0]:  # two-camera rows: off-diagonal blocks
+                pair_keys.append(out[9])
+                pair_blocks.append(out[10])
             if not np.isfinite(c):
                 raise SlamError(f"{factor.name}: non-finite cost (NaN/inf residuals)")
             cost += c

@@ -35,7 +35,7 @@ from geoseg.errors import GeosegError, check_finite
 from slam_bridge import lie
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState, _njit, numba_enabled
+from slam_bridge.problem import BAState, _njit, numba_enabled, pair_normal_equations
 from slam_bridge.solvers.robust import RobustKernel, get_kernel
 
 logger = logging.getLogger(__name__)
@@ -236,14 +236,6 @@ def _series(t2, c0, c1, c2, c3, c4):
 
 
 @_njit
-def _hat3(w):
-    W = np.zeros((3, 3))
-    W[0, 1], W[0, 2], W[1, 2] = -w[2], w[1], -w[0]
-    W[1, 0], W[2, 0], W[2, 1] = w[2], -w[1], w[0]
-    return W
-
-
-@_njit
 def _so3_log1(R):
     """Rotation vector of one matrix (:func:`slam_bridge.lie.so3_log`)."""
     s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
@@ -287,76 +279,121 @@ def _coefs(t2):
 
 
 @_njit
-def _mm(A, B):
-    """``A @ B`` for tiny matrices (a plain loop beats a BLAS call at 3x3 / 6x6)."""
-    out = np.zeros((A.shape[0], B.shape[1]))
+def _mm_into(A, B, out):
+    """``out = A @ B`` for tiny matrices, in place (``out`` distinct from ``A`` and ``B``)."""
     for a in range(A.shape[0]):
-        for c in range(A.shape[1]):
-            x = A[a, c]
-            for b in range(B.shape[1]):
-                out[a, b] += x * B[c, b]
-    return out
+        for b in range(B.shape[1]):
+            x = 0.0
+            for c in range(A.shape[1]):
+                x += A[a, c] * B[c, b]
+            out[a, b] = x
 
 
 @_njit
-def _mv(A, x):
-    """``A @ x`` for a tiny matrix."""
-    out = np.zeros(A.shape[0])
-    for a in range(A.shape[0]):
-        for c in range(A.shape[1]):
-            out[a] += A[a, c] * x[c]
-    return out
+def _hat3_into(w0, w1, w2, W):
+    W[0, 0], W[0, 1], W[0, 2] = 0.0, -w2, w1
+    W[1, 0], W[1, 1], W[1, 2] = w2, 0.0, -w0
+    W[2, 0], W[2, 1], W[2, 2] = -w1, w0, 0.0
 
 
 @_njit
 def _dpc_kernel(R_i, t_i, R_j, t_j, R_hi, t_hi, Wt, with_jacobians):
     """Whitened residuals ``(M, 6)`` and Jacobians ``(M, 6, 6)`` x 2 of :func:`dpc_residuals`
-    (``R_hi, t_hi`` = ``S_hat^-1``, ``Wt`` ``(M, 6, 6)``)."""
+    (``R_hi, t_hi`` = ``S_hat^-1``, ``Wt`` ``(M, 6, 6)``). The temporaries are allocated once:
+    per-pair allocations cost more than the arithmetic."""
     M = R_i.shape[0]
     r = np.zeros((M, 6))
     J_i = np.zeros((M, 6, 6)) if with_jacobians else np.zeros((0, 6, 6))
     J_j = np.zeros((M, 6, 6)) if with_jacobians else np.zeros((0, 6, 6))
-    I3 = np.eye(3)
+    T1, T2, R_e = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    W, W2, Wn, Vn = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Ji, WV, VW, WVW = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    Q, A1, A2 = np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    q, d, te = np.empty(6), np.empty(3), np.empty(3)
+    Jri, WJ, d_i, d_j = np.zeros((6, 6)), np.empty((6, 6)), np.zeros((6, 6)), np.zeros((6, 6))
     for m in range(M):
-        R_it = R_i[m].T
-        R_e = _mm(R_hi[m], _mm(R_it, R_j[m]))
-        t_e = _mv(R_hi[m], _mv(R_it, t_j[m] - t_i[m])) + t_hi[m]
+        # R_e = S_hat^-1 R_ij, t_e = R_hi R_i^T (t_j - t_i) + t_hi
+        for a in range(3):
+            for b in range(3):
+                T1[a, b] = (
+                    R_i[m, 0, a] * R_j[m, 0, b]
+                    + R_i[m, 1, a] * R_j[m, 1, b]
+                    + (R_i[m, 2, a] * R_j[m, 2, b])
+                )
+        _mm_into(R_hi[m], T1, R_e)
+        for a in range(3):
+            d[a] = t_j[m, a] - t_i[m, a]
+        for a in range(3):
+            te[a] = R_i[m, 0, a] * d[0] + R_i[m, 1, a] * d[1] + R_i[m, 2, a] * d[2]
+        for a in range(3):
+            q[3 + a] = R_hi[m, a, 0] * te[0] + R_hi[m, a, 1] * te[1] + R_hi[m, a, 2] * te[2]
+            q[3 + a] += t_hi[m, a]
         w = _so3_log1(R_e)
         t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
         C, D, E, F = _coefs(t2)
-        W = _hat3(w)
-        W2 = _mm(W, W)
-        v = _mv(I3 - 0.5 * W + D * W2, t_e)
-        q = np.concatenate((w, v))
-        r[m] = _mv(Wt[m], q)
+        _hat3_into(w[0], w[1], w[2], W)
+        _mm_into(W, W, W2)
+        # v = (I - W / 2 + D W^2) t_e
+        for a in range(3):
+            te[a] = q[3 + a]
+        for a in range(3):
+            v = te[a]
+            for b in range(3):
+                v += (-0.5 * W[a, b] + D * W2[a, b]) * te[b]
+            q[3 + a] = v
+        for a in range(3):
+            q[a] = w[a]
+        for a in range(6):
+            x = 0.0
+            for b in range(6):
+                x += Wt[m, a, b] * q[b]
+            r[m, a] = x
         if not with_jacobians:
             continue
         # J_r^-1(q) = J_l^-1(-q): [[Ji, 0], [-Ji Q Ji, Ji]] at (-w, -v)
-        Wn, Vn = -W, _hat3(-v)
-        Ji = I3 - 0.5 * Wn + D * W2
-        WV, VW = _mm(Wn, Vn), _mm(Vn, Wn)
-        WVW = _mm(WV, Wn)
-        Q = (
-            0.5 * Vn
-            + C * (WV + VW + WVW)
-            + E * (_mm(Wn, WV) + _mm(VW, Wn) - 3.0 * WVW)
-            + 0.5 * (E + 3.0 * F) * (_mm(WVW, Wn) + _mm(Wn, WVW))
-        )
-        Jri = np.zeros((6, 6))
-        Jri[:3, :3] = Ji
-        Jri[3:, 3:] = Ji
-        Jri[3:, :3] = -_mm(_mm(Ji, Q), Ji)
-        WJ = _mm(Wt[m], Jri)
-        R_jt = R_j[m].T
-        d_j = np.zeros((6, 6))
-        d_j[:3, :3] = R_jt
-        d_j[3:, 3:] = R_jt
-        d_i = np.zeros((6, 6))
-        d_i[:3, :3] = -R_jt
-        d_i[3:, :3] = _mm(R_jt, _hat3(t_j[m] - t_i[m]))
-        d_i[3:, 3:] = -R_jt
-        J_i[m] = _mm(WJ, d_i)
-        J_j[m] = _mm(WJ, d_j)
+        _hat3_into(-w[0], -w[1], -w[2], Wn)
+        _hat3_into(-q[3], -q[4], -q[5], Vn)
+        for a in range(3):
+            for b in range(3):
+                Ji[a, b] = -0.5 * Wn[a, b] + D * W2[a, b]
+            Ji[a, a] += 1.0
+        _mm_into(Wn, Vn, WV)
+        _mm_into(Vn, Wn, VW)
+        _mm_into(WV, Wn, WVW)
+        _mm_into(Wn, WV, A1)
+        _mm_into(VW, Wn, A2)
+        _mm_into(WVW, Wn, T1)
+        _mm_into(Wn, WVW, T2)
+        for a in range(3):
+            for b in range(3):
+                Q[a, b] = (
+                    0.5 * Vn[a, b]
+                    + C * (WV[a, b] + VW[a, b] + WVW[a, b])
+                    + E * (A1[a, b] + A2[a, b] - 3.0 * WVW[a, b])
+                    + 0.5 * (E + 3.0 * F) * (T1[a, b] + T2[a, b])
+                )
+        _mm_into(Ji, Q, T1)
+        _mm_into(T1, Ji, T2)
+        for a in range(3):
+            for b in range(3):
+                Jri[a, b] = Ji[a, b]
+                Jri[3 + a, 3 + b] = Ji[a, b]
+                Jri[3 + a, b] = -T2[a, b]
+        _mm_into(Wt[m], Jri, WJ)
+        # d_j = diag(R_j^T, R_j^T); d_i = [[-R_j^T, 0], [R_j^T [t_j - t_i]_x, -R_j^T]]
+        _hat3_into(d[0], d[1], d[2], T1)
+        for a in range(3):
+            for b in range(3):
+                rt = R_j[m, b, a]
+                d_j[a, b] = rt
+                d_j[3 + a, 3 + b] = rt
+                d_i[a, b] = -rt
+                d_i[3 + a, 3 + b] = -rt
+                d_i[3 + a, b] = (
+                    R_j[m, 0, a] * T1[0, b] + R_j[m, 1, a] * T1[1, b] + (R_j[m, 2, a] * T1[2, b])
+                )
+        _mm_into(WJ, d_i, J_i[m])
+        _mm_into(WJ, d_j, J_j[m])
     return r, J_i, J_j
 
 
@@ -396,6 +433,7 @@ class DPCFactor:
             raise GeosegError(f"D: expected one (6, 6) weight per pair ({Q}), got {np.shape(D)}")
         self.kernel = get_kernel(kernel)
         self.name = name
+        self._compiled_args: tuple[np.ndarray, ...] | None = None  # S_hat^-1, whitener (Q, 6, 6)
 
     @classmethod
     def from_state(
@@ -425,11 +463,33 @@ class DPCFactor:
         i, j = self.pairs[:, 0], self.pairs[:, 1]
         return state.R_wc[i], state.t_wc[i], state.R_wc[j], state.t_wc[j]
 
+    def _rows(
+        self, state: BAState, jac: bool
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """:func:`dpc_residuals` at ``state``; with numba, the compiled pass with ``S_hat^-1``
+        and the per-pair whitener prepared once per factor."""
+        if not numba_enabled():
+            return dpc_residuals(
+                *self._gather(state),
+                self.R_hat_ij,
+                self.t_hat_ij,
+                self.whitener,
+                with_jacobians=jac,
+            )
+        if self._compiled_args is None:
+            Q = self.pairs.shape[0]
+            R_hi, t_hi = lie.se3_inverse(self.R_hat_ij, self.t_hat_ij)
+            Wb = np.broadcast_to(self.whitener, (Q, 6, 6))
+            self._compiled_args = tuple(
+                np.ascontiguousarray(a, dtype=np.float64) for a in (R_hi, t_hi, Wb)
+            )
+        poses = [np.ascontiguousarray(a) for a in self._gather(state)]
+        r, J_i, J_j = _dpc_kernel(*poses, *self._compiled_args, jac)
+        return (r, J_i, J_j) if jac else (r, None, None)
+
     def evaluate(self, state: BAState) -> FactorBlock:
         """Rows ``(Q, 6)``, ``a = 2``."""
-        r, J_i, J_j = dpc_residuals(
-            *self._gather(state), self.R_hat_ij, self.t_hat_ij, self.whitener
-        )
+        r, J_i, J_j = self._rows(state, True)
         return FactorBlock(
             residuals=r,
             cameras=self.pairs,
@@ -438,17 +498,34 @@ class DPCFactor:
             name=self.name,
         )
 
+    def _normal_equations(
+        self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
+    ) -> tuple | None:
+        """Compiled shortcut of :func:`slam_bridge.problem.assemble` for this family (numba
+        only): one batched product per pair instead of the generic path's per-slot segment sums.
+
+        Returns:
+            :func:`slam_bridge.problem.pair_normal_equations`'s blocks, those :meth:`evaluate`
+            leads the generic path to (up to rounding), or None when a subclass overrides
+            :meth:`evaluate`.
+        """
+        if type(self).evaluate is not DPCFactor.evaluate:
+            return None
+        r, J_i, J_j = self._rows(state, True)
+        s = np.einsum("mk,mk->m", r, r)
+        w = self.kernel.weight(s)
+        J = np.concatenate([J_i, J_j], axis=2)  # (Q, 6, 12)
+        JtW = np.swapaxes(J, 1, 2) * w[:, None, None]
+        H = JtW @ J
+        g = (JtW @ r[:, :, None])[:, :, 0]
+        cost = float(np.sum(self.kernel.rho(s)))
+        return pair_normal_equations(cost, 0, H, g, self.pairs, cmap, Cf, Pf)
+
     def cost_and_invalid(self, state: BAState) -> tuple[float, int]:
         """The cost and 0 (a DPC row is always defined)."""
         return self.cost(state), 0
 
     def cost(self, state: BAState) -> float:
         """``sum_i rho(q_i^T D q_i)``."""
-        r, _, _ = dpc_residuals(
-            *self._gather(state),
-            self.R_hat_ij,
-            self.t_hat_ij,
-            self.whitener,
-            with_jacobians=False,
-        )
+        r, _, _ = self._rows(state, False)
         return float(np.sum(self.kernel.rho(np.einsum("mk,mk->m", r, r))))

@@ -123,6 +123,41 @@ class SingleCameraFactor:
             name=self.name,
         )
 
+    def _normal_equations(
+        self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
+    ) -> tuple | None:
+        """Shortcut of :func:`slam_bridge.problem.assemble` for this family (used with numba):
+        its few rows' camera blocks by one batched product, without the generic path's segment
+        sums (a GPS fix is one row per fusion iteration).
+
+        Returns:
+            ``(cost, 0, U (Cf, 6, 6), g_c (Cf, 6), V (Pf, 3, 3), g_p (Pf, 3), W (0, 6, 3),
+            W_cameras (0,), W_points (0,))``, or None when a subclass overrides :meth:`evaluate`.
+        """
+        if type(self).evaluate is not SingleCameraFactor.evaluate:
+            return None
+        self._check(state)
+        r, J = self._residuals(state.t_wc[self.cameras])  # (M, k), (M, k, 6)
+        s = np.einsum("mk,mk->m", r, r)
+        JtW = np.swapaxes(J, 1, 2) * self.kernel.weight(s)[:, None, None]
+        ci = cmap[self.cameras]
+        free = ci >= 0
+        U, g_c = np.zeros((Cf, 6, 6)), np.zeros((Cf, 6))
+        np.add.at(U, ci[free], (JtW @ J)[free])
+        np.add.at(g_c, ci[free], (JtW @ r[:, :, None])[free, :, 0])
+        no_index = np.zeros(0, dtype=np.int64)
+        return (
+            float(np.sum(self.kernel.rho(s))),
+            0,
+            U,
+            g_c,
+            np.zeros((Pf, 3, 3)),
+            np.zeros((Pf, 3)),
+            np.zeros((0, 6, 3)),
+            no_index,
+            no_index,
+        )
+
     def cost(self, state: BAState) -> float:
         """``sum_i rho(||r_i||^2)`` over all rows."""
         self._check(state)

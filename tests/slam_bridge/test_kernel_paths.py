@@ -74,3 +74,60 @@ def test_dpc_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
             assert no_i is None and no_j is None
         for a, b in zip(*out):
             np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-13 * max(1.0, np.abs(b).max()))
+
+
+def _pose_graph_families(scene, kernel):
+    """MPC rows between successive cameras of ``scene`` (their shared points' pixels) and the
+    first four successive camera pairs (for DPC links)."""
+    from slam_bridge.factors.pose_graph_mpc import MPCFactor
+
+    cams, pts, uv = scene.obs_cameras, scene.obs_points, scene.uv
+    ci, cj, uvi, uvj = [], [], [], []
+    for i in range(scene.R_wc.shape[0] - 1):
+        a, b = np.flatnonzero(cams == i), np.flatnonzero(cams == i + 1)
+        common, ia, ib = np.intersect1d(pts[a], pts[b], return_indices=True)
+        ci += [i] * common.size
+        cj += [i + 1] * common.size
+        uvi.append(uv[a[ia]])
+        uvj.append(uv[b[ib]])
+    mpc = MPCFactor(scene.K, ci, cj, np.concatenate(uvi), np.concatenate(uvj), kernel=kernel)
+    pairs = np.stack([np.arange(4), np.arange(1, 5)], axis=1)
+    return mpc, pairs
+
+
+@pytest.mark.parametrize("kernel", [None, "huber"])
+def test_pair_families_compiled_and_numpy_paths_agree(
+    monkeypatch, make_street, ba_problem, kernel
+) -> None:
+    """MPC (compressed rows on the NumPy path when least squares), DPC and GPS: the compiled
+    shortcuts give the generic path's normal equations, with a fixed camera in the pairs."""
+    from slam_bridge.factors.gps import GPSFactor
+    from slam_bridge.factors.pose_graph_dpc import DPCFactor
+
+    scene = make_street(8, points_per_camera=15, noise_px=1.0, seed=4)
+    state, _ = ba_problem(scene, n_fixed=1)  # perturbed poses: non-zero residuals
+    mpc, pairs = _pose_graph_families(scene, kernel)
+    truth = type(state)(scene.R_wc, scene.t_wc, scene.X_w)
+    families = [
+        mpc,
+        mpc.relative_to(truth),
+        DPCFactor.from_state(truth, pairs, np.arange(1.0, 7.0), kernel=kernel),
+        GPSFactor(np.array([5, 7]), scene.t_wc[[5, 7], :2] + 0.3, kernel=kernel),
+    ]
+    for family in families:
+        out = []
+        for compiled in (True, False):
+            monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+            neq = assemble([family], state)
+            if hasattr(family, "cost_and_invalid"):
+                cost = family.cost_and_invalid(state)
+            else:
+                cost = (family.cost(state), 0)
+            out.append((neq, *neq.dense(), cost))
+        (neq_a, H_a, g_a, c_a), (neq_b, H_b, g_b, c_b) = out
+        assert neq_a.cost == pytest.approx(neq_b.cost, rel=1e-10)
+        assert c_a[0] == pytest.approx(c_b[0], rel=1e-10) and c_a[1] == c_b[1]
+        assert neq_a.cost == pytest.approx(c_a[0], rel=1e-10)
+        np.testing.assert_allclose(H_a, H_b, rtol=1e-9, atol=1e-9 * np.abs(H_b).max())
+        np.testing.assert_allclose(g_a, g_b, rtol=1e-9, atol=1e-9 * np.abs(g_b).max())
+        assert neq_a.pairs.shape == neq_b.pairs.shape

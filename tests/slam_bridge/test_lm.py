@@ -142,3 +142,29 @@ def test_all_cameras_fixed_refines_points_only(street, ba_problem):
     assert res.cost < res.initial_cost
     np.testing.assert_array_equal(res.state.R_wc, state.R_wc)
     np.testing.assert_array_equal(res.state.t_wc, state.t_wc)
+
+
+def test_retract_updates_free_parameters_only(street, ba_problem):
+    """``retract`` moves the free cameras and points, keeps the fixed ones, returns masks of its
+    own, and refuses an update that overflows to inf (never a silent non-finite state)."""
+    state, _ = ba_problem(street, n_fixed=2)
+    state.point_fixed[3] = True
+    Cf, Pf = state.free_cameras.size, state.free_points.size
+    rng = np.random.default_rng(0)
+    dc, dp = rng.normal(scale=1e-2, size=(Cf, 6)), rng.normal(size=(Pf, 3))
+    new = state.retract(dc, dp)
+    fc, fp = state.free_cameras, state.free_points
+    np.testing.assert_allclose(so3_log(new.R_wc[fc] @ state.R_wc[fc].transpose(0, 2, 1)), dc[:, :3])
+    np.testing.assert_allclose(new.t_wc[fc] - state.t_wc[fc], dc[:, 3:])
+    np.testing.assert_allclose(new.X_w[fp] - state.X_w[fp], dp)
+    np.testing.assert_array_equal(new.t_wc[:2], state.t_wc[:2])
+    np.testing.assert_array_equal(new.X_w[3], state.X_w[3])
+    new.camera_fixed[5] = True  # the new state's masks are its own
+    assert not state.camera_fixed[5] and state.camera_index_map[5] >= 0
+    assert new.camera_index_map[5] == -1
+    huge = state.copy()
+    huge.X_w[fp[0]] = 1e308
+    dp_big = np.zeros((Pf, 3))
+    dp_big[0] = 1e308
+    with np.errstate(over="ignore"), pytest.raises(GeosegError, match="X_w"):
+        huge.retract(np.zeros((Cf, 6)), dp_big)

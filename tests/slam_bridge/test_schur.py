@@ -9,6 +9,7 @@ from slam_bridge.lie import so3_log
 from slam_bridge.problem import assemble
 from slam_bridge.solvers.schur import (
     SchurFactorization,
+    _chain_split_point,
     camera_covariance,
     latest_camera_covariance,
     reduced_camera_matrix,
@@ -217,3 +218,52 @@ def test_schur_without_locality_equals_dense(make_street, ba_problem):
     dc, dp = schur_solve(neq, -neq.g_c, -neq.g_p, 1e-3, "additive")
     x = np.linalg.solve(H + 1e-3 * np.eye(H.shape[0]), -g)
     np.testing.assert_allclose(np.concatenate([dc.ravel(), dp.ravel()]), x, rtol=1e-7, atol=1e-9)
+
+
+def _chain_then_window(make_street, ba_problem, n_chain: int = 8):
+    """A hybrid-like problem (fig. 3.3): cameras ``0 .. n_chain`` linked by DPC terms only,
+    the later ones sharing points; camera 0 fixed, points fewer than two of those see fixed."""
+    from slam_bridge.factors.pose_graph_dpc import DPCFactor
+
+    scene = make_street(16, points_per_camera=6, noise_px=1.0, seed=2)
+    state, f = ba_problem(scene, n_fixed=1)
+    keep = scene.obs_cameras >= n_chain
+    reproj = type(f)(scene.K, scene.obs_cameras[keep], scene.obs_points[keep], scene.uv[keep])
+    views = np.bincount(scene.obs_points[keep], minlength=state.num_points)
+    state.point_fixed[:] = views < 2
+    pairs = np.stack([np.arange(n_chain + 1), np.arange(1, n_chain + 2)], axis=1)
+    dpc = DPCFactor.from_state(state, pairs, np.full(6, 1e4))
+    return state, [reproj, dpc]
+
+
+def test_chain_split_point() -> None:
+    """The chain ends where the rest stops reaching back further than ``SPLIT_BAND`` cameras."""
+    reach = np.array([0, 0, 1, 2, 3, 4, 5, 6, 6, 6, 7, 8, 9, 9])  # chain 0-7, then a window
+    assert _chain_split_point(reach) == (8, 2)
+    assert _chain_split_point(np.zeros(12, dtype=np.int64)) == (0, 0)  # everything coupled
+    assert _chain_split_point(np.array([0, 0, 1] + [1] * 9)) == (0, 0)  # chain too short
+    # a tail that reaches back to the chain's 4th-last camera: the chain shrinks until it fits
+    m, r = _chain_split_point(np.array([0, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 8, 8, 8, 8]))
+    assert (m, r) == (10, 2)
+
+
+@pytest.mark.parametrize("damping", [0.0, 1e-3])
+def test_chain_split_equals_dense(make_street, ba_problem, damping) -> None:
+    """The pose-graph chain is factorised apart (banded) and the solve, the covariance and the
+    reduced matrix are those of the dense system."""
+    state, factors = _chain_then_window(make_street, ba_problem)
+    neq = assemble(factors, state)
+    fac = SchurFactorization(neq, damping, "marquardt")
+    assert fac._split is not None and fac._split.n_A >= 6 * 5
+    H, g = neq.dense()
+    H = H + damping * np.diag(np.maximum(np.diag(H), 1e-12))
+    dc, dp = fac.solve(-neq.g_c, -neq.g_p)
+    x = np.linalg.solve(H, -g)
+    np.testing.assert_allclose(np.concatenate([dc.ravel(), dp.ravel()]), x, rtol=1e-7, atol=1e-10)
+    n_c = 6 * neq.num_free_cameras
+    S = H[:n_c, :n_c] - H[:n_c, n_c:] @ np.linalg.solve(H[n_c:, n_c:], H[n_c:, :n_c])
+    np.testing.assert_allclose(fac.S, S, rtol=1e-7, atol=1e-8 * np.abs(S).max())
+    if damping == 0.0:
+        np.testing.assert_allclose(
+            fac.camera_covariance_full(), np.linalg.inv(S), rtol=1e-6, atol=1e-12
+        )
