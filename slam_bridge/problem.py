@@ -68,7 +68,14 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["BAState", "NormalEquations", "assemble", "pair_normal_equations", "total_cost"]
+__all__ = [
+    "BAState",
+    "NormalEquations",
+    "assemble",
+    "camera_only_blocks",
+    "pair_normal_equations",
+    "total_cost",
+]
 
 #: Use the compiled (numba) kernels of :func:`assemble`, the Schur solver and the reprojection
 #: factor when numba is installed. ``False`` (or the environment variable
@@ -528,7 +535,15 @@ def pair_normal_equations(
     _pair_scatter_kernel(H, np.ascontiguousarray(g, dtype=np.float64), fi, fj, U, g_c, U_all)
     both = (fi >= 0) & (fj >= 0) & (fi != fj)
     pairs = np.stack([np.minimum(fi, fj)[both], np.maximum(fi, fj)[both]], axis=1)
-    U_pairs = U_all[both]
+    return camera_only_blocks(cost, n_invalid, U, g_c, Pf) + (pairs, U_all[both])
+
+
+def camera_only_blocks(
+    cost: float, n_invalid: int, U: np.ndarray, g_c: np.ndarray, Pf: int
+) -> tuple:
+    """The ``_normal_equations`` tuple (see :func:`assemble`) of a family without points:
+    ``(cost, n_invalid, U, g_c, V = 0 (Pf, 3, 3), g_p = 0 (Pf, 3), W (0, 6, 3), W_cameras (0,),
+    W_points (0,))``."""
     no_index = np.zeros(0, dtype=np.int64)
     return (
         cost,
@@ -540,8 +555,6 @@ def pair_normal_equations(
         np.zeros((0, 6, 3)),
         no_index,
         no_index,
-        pairs,
-        U_pairs,
     )
 
 

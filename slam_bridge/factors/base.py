@@ -6,7 +6,9 @@ object with two methods (see :class:`Factor`):
 * ``evaluate(state) -> FactorBlock``: all its residuals and analytic Jacobians, vectorised;
 * ``cost(state) -> float``: ``sum_m rho(||r_m||^2)`` over its valid rows (may skip Jacobians).
 
-Optionally ``cost_and_invalid(state) -> (float, int)`` (cost and number of invalid rows):
+Optionally ``num_residuals`` (the number of scalar residuals, without evaluating: the barrier
+counts them once per fusion) and ``cost_and_invalid(state) -> (float, int)`` (cost and number
+of invalid rows):
 :class:`slam_bridge.solvers.lm.BAObjective` uses it, when present, to refuse steps that create
 new invalid rows (points crossing behind their camera).
 

@@ -456,6 +456,11 @@ class DPCFactor:
         )
         return cls(pairs, R_h, t_h, D, **kwargs)
 
+    @property
+    def num_residuals(self) -> int:
+        """Six per pose-graph pair."""
+        return 6 * self.pairs.shape[0]
+
     def _gather(self, state: BAState) -> tuple[np.ndarray, ...]:
         C = state.num_cameras
         if self.pairs.size and (self.pairs.max() >= C or self.pairs.min() < 0):

@@ -378,6 +378,11 @@ class MPCFactor:
         self._slot[order] = np.arange(M) - np.repeat(starts, counts)
         self._max_rows = int(counts.max(initial=0))
 
+    @property
+    def num_residuals(self) -> int:
+        """One epipolar distance per correspondence (however :meth:`evaluate` packs them)."""
+        return self.cameras_i.size
+
     def _args(self, state: BAState) -> tuple[np.ndarray, ...]:
         C = state.num_cameras
         for cams in (self.cameras_i, self.cameras_j):

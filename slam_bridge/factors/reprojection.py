@@ -218,6 +218,11 @@ class ReprojectionFactor:
     def _K_rows(self) -> np.ndarray:
         return self.K if self.K.ndim == 2 else self.K[self.cameras]
 
+    @property
+    def num_residuals(self) -> int:
+        """Scalar residuals: two per observation."""
+        return 2 * self.cameras.size
+
     def _check_state(self, state: BAState) -> None:
         if self.cameras.size and (
             self.cameras.max() >= state.num_cameras or self.cameras.min() < 0

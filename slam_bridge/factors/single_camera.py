@@ -17,6 +17,7 @@ import numpy as np
 from geoseg.errors import GeosegError, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import FactorBlock
+from slam_bridge.problem import camera_only_blocks
 from slam_bridge.solvers.robust import RobustKernel, get_kernel
 
 if TYPE_CHECKING:
@@ -131,8 +132,8 @@ class SingleCameraFactor:
         sums (a GPS fix is one row per fusion iteration).
 
         Returns:
-            ``(cost, 0, U (Cf, 6, 6), g_c (Cf, 6), V (Pf, 3, 3), g_p (Pf, 3), W (0, 6, 3),
-            W_cameras (0,), W_points (0,))``, or None when a subclass overrides :meth:`evaluate`.
+            :func:`slam_bridge.problem.camera_only_blocks`, or None when a subclass overrides
+            :meth:`evaluate`.
         """
         if type(self).evaluate is not SingleCameraFactor.evaluate:
             return None
@@ -145,18 +146,7 @@ class SingleCameraFactor:
         U, g_c = np.zeros((Cf, 6, 6)), np.zeros((Cf, 6))
         np.add.at(U, ci[free], (JtW @ J)[free])
         np.add.at(g_c, ci[free], (JtW @ r[:, :, None])[free, :, 0])
-        no_index = np.zeros(0, dtype=np.int64)
-        return (
-            float(np.sum(self.kernel.rho(s))),
-            0,
-            U,
-            g_c,
-            np.zeros((Pf, 3, 3)),
-            np.zeros((Pf, 3)),
-            np.zeros((0, 6, 3)),
-            no_index,
-            no_index,
-        )
+        return camera_only_blocks(float(np.sum(self.kernel.rho(s))), 0, U, g_c, Pf)
 
     def cost(self, state: BAState) -> float:
         """``sum_i rho(||r_i||^2)`` over all rows."""

@@ -223,6 +223,14 @@ def vision_cost(factors: Sequence[Factor], state: BAState) -> tuple[float, int]:
     return float(zeta), int(n_invalid)
 
 
+def _residual_count(factor: Factor, state: BAState) -> int:
+    """Scalar residuals of a family: its ``num_residuals`` when it has one (no evaluation: the
+    count is needed once per fusion, and an evaluation with Jacobians costs as much as a barrier
+    iteration's assembly), else the size of its evaluated rows."""
+    n = getattr(factor, "num_residuals", None)
+    return int(n) if n is not None else int(factor.evaluate(state).residuals.size)
+
+
 def barrier_objective(
     vision: Sequence[Factor],
     constraints: Sequence[Factor],
@@ -403,7 +411,7 @@ class BarrierSolver:
         zeta_star, n_invalid = vision_cost(self.vision, state_star)
         if not np.isfinite(zeta_star):
             raise SlamError("zeta(X*) is not finite: check the observations (NaN/inf)")
-        n_res = sum(f.evaluate(state_star).residuals.size for f in self.vision)
+        n_res = sum(_residual_count(f, state_star) for f in self.vision)
         min_slack = cfg.min_slack_per_residual * max(n_res, 1)
         t = cfg.t_ratio * zeta_star
         if t - zeta_star < min_slack:

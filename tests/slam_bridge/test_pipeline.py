@@ -441,8 +441,9 @@ def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, kind, cap
 @pytest.mark.parametrize("kind", ["dpc", "mpc"])
 def test_weakly_tracked_keyframes_keep_the_window_plain(noisy, kind, caplog):
     """While a keyframe tracked with fewer PnP inliers than ``weak_track_inliers`` is in the BA
-    window, the window is plain: with every keyframe weak the hybrid is the plain barrier BA;
-    with a threshold between the tracked counts, exactly the windows holding a weaker one."""
+    window, the window is plain (or has ``weak_track_n`` pose-graph cameras): with every keyframe
+    weak the hybrid is the plain barrier BA; with a threshold between the tracked counts, exactly
+    the windows holding a weaker one."""
     cfg, seq = noisy
     data = dataclasses.replace(seq.data, gps_xy=gps_for_setting(cfg, seq, "sigma=0.75"))
     every = dataclasses.replace(cfg.pipeline, weak_track_inliers=10**9)
@@ -455,8 +456,11 @@ def test_weakly_tracked_keyframes_keep_the_window_plain(noisy, kind, caplog):
     np.testing.assert_allclose(hybrid.R_wc, plain.R_wc, atol=1e-9)
     default = run_pipeline(data, kind, cfg.pipeline, num_keyframes=16)
     threshold = int(np.median([r.n_tracked for r in default.records]))
-    for span in (None, 1):  # while in the BA window; the weak keyframe alone
-        some = dataclasses.replace(cfg.pipeline, weak_track_inliers=threshold, weak_track_span=span)
+    # while in the BA window; the weak keyframe alone; a smaller pose graph instead of none
+    for span, n_weak in ((None, 0), (1, 0), (None, 2)):
+        some = dataclasses.replace(
+            cfg.pipeline, weak_track_inliers=threshold, weak_track_span=span, weak_track_n=n_weak
+        )
         part = run_pipeline(data, kind, some, num_keyframes=16)
         tracked = {r.keyframe: r.n_tracked for r in part.records}
         expected = []
@@ -468,7 +472,11 @@ def test_weakly_tracked_keyframes_keep_the_window_plain(noisy, kind, caplog):
             expected.append(n_eff > 0 and weakest < threshold)
         assert any(expected) and not all(expected)
         assert [r.fallback for r in part.records] == expected
-        assert all(r.n_pose_graph == 0 for r, weak in zip(part.records, expected) if weak)
+        for r, weak in zip(part.records, expected):
+            n_eff = pipeline._window_n(kind, some, min(some.l, r.keyframe + 1))
+            assert r.n_pose_graph == (min(n_weak, n_eff) if weak else n_eff)
+        if n_weak:  # some weak windows were full enough to keep a smaller pose graph
+            assert any(r.n_pose_graph == n_weak for r, w in zip(part.records, expected) if w)
 
 
 def test_consistency_and_kernel_settings_are_checked():
@@ -487,3 +495,6 @@ def test_consistency_and_kernel_settings_are_checked():
         PipelineConfig(weak_track_inliers=0)
     with pytest.raises(SlamError, match="weak_track_span"):
         PipelineConfig(weak_track_inliers=30, weak_track_span=0)
+    for bad in (-1, 30):
+        with pytest.raises(SlamError, match="weak_track_n"):
+            PipelineConfig(weak_track_inliers=30, weak_track_n=bad)
