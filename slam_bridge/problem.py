@@ -40,8 +40,9 @@ with one camera, one point and ``k = 2`` (reprojections) are accumulated by one 
 instead (``U``, ``V`` and the gradients summed in place, ``W`` written per row): the NumPy path
 needs ~10 passes over the rows and their temporaries. A family may also offer a private
 ``_normal_equations(state, cmap, pmap, Cf, Pf)`` that returns its blocks directly (the
-reprojection and MPC factors do, without materialising their row blocks), optionally followed by
-its off-diagonal camera blocks ``(pairs, U_pairs)``; it is used only with numba.
+reprojection, DPC, MPC and single-camera families do, without the generic path's per-row
+passes), optionally followed by its off-diagonal camera blocks ``(pairs, U_pairs)``
+(:func:`pair_normal_equations`); it is used only with numba.
 Both paths give the same blocks up to rounding.
 """
 

@@ -419,8 +419,9 @@ class MPCFactor:
         for cams in (self.cameras_i, self.cameras_j):
             if cams.size and (cams.max() >= C or cams.min() < 0):
                 raise SlamError(f"{self.name}: camera index out of range for {C} cameras")
-        if self.K.ndim == 3 and self.K.shape[0] < C:
-            raise SlamError(f"{self.name}: {self.K.shape[0]} calibrations for {C} cameras")
+        used = max(self.cameras_i.max(initial=-1), self.cameras_j.max(initial=-1))
+        if self.K.ndim == 3 and used >= self.K.shape[0]:
+            raise SlamError(f"{self.name}: {self.K.shape[0]} calibrations for a camera index >= it")
         M = self.cameras_i.size
         r, valid = np.empty(M), np.empty(M, dtype=bool)
         J = np.empty((M, 12) if jac else (0, 12))

@@ -108,9 +108,13 @@ def test_pair_families_compiled_and_numpy_paths_agree(
     state, _ = ba_problem(scene, n_fixed=1)  # perturbed poses: non-zero residuals
     mpc, pairs = _pose_graph_families(scene, kernel)
     truth = type(state)(scene.R_wc, scene.t_wc, scene.X_w)
+    Ks = np.repeat(scene.K[None], 8, axis=0)
+    Ks[:, 0, 0] *= np.linspace(0.9, 1.1, 8)  # one calibration per camera
+    per_camera = type(mpc)(Ks, mpc.cameras_i, mpc.cameras_j, mpc.uv_i, mpc.uv_j, kernel=kernel)
     families = [
         mpc,
         mpc.relative_to(truth),
+        per_camera,
         DPCFactor.from_state(truth, pairs, np.arange(1.0, 7.0), kernel=kernel),
         GPSFactor(np.array([5, 7]), scene.t_wc[[5, 7], :2] + 0.3, kernel=kernel),
     ]
