@@ -425,7 +425,7 @@ def _chain_split_point(reach: np.ndarray, band: int = SPLIT_BAND) -> tuple[int, 
 
     Returns:
         ``(m, r)``: the chain is cameras ``0 .. m - 1`` and the rest couples only to its last
-        ``r`` cameras; ``(0, 0)`` when no chain of at least a quarter of the cameras (and 3)
+        ``r`` cameras; ``(0, 0)`` when no chain of at least a third of the cameras (and 3)
         exists, where splitting would not pay for its extra solves.
     """
     Cf = reach.size
@@ -439,6 +439,29 @@ def _chain_split_point(reach: np.ndarray, band: int = SPLIT_BAND) -> tuple[int, 
     if m < max(3, Cf // 3):
         return 0, 0
     return m, int(max(m - tail[m], 0))
+
+
+_LAYOUT_CACHE: OrderedDict[tuple[bytes, bytes], tuple[int, int, int]] = OrderedDict()
+
+
+def _factor_layout(reach: np.ndarray, pairs: np.ndarray) -> tuple[int, int, int]:
+    """``(span, m, r)`` of ``S``: its block half-bandwidth and :func:`_chain_split_point`, from
+    each camera's lowest point-sharing camera ``reach (Cf,)`` and the camera pairs ``(Q, 2)``
+    (``i < j``). Cached by pattern: every solver step of a window asks again."""
+    key = (reach.tobytes(), pairs.tobytes())
+    hit = _LAYOUT_CACHE.get(key)
+    if hit is None:
+        reach = reach.copy()
+        if pairs.shape[0]:
+            np.minimum.at(reach, pairs[:, 1], pairs[:, 0])
+        span = int(np.max(np.arange(reach.size) - reach))
+        hit = (span, *_chain_split_point(reach))
+        _LAYOUT_CACHE[key] = hit
+        if len(_LAYOUT_CACHE) > _CACHE_SIZE:
+            _LAYOUT_CACHE.popitem(last=False)
+    else:
+        _LAYOUT_CACHE.move_to_end(key)
+    return hit
 
 
 class _ChainSplit:
@@ -466,27 +489,22 @@ class _ChainSplit:
             ),
             False,
         )
-        D = S[self.n_A :, self.n_A :]
-        if self.n_r:
-            self.B = np.ascontiguousarray(S[self.n_A - self.n_r : self.n_A, self.n_A :])
-            E = np.zeros((self.n_A, self.n_r))
-            E[-self.n_r :] = np.eye(self.n_r)
-            Y = scipy.linalg.cho_solve_banded(self.cho_A, E, check_finite=False)[-self.n_r :]
-            D = D - self.B.T @ (Y @ self.B)
-        else:
-            self.B = np.zeros((0, S.shape[0] - self.n_A))
+        self.r0 = self.n_A - self.n_r  # first row of A that D couples to
+        self.B = np.ascontiguousarray(S[self.r0 : self.n_A, self.n_A :])
+        E = np.zeros((self.n_A, self.n_r))
+        E[self.r0 :] = np.eye(self.n_r)
+        Y = scipy.linalg.cho_solve_banded(self.cho_A, E, check_finite=False)[self.r0 :]
+        D = S[self.n_A :, self.n_A :] - self.B.T @ (Y @ self.B)
         self.cho_D = scipy.linalg.cho_factor(D, lower=False, check_finite=False)
+        self.finite = bool(np.all(np.isfinite(self.cho_A[0])) and np.all(np.isfinite(D)))
 
     def solve(self, b: np.ndarray) -> np.ndarray:
         """``S^-1 b`` for ``b (6Cf,)`` or ``(6Cf, k)``."""
         bA, bD = b[: self.n_A], b[self.n_A :]
-        if not self.n_r:
-            xA = scipy.linalg.cho_solve_banded(self.cho_A, bA, check_finite=False)
-            return np.concatenate([xA, scipy.linalg.cho_solve(self.cho_D, bD, check_finite=False)])
         yA = scipy.linalg.cho_solve_banded(self.cho_A, bA, check_finite=False)
-        xD = scipy.linalg.cho_solve(self.cho_D, bD - self.B.T @ yA[-self.n_r :], check_finite=False)
+        xD = scipy.linalg.cho_solve(self.cho_D, bD - self.B.T @ yA[self.r0 :], check_finite=False)
         bA = bA.copy()
-        bA[-self.n_r :] -= self.B @ xD
+        bA[self.r0 :] -= self.B @ xD
         xA = scipy.linalg.cho_solve_banded(self.cho_A, bA, check_finite=False)
         return np.concatenate([xA, xD])
 
@@ -549,10 +567,7 @@ class SchurFactorization:
         self._banded = False
         self._split: _ChainSplit | None = None
         if Cf:
-            reach = self._reach.copy()
-            if neq.pairs.shape[0]:
-                np.minimum.at(reach, neq.pairs[:, 1], neq.pairs[:, 0])
-            span = int(np.max(np.arange(Cf) - reach))
+            span, m, r = _factor_layout(self._reach, neq.pairs)
             u = 6 * span + 5  # scalar upper bandwidth
             try:
                 if 6 * Cf >= BANDED_RATIO * (u + 1):
@@ -564,7 +579,6 @@ class SchurFactorization:
                     )
                     self._banded = True
                 else:
-                    m, r = _chain_split_point(reach)
                     if m:
                         self._split = _ChainSplit(self.S, m, r)
                         self._cho = self._split.cho_D
@@ -575,7 +589,9 @@ class SchurFactorization:
                     "reduced camera system is not positive definite: is the gauge fixed "
                     "(enough fixed cameras) and does every free camera see points?"
                 ) from exc
-            if not np.all(np.isfinite(self._cho[0])):
+            if not np.all(np.isfinite(self._cho[0])) or (
+                self._split is not None and not self._split.finite
+            ):
                 raise SlamError("reduced camera system: non-finite Cholesky factor")
         else:
             self._cho = None

@@ -10,6 +10,7 @@ from slam_bridge.problem import assemble
 from slam_bridge.solvers.schur import (
     SchurFactorization,
     _chain_split_point,
+    _ChainSplit,
     camera_covariance,
     latest_camera_covariance,
     reduced_camera_matrix,
@@ -267,3 +268,26 @@ def test_chain_split_equals_dense(make_street, ba_problem, damping) -> None:
         np.testing.assert_allclose(
             fac.camera_covariance_full(), np.linalg.inv(S), rtol=1e-6, atol=1e-12
         )
+
+
+@pytest.mark.parametrize("r", [0, 1, 2])
+def test_chain_split_solves_any_coupling_width(r) -> None:
+    """``_ChainSplit`` on a synthetic S: a block-tridiagonal chain of 6 cameras, a dense rest of
+    4 coupled to the chain's last ``r`` cameras (none for r = 0), against a dense solve."""
+    rng = np.random.default_rng(r)
+    m, rest = 6, 4
+    n = 6 * (m + rest)
+    S = np.zeros((n, n))
+    for i in range(m):  # chain: each camera with its successor
+        S[6 * i : 6 * i + 12, 6 * i : 6 * i + 12] += 0.3 * rng.normal(size=(12, 12))
+    A = rng.normal(size=(6 * rest, 6 * rest))
+    S[6 * m :, 6 * m :] += A
+    S[6 * (m - r) : 6 * m, 6 * m :] += rng.normal(size=(6 * r, 6 * rest))
+    if r == 0:  # the chain's last link into the rest removed
+        S[6 * (m - 1) : 6 * m, 6 * m :] = 0.0
+        S[6 * m :, 6 * (m - 1) : 6 * m] = 0.0
+    S = S @ S.T + n * np.eye(n)  # SPD; squaring widens every coupling by one camera
+    b = rng.normal(size=(n, 3))
+    split = _ChainSplit(S, m, r + 1 if r else 0)
+    np.testing.assert_allclose(split.solve(b), np.linalg.solve(S, b), rtol=1e-9, atol=1e-12)
+    assert split.finite
