@@ -174,18 +174,21 @@ def test_sherman_morrison_equals_dense_solve(street_optimum, lam: float) -> None
 
 # ------------------------------------------------------------------------------- feasibility
 class _PlantedSolver(BarrierSolver):
-    """Proposes a step 1000 x too long on the first ``n_bad`` trials."""
+    """Proposes a step ``factor`` times too long on the first ``n_bad`` proposals; counts the
+    proposals (one factorisation each)."""
 
-    def __init__(self, *a, n_bad: int = 3, **kw) -> None:
+    def __init__(self, *a, n_bad: int = 3, factor: float = 1000.0, **kw) -> None:
         super().__init__(*a, **kw)
         self.n_bad = n_bad
-        self.planted: list[float] = []
+        self.factor = factor
+        self.proposals = 0
 
     def propose_step(self, system, lam):
         dc, dp = super().propose_step(system, lam)
+        self.proposals += 1
         if self.n_bad > 0:
             self.n_bad -= 1
-            return 1000 * dc, 1000 * dp
+            return self.factor * dc, self.factor * dp
         return dc, dp
 
 
@@ -201,6 +204,36 @@ def test_barrier_never_accepts_infeasible_steps(street_optimum) -> None:
     assert any(h.accepted for h in res.history)
     assert res.zeta < res.t
     assert vision_cost([rep], res.state)[0] == pytest.approx(res.zeta, rel=1e-12)
+
+
+def test_infeasible_step_is_shortened_before_damping_rises(street_optimum) -> None:
+    """An infeasible trial is retried halved, same direction and damping (no new proposal);
+    a step shortened into the barrier is accepted; without backtracks the damping rises."""
+    state, rep = street_optimum
+    gps = GPSFactor.most_recent(state, state.t_wc[-1, :2] + [0.0, 1.0])
+    cfg = BarrierConfig(max_iterations=15, max_backtracks=4)
+    solver = _PlantedSolver([rep], [gps], cfg, n_bad=0)
+    res = solver.run(state)
+    first = [h for h in res.history if h.iteration == 1]
+    # from X* the Newton step crosses the barrier (module docstring): shortened, then accepted
+    assert first[0].reason == "infeasible" and first[0].step_scale == 1.0
+    assert [h.step_scale for h in first] == [0.5**k for k in range(len(first))]
+    assert len({h.lam for h in first}) == 1  # one damping, one factorisation
+    assert first[-1].accepted and first[-1].step_scale < 1.0
+    assert first[-1].step_norm == pytest.approx(first[0].step_norm * first[-1].step_scale)
+    assert solver.proposals == len([h for h in res.history if h.step_scale == 1.0])
+    assert all(h.trial_zeta >= res.t for h in res.history if h.reason == "infeasible")
+    assert all(h.trial_zeta < res.t for h in res.history if h.accepted)
+    second = [h for h in res.history if h.iteration == 2]
+    assert second[0].lam == first[-1].lam  # a shortened step does not lower the damping
+    assert res.zeta < res.t
+    plain = solve_barrier([rep], [gps], state, BarrierConfig(max_iterations=15, max_backtracks=0))
+    assert all(h.step_scale == 1.0 for h in plain.history)
+    assert plain.history[0].reason == "infeasible"
+    assert plain.history[1].lam == pytest.approx(10 * plain.history[0].lam)
+    assert res.objective < plain.objective  # same budget, further along
+    with pytest.raises(SlamError, match="max_backtracks"):
+        BarrierConfig(max_backtracks=-1)
 
 
 def test_gps_fusion_moves_latest_camera_towards_fix(street_optimum) -> None:

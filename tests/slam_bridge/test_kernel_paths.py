@@ -99,10 +99,12 @@ def _pose_graph_families(scene, kernel):
 def test_pair_families_compiled_and_numpy_paths_agree(
     monkeypatch, make_street, ba_problem, kernel
 ) -> None:
-    """MPC (compressed rows on the NumPy path when least squares), DPC and GPS: the compiled
-    shortcuts give the generic path's normal equations, with a fixed camera in the pairs."""
+    """MPC (compressed rows on the NumPy path when least squares), DPC, GPS and the baseline
+    lengths: the compiled shortcuts give the generic path's normal equations, with a fixed
+    camera in the pairs."""
     from slam_bridge.factors.gps import GPSFactor
     from slam_bridge.factors.pose_graph_dpc import DPCFactor
+    from slam_bridge.pipeline import BaselineLengthFactor
 
     scene = make_street(8, points_per_camera=15, noise_px=1.0, seed=4)
     state, _ = ba_problem(scene, n_fixed=1)  # perturbed poses: non-zero residuals
@@ -117,6 +119,7 @@ def test_pair_families_compiled_and_numpy_paths_agree(
         per_camera,
         DPCFactor.from_state(truth, pairs, np.arange(1.0, 7.0), kernel=kernel),
         GPSFactor(np.array([5, 7]), scene.t_wc[[5, 7], :2] + 0.3, kernel=kernel),
+        BaselineLengthFactor.from_state(truth, pairs, np.linspace(0.002, 0.01, len(pairs))),
     ]
     for family in families:
         out = []
@@ -135,3 +138,35 @@ def test_pair_families_compiled_and_numpy_paths_agree(
         np.testing.assert_allclose(H_a, H_b, rtol=1e-9, atol=1e-9 * np.abs(H_b).max())
         np.testing.assert_allclose(g_a, g_b, rtol=1e-9, atol=1e-9 * np.abs(g_b).max())
         assert neq_a.pairs.shape == neq_b.pairs.shape
+
+
+@pytest.mark.parametrize("scale", [1e-7, 0.05, 0.2, 2.5])
+def test_retract_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
+    """The compiled camera update equals ``so3_exp(dw) @ R`` below and above the series
+    threshold (0.1 rad); fixed cameras and points stay bit-identical on both paths."""
+    from slam_bridge import lie
+    from slam_bridge.problem import BAState
+
+    rng = np.random.default_rng(11)
+    C, P = 7, 9
+    fixed_c = np.zeros(C, dtype=bool)
+    fixed_c[[0, 4]] = True
+    fixed_p = np.zeros(P, dtype=bool)
+    fixed_p[2] = True
+    state = BAState(
+        lie.so3_exp(rng.normal(size=(C, 3))), rng.normal(size=(C, 3)), rng.normal(size=(P, 3)),
+        camera_fixed=fixed_c, point_fixed=fixed_p,
+    )  # fmt: skip
+    dc = rng.normal(size=(C - 2, 6)) * scale
+    dp = rng.normal(size=(P - 1, 3)) * scale
+    out = []
+    for compiled in (True, False):
+        monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+        out.append(state.retract(dc, dp))
+    a, b = out
+    np.testing.assert_allclose(a.R_wc, b.R_wc, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(a.t_wc, b.t_wc)
+    np.testing.assert_array_equal(a.X_w, b.X_w)
+    np.testing.assert_array_equal(a.R_wc[fixed_c], state.R_wc[fixed_c])
+    free = np.flatnonzero(~fixed_c)
+    np.testing.assert_allclose(a.R_wc[free], lie.so3_exp(dc[:, :3]) @ state.R_wc[free], atol=1e-14)
