@@ -601,16 +601,21 @@ class BaselineLengthFactor:
         n = np.linalg.norm(d, axis=1)
         return (n - self.lengths) / self.sigma, d, n
 
+    def _rows(self, state) -> tuple[np.ndarray, np.ndarray]:
+        """``r (Q,)`` and ``J (Q, 12)`` = ``[d/d(dw_i, dT_i) | d/d(dw_j, dT_j)]``."""
+        r, d, n = self._r(state)
+        u = d / (np.maximum(n, 1e-12) * self.sigma)[:, None]
+        J = np.zeros((r.size, 12))
+        J[:, 3:6] = -u
+        J[:, 9:12] = u
+        return r, J
+
     def evaluate(self, state):
         """Rows ``(Q, 1)``, ``a = 2``."""
         from slam_bridge.factors.base import FactorBlock
 
-        r, d, n = self._r(state)
-        u = d / (np.maximum(n, 1e-12) * self.sigma)[:, None]
-        J = np.zeros((r.size, 2, 1, 6))
-        J[:, 0, 0, 3:] = -u
-        J[:, 1, 0, 3:] = u
-        return FactorBlock(r[:, None], self.pairs, J, name=self.name)
+        r, J = self._rows(state)
+        return FactorBlock(r[:, None], self.pairs, J.reshape(-1, 2, 1, 6), name=self.name)
 
     def _normal_equations(self, state, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int):
         """Compiled shortcut of :func:`slam_bridge.problem.assemble` (numba only): the per-pair
@@ -621,9 +626,7 @@ class BaselineLengthFactor:
 
         if type(self).evaluate is not BaselineLengthFactor.evaluate:
             return None
-        r, d, n = self._r(state)
-        u = d / (np.maximum(n, 1e-12) * self.sigma)[:, None]
-        J = np.concatenate([np.zeros_like(u), -u, np.zeros_like(u), u], axis=1)  # (Q, 12)
+        r, J = self._rows(state)
         H = J[:, :, None] * J[:, None, :]
         cost = float(np.sum(r * r))
         return pair_normal_equations(cost, 0, H, J * r[:, None], self.pairs, cmap, Cf, Pf)

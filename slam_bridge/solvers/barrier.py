@@ -521,6 +521,8 @@ class BarrierSolver:
                 except SlamError as exc:
                     logger.debug("barrier: singular damped system (%s)", exc)
                     dc = dp = None
+                else:
+                    full_norm = float(np.sqrt(np.sum(dc * dc) + np.sum(dp * dp)))
                 scale = 1.0
                 for back in range(cfg.max_backtracks + 1):
                     if back:  # the step crossed the barrier: try a shorter one, same direction
@@ -531,7 +533,7 @@ class BarrierSolver:
                     if dc is None:
                         reason = "singular"
                     else:
-                        step_norm = scale * float(np.sqrt(np.sum(dc * dc) + np.sum(dp * dp)))
+                        step_norm = scale * full_norm
                         reason, trial_state, trial_zeta, trial_f, trial_invalid = self._judge_trial(
                             state, scale * dc, scale * dp, t, gamma, system, n_invalid_star
                         )

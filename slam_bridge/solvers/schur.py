@@ -18,9 +18,8 @@ latest camera, and cut in chunks of ``CHUNK_POINTS``; in a keyframe window a chu
 ``L`` cameras (about its points' longest track plus their spread of first cameras,
 :func:`_chunk_structure`), so its blocks ``Z_e^T`` are laid out densely in a ``(3 chunk, 6L)``
 matrix ``A`` and a GEMM ``A^T A`` gives all the chunk's camera-pair sums (one batched GEMM per
-value of ``L``); the
-``(L, L)`` block grids are added into ``S`` with one sparse segment sum. The layout depends only
-on the sparsity pattern and is cached. There is no Python loop per point or per observation; any
+value of ``L``); the ``(L, L)`` block grids are added into ``S`` with one sparse segment sum.
+The layout depends only on the sparsity pattern and is cached. There is no Python loop per point or per observation; any
 other pattern stays correct (``L`` just grows). ``S`` is factorised with
 ``scipy.linalg.cho_factor``, or, when it is block-banded enough (a point's cameras span at most
 ``b`` successive free cameras and ``6 Cf >= BANDED_RATIO * (6 b + 6)``), with the banded
@@ -52,6 +51,7 @@ returns its diagonal blocks.
 
 from __future__ import annotations
 
+import functools
 import logging
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -445,27 +445,24 @@ def _chain_split_point(reach: np.ndarray, band: int = SPLIT_BAND) -> tuple[int, 
     return m, int(max(m - tail[m], 0))
 
 
-_LAYOUT_CACHE: OrderedDict[tuple[bytes, bytes], tuple[int, int, int]] = OrderedDict()
-
-
 def _factor_layout(reach: np.ndarray, pairs: np.ndarray) -> tuple[int, int, int]:
     """``(span, m, r)`` of ``S``: its block half-bandwidth and :func:`_chain_split_point`, from
     each camera's lowest point-sharing camera ``reach (Cf,)`` and the camera pairs ``(Q, 2)``
     (``i < j``). Cached by pattern: every solver step of a window asks again."""
-    key = (reach.tobytes(), pairs.tobytes())
-    hit = _LAYOUT_CACHE.get(key)
-    if hit is None:
-        reach = reach.copy()
-        if pairs.shape[0]:
-            np.minimum.at(reach, pairs[:, 1], pairs[:, 0])
-        span = int(np.max(np.arange(reach.size) - reach))
-        hit = (span, *_chain_split_point(reach))
-        _LAYOUT_CACHE[key] = hit
-        if len(_LAYOUT_CACHE) > _CACHE_SIZE:
-            _LAYOUT_CACHE.popitem(last=False)
-    else:
-        _LAYOUT_CACHE.move_to_end(key)
-    return hit
+    return _factor_layout_cached(
+        np.ascontiguousarray(reach, dtype=np.int64).tobytes(),
+        np.ascontiguousarray(pairs, dtype=np.int64).tobytes(),
+    )
+
+
+@functools.lru_cache(maxsize=_CACHE_SIZE)
+def _factor_layout_cached(reach_bytes: bytes, pairs_bytes: bytes) -> tuple[int, int, int]:
+    reach = np.frombuffer(reach_bytes, dtype=np.int64).copy()
+    pairs = np.frombuffer(pairs_bytes, dtype=np.int64).reshape(-1, 2)
+    if pairs.shape[0]:
+        np.minimum.at(reach, pairs[:, 1], pairs[:, 0])
+    span = int(np.max(np.arange(reach.size) - reach))
+    return (span, *_chain_split_point(reach))
 
 
 class _ChainSplit:
