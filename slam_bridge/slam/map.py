@@ -134,9 +134,11 @@ class Map:
             for col in (self._X, self._tri, *self._attributes.values()):
                 col.resize(count)
 
-    def start_segment(self) -> int:
-        """Start a new segment: the keyframes added from now on get its id (returned)."""
+    def start_segment(self, first_keyframe: int) -> int:
+        """Start a new segment at keyframe ``first_keyframe``: it, the keyframes after it and the
+        ones added from now on get the new segment id (returned)."""
         self._current_segment += 1
+        self.segment[first_keyframe:] = self._current_segment
         return self._current_segment
 
     # ------------------------------------------------------------------------------ keyframes
@@ -253,7 +255,9 @@ class Map:
             SlamError: unknown name.
         """
         if name not in self._attributes:
-            raise SlamError(f"point attribute {name!r}: not registered ({sorted(self._attributes)})")
+            raise SlamError(
+                f"point attribute {name!r}: not registered ({sorted(self._attributes)})"
+            )
         return self._attributes[name].view()
 
     @property

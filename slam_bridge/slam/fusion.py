@@ -1,0 +1,184 @@
+"""Barrier fusion of the k-BA's optimum with a list of constraint providers (thesis eq. 2.3).
+
+After the k-BA, ``X* = argmin zeta`` (:mod:`slam_bridge.slam.windows`), the newest keyframe's
+window is fused with the constraints ``C_i`` the providers give for it:
+``argmin gamma / (t - zeta(X)) + sum C_i(X)``, ``t = t_ratio zeta(X*)``, from ``X*``
+(:func:`slam_bridge.solvers.barrier.solve_barrier`; the barrier's rank-one term is handled by
+Sherman-Morrison, so a provider must add no dense term, appendix B). A provider is anything
+with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
+keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
+constraints plug in the same way. A keyframe for which no provider has a constraint keeps
+``X*`` (a GPS dropout, for instance).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from geoseg.errors import check_finite, check_positive, check_shape
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.base import Factor
+from slam_bridge.factors.gps import GPSFactor
+from slam_bridge.slam.map import Map
+from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ConstraintProvider", "GpsConstraints", "FusionConfig", "FusionOutcome", "fuse"]
+
+
+class ConstraintProvider(Protocol):
+    """A source of constraint families for the fusion of keyframe ``k`` (module docstring)."""
+
+    name: str
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """The constraint families on ``problem``'s state (a
+        :class:`slam_bridge.window.HybridProblem` at ``X*``) for keyframe ``k``."""
+        ...
+
+
+class GpsConstraints:
+    """GPS fixes on the horizontal position of the newest camera (eq. 3.1, eq. B.7).
+
+    Keyframe ``k`` is fused with the fix whose timestamp is within ``tolerance_s`` of its own;
+    a missing (NaN) fix or none near is a dropout: no GPS constraint for that keyframe.
+
+    Args:
+        timestamps: ``(F,)`` fix times, seconds, increasing.
+        xy: ``(F, 2)`` fixes in the world frame, metres (NaN rows: dropouts).
+        weight: weight of the GPS term.
+        tolerance_s: how far from a keyframe's time a fix may be.
+    """
+
+    name = "gps"
+
+    def __init__(
+        self,
+        timestamps: np.ndarray,
+        xy: np.ndarray,
+        *,
+        weight: float = 1.0,
+        tolerance_s: float = 1e-3,
+    ) -> None:
+        self.timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        self.xy = np.asarray(xy, dtype=np.float64)
+        check_shape("xy", self.xy, (self.timestamps.size, 2))
+        check_finite("timestamps", self.timestamps)
+        if np.any(np.isinf(self.xy)):
+            raise SlamError("xy: GPS fixes must be finite or NaN (dropout)")
+        if np.any(np.diff(self.timestamps) <= 0):
+            raise SlamError("timestamps: GPS fix times must increase")
+        check_positive("weight", weight)
+        check_positive("tolerance_s", tolerance_s)
+        self.weight = float(weight)
+        self.tolerance_s = float(tolerance_s)
+
+    def fix_at(self, timestamp: float) -> np.ndarray | None:
+        """The ``(2,)`` fix for ``timestamp``, or None (dropout, none near)."""
+        if self.timestamps.size == 0:
+            return None
+        i = int(np.clip(np.searchsorted(self.timestamps, timestamp), 1, self.timestamps.size) - 1)
+        if i + 1 < self.timestamps.size and abs(self.timestamps[i + 1] - timestamp) < abs(
+            self.timestamps[i] - timestamp
+        ):
+            i += 1
+        if abs(self.timestamps[i] - timestamp) > self.tolerance_s:
+            return None
+        fix = self.xy[i]
+        return fix if np.all(np.isfinite(fix)) else None
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One :class:`GPSFactor` on the newest free camera, or none (dropout)."""
+        fix = self.fix_at(float(slam_map.timestamps[k]))
+        if fix is None:
+            return []
+        return [GPSFactor.most_recent(problem.state, fix, weight=self.weight)]
+
+
+@dataclass
+class FusionConfig:
+    """Barrier fusion settings (:class:`slam_bridge.solvers.barrier.BarrierConfig`).
+
+    Attributes:
+        iterations: barrier iterations.
+        backtracks: halvings of a step that crosses the barrier before its damping is raised
+            (0 = the thesis's Levenberg-Marquardt alone).
+        gamma_rel: relative barrier weight.
+        t_ratio: ``t = t_ratio zeta(X*)``.
+    """
+
+    iterations: int = 10
+    backtracks: int = 3
+    gamma_rel: float = 0.01
+    t_ratio: float = 1.05
+
+    def barrier(self) -> BarrierConfig:
+        """The solver's config."""
+        return BarrierConfig(
+            t_ratio=self.t_ratio,
+            gamma_rel=self.gamma_rel,
+            max_iterations=self.iterations,
+            max_backtracks=self.backtracks,
+        )
+
+    def __post_init__(self) -> None:
+        self.barrier()  # bad values: SlamError now, not at the first fusion
+
+
+@dataclass
+class FusionOutcome:
+    """One keyframe's fusion.
+
+    Attributes:
+        state: the fused state (``X*`` when nothing was fused).
+        constraints: names of the providers whose constraints were fused.
+        seconds: wall time of the barrier solve.
+        iterations: barrier iterations.
+        seconds_per_iteration: mean time of an iteration (assembly + solves).
+        zeta_star: ``zeta(X*)``.
+        zeta: ``zeta`` after the fusion.
+    """
+
+    state: object
+    constraints: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    iterations: int = 0
+    seconds_per_iteration: float = 0.0
+    zeta_star: float = 0.0
+    zeta: float = 0.0
+
+
+def fuse(
+    slam_map: Map, problem, k: int, providers: list[ConstraintProvider], cfg: FusionConfig
+) -> FusionOutcome:
+    """Fuse ``problem`` (at ``X*``) with the providers' constraints for keyframe ``k``.
+
+    Returns:
+        A :class:`FusionOutcome`; ``X*`` itself when no provider has a constraint.
+    """
+    factors, names = [], []
+    for p in providers:
+        got = p.factors(slam_map, problem, k)
+        if got:
+            factors += got
+            names.append(p.name)
+    if not factors:
+        logger.debug("keyframe %d: no constraint to fuse", k)
+        return FusionOutcome(problem.state)
+    t0 = time.perf_counter()
+    fused = solve_barrier(problem.vision, factors, problem.state, cfg.barrier())
+    return FusionOutcome(
+        state=fused.state,
+        constraints=names,
+        seconds=time.perf_counter() - t0,
+        iterations=int(fused.iterations),
+        seconds_per_iteration=float(fused.seconds_per_iteration),
+        zeta_star=float(fused.zeta_star),
+        zeta=float(fused.zeta),
+    )
