@@ -47,13 +47,18 @@ class GpsConstraints:
     """GPS fixes on the horizontal position of the newest camera (eq. 3.1, eq. B.7).
 
     Keyframe ``k`` is fused with the fix whose timestamp is within ``tolerance_s`` of its own;
-    a missing (NaN) fix or none near is a dropout: no GPS constraint for that keyframe.
+    a missing (NaN) fix or none near is a dropout: no GPS constraint for that keyframe. A fix
+    measures the antenna, ``antenna_c`` from the optical centre in the camera frame: the camera
+    is constrained to ``fix - (R_wc antenna_c)_xy`` with ``R_wc`` the camera's rotation at
+    ``X*`` (held during the fusion, which turns the camera by milliradians: millimetres for a
+    lever arm of a metre).
 
     Args:
         timestamps: ``(F,)`` fix times, seconds, increasing.
         xy: ``(F, 2)`` fixes in the world frame, metres (NaN rows: dropouts).
         weight: weight of the GPS term.
         tolerance_s: how far from a keyframe's time a fix may be.
+        antenna_c: ``(3,)`` the antenna in the camera frame, metres (None: at the camera).
     """
 
     name = "gps"
@@ -65,6 +70,7 @@ class GpsConstraints:
         *,
         weight: float = 1.0,
         tolerance_s: float = 1e-3,
+        antenna_c: np.ndarray | None = None,
     ) -> None:
         self.timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         self.xy = np.asarray(xy, dtype=np.float64)
@@ -78,6 +84,11 @@ class GpsConstraints:
         check_positive("tolerance_s", tolerance_s)
         self.weight = float(weight)
         self.tolerance_s = float(tolerance_s)
+        self.antenna_c = None
+        if antenna_c is not None:
+            self.antenna_c = np.asarray(antenna_c, dtype=np.float64)
+            check_shape("antenna_c", self.antenna_c, (3,))
+            check_finite("antenna_c", self.antenna_c)
 
     def fix_at(self, timestamp: float) -> np.ndarray | None:
         """The ``(2,)`` fix for ``timestamp``, or None (dropout, none near)."""
@@ -98,6 +109,9 @@ class GpsConstraints:
         fix = self.fix_at(float(slam_map.timestamps[k]))
         if fix is None:
             return []
+        if self.antenna_c is not None:
+            st = problem.state
+            fix = fix - (st.R_wc[st.free_cameras[-1]] @ self.antenna_c)[:2]
         return [GPSFactor.most_recent(problem.state, fix, weight=self.weight)]
 
 

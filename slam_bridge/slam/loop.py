@@ -63,7 +63,8 @@ class StartResult:
     """What a start-up leaves in the map.
 
     Attributes:
-        fixed_keyframes: ``(A,)`` keyframe ids placed and held fixed (the gauge).
+        fixed_keyframes: ``(A,)`` keyframe ids placed and held fixed (the gauge); the first of
+            them opens the segment.
         georeferenced: the map is in the world frame (the constraint providers apply).
     """
 
@@ -89,8 +90,8 @@ class StartUp(Protocol):
         ...
 
     def georeference(self, slam_map: Map, k: int) -> bool:
-        """Called after each keyframe while the map is not georeferenced: move the map into
-        the world frame when enough is known (returns True once done)."""
+        """Called after each keyframe: move the map into the world frame (or closer to it)
+        when enough is known; True when the map was moved."""
         ...
 
 
@@ -137,7 +138,7 @@ class KnownStartPoses:
         raise TrackingLost("known start poses cannot restart a lost tracking")
 
     def georeference(self, slam_map: Map, k: int) -> bool:
-        return True
+        return False
 
 
 @dataclass
@@ -293,7 +294,7 @@ class _Loop:
         got = self.start_up.start(self.map, self.source)
         if got is None:
             raise SlamError("the stream ended before the SLAM could start")
-        self._begin_segment(got, 0)
+        self._begin_segment(got)
         self._start_records(0, "start")
         while self.max_keyframes is None or self.map.num_keyframes < self.max_keyframes:
             t0 = time.perf_counter()
@@ -332,11 +333,11 @@ class _Loop:
             logger.debug("%s: %d carried points re-triangulated", self.method, n)
         self.left = np.zeros(self.map.num_points, dtype=bool)
 
-    def _begin_segment(self, got: StartResult, first: int) -> None:
+    def _begin_segment(self, got: StartResult) -> None:
         self.fixed = np.asarray(got.fixed_keyframes, dtype=np.int64)
         self.georeferenced = got.georeferenced
-        self.segment_start = first
-        self.first_observation = int(self.map.starts[first])
+        self.segment_start = int(self.fixed.min())
+        self.first_observation = int(self.map.starts[self.segment_start])
 
     def _keyframe(self, k: int, rec: KeyframeRecord) -> None:
         m, cfg = self.map, self.cfg
@@ -357,9 +358,9 @@ class _Loop:
             m, k, cfg.mapping, cfg.tracking.outlier_gate_px, self.first_observation
         )
         self._optimise(k, rec)
-        if not self.georeferenced and self.start_up.georeference(m, k):
+        if self.start_up.georeference(m, k):
             self.georeferenced = True
-            logger.info("keyframe %d: map georeferenced", k)
+            self.links = cfg.window.links()  # references re-taken in the moved map
 
     def _optimise(self, k: int, rec: KeyframeRecord) -> None:
         m, cfg = self.map, self.cfg
@@ -412,5 +413,5 @@ class _Loop:
             raise TrackingLost(f"{lost}; {exc}") from exc
         if got is None:
             return
-        self._begin_segment(got, k)
+        self._begin_segment(got)
         self._start_records(k + 1, "restart")
