@@ -21,6 +21,32 @@ class ConfigError(GeosegError):
     """A configuration key that does not exist, a wrong type or an out-of-range value."""
 
 
+class OutputError(GeosegError, OSError):
+    """A file or folder that cannot be written (full disk, read-only folder, a file in the way).
+
+    Both a :class:`GeosegError` (commands print its message, no traceback) and an
+    :class:`OSError` (code that tolerates failed writes, e.g. of a cache, keeps catching it).
+    ``errno`` is the underlying error's number when there is one.
+    """
+
+    def __init__(self, message: str, *, errno: int | None = None) -> None:
+        if errno is None:
+            OSError.__init__(self, message)
+        else:
+            OSError.__init__(self, errno, message)
+        self.message = message
+
+    def __str__(self) -> str:
+        return self.message
+
+    def __reduce__(self):  # picklable across worker processes
+        return (_output_error, (self.message, self.errno))
+
+
+def _output_error(message: str, errno: int | None) -> OutputError:
+    return OutputError(message, errno=errno)
+
+
 def _shape_of(value: Any) -> tuple[int, ...] | None:
     shape = getattr(value, "shape", None)
     return None if shape is None else tuple(int(s) for s in shape)

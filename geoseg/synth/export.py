@@ -35,7 +35,6 @@ import json
 import logging
 import os
 import platform
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -128,16 +127,9 @@ def ensure_writable(out_dir: str | Path) -> Path:
     Raises:
         GeosegError: naming the directory, when it cannot be created or written.
     """
-    out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=out_dir, prefix=".geoseg-write-test-"):
-            pass
-    except OSError as err:
-        raise GeosegError(
-            f"output directory {out_dir} is not writable: {err.strerror or err}"
-        ) from None
-    return out_dir
+    from geoseg.output_dir import ensure_writable_dir
+
+    return ensure_writable_dir(out_dir)
 
 
 def drive_frames(
