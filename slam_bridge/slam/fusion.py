@@ -46,8 +46,10 @@ class ConstraintProvider(Protocol):
 class GpsConstraints:
     """GPS fixes on the horizontal position of the newest camera (eq. 3.1, eq. B.7).
 
-    Keyframe ``k`` is fused with the fix whose timestamp is within ``tolerance_s`` of its own;
-    a missing (NaN) fix or none near is a dropout: no GPS constraint for that keyframe. A fix
+    Keyframe ``k`` is fused with the fix whose timestamp is within ``tolerance_s`` of its own,
+    else (with ``interpolate_gap_s``) with the linear interpolation of the two valid fixes around
+    it when they are at most that far apart (a 1 Hz receiver and keyframes every few tenths of a
+    second); otherwise it is a dropout: no GPS constraint for that keyframe. A fix
     measures the antenna, ``antenna_c`` from the optical centre in the camera frame: the camera
     is constrained to ``fix - (R_wc antenna_c)_xy`` with ``R_wc`` the camera's rotation at
     ``X*`` (held during the fusion, which turns the camera by milliradians: millimetres for a
@@ -58,6 +60,7 @@ class GpsConstraints:
         xy: ``(F, 2)`` fixes in the world frame, metres (NaN rows: dropouts).
         weight: weight of the GPS term.
         tolerance_s: how far from a keyframe's time a fix may be.
+        interpolate_gap_s: the longest interval between two fixes interpolated (None: none).
         antenna_c: ``(3,)`` the antenna in the camera frame, metres (None: at the camera).
     """
 
@@ -70,6 +73,7 @@ class GpsConstraints:
         *,
         weight: float = 1.0,
         tolerance_s: float = 1e-3,
+        interpolate_gap_s: float | None = None,
         antenna_c: np.ndarray | None = None,
     ) -> None:
         self.timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
@@ -84,6 +88,9 @@ class GpsConstraints:
         check_positive("tolerance_s", tolerance_s)
         self.weight = float(weight)
         self.tolerance_s = float(tolerance_s)
+        if interpolate_gap_s is not None:
+            check_positive("interpolate_gap_s", interpolate_gap_s)
+        self.interpolate_gap_s = interpolate_gap_s
         self.antenna_c = None
         if antenna_c is not None:
             self.antenna_c = np.asarray(antenna_c, dtype=np.float64)
@@ -92,17 +99,22 @@ class GpsConstraints:
 
     def fix_at(self, timestamp: float) -> np.ndarray | None:
         """The ``(2,)`` fix for ``timestamp``, or None (dropout, none near)."""
-        if self.timestamps.size == 0:
+        t, n = self.timestamps, self.timestamps.size
+        if n == 0:
             return None
-        i = int(np.clip(np.searchsorted(self.timestamps, timestamp), 1, self.timestamps.size) - 1)
-        if i + 1 < self.timestamps.size and abs(self.timestamps[i + 1] - timestamp) < abs(
-            self.timestamps[i] - timestamp
-        ):
-            i += 1
-        if abs(self.timestamps[i] - timestamp) > self.tolerance_s:
+        hi = int(np.searchsorted(t, timestamp))  # t[hi - 1] < timestamp <= t[hi]
+        near = [i for i in (hi - 1, hi) if 0 <= i < n]
+        i = min(near, key=lambda j: abs(t[j] - timestamp))
+        if abs(t[i] - timestamp) <= self.tolerance_s:
+            fix = self.xy[i]
+            return fix.copy() if np.all(np.isfinite(fix)) else None
+        if self.interpolate_gap_s is None or not 0 < hi < n:
             return None
-        fix = self.xy[i]
-        return fix if np.all(np.isfinite(fix)) else None
+        a, b = hi - 1, hi
+        if t[b] - t[a] > self.interpolate_gap_s or not np.all(np.isfinite(self.xy[[a, b]])):
+            return None
+        w = (timestamp - t[a]) / (t[b] - t[a])
+        return (1 - w) * self.xy[a] + w * self.xy[b]
 
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
         """One :class:`GPSFactor` on the newest free camera, or none (dropout)."""

@@ -235,6 +235,7 @@ class TwoViewStart:
         self.outlier_gate_px = float(outlier_gate_px)
         self.gps, self.odometry, self.dem = gps, odometry, dem
         self.georeferenced = False
+        self._motion = None  # (keyframe, rad/s, m/s) of the segment before a restart
 
     # ------------------------------------------------------------------------- StartUp
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
@@ -247,21 +248,24 @@ class TwoViewStart:
 
     def restart(self, slam_map: Map, source: ObservationSource, k: int) -> StartResult | None:
         m = slam_map
-        speed = None
-        if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:
+        self._motion = None
+        if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:  # the last motion, per second
             dt = m.timestamps[k - 1] - m.timestamps[k - 2]
-            dR = m.R_wc[k - 1] @ m.R_wc[k - 2].T
-            a = (m.timestamps[k] - m.timestamps[k - 1]) / dt
-            R_k = so3_exp(a * so3_log(dR)) @ m.R_wc[k - 1]
-            t_k = m.t_wc[k - 1] + a * (m.t_wc[k - 1] - m.t_wc[k - 2])
-            speed = float(np.linalg.norm(m.t_wc[k - 1] - m.t_wc[k - 2]) / dt)
+            omega = so3_log(m.R_wc[k - 1] @ m.R_wc[k - 2].T) / dt
+            velocity = (m.t_wc[k - 1] - m.t_wc[k - 2]) / dt
+            self._motion = (k - 1, omega, velocity)
+            m.set_pose(k, *self._predict(m, k))
         elif k >= 1:
-            R_k, t_k = m.R_wc[k - 1].copy(), m.t_wc[k - 1].copy()
-        else:
-            R_k, t_k = np.eye(3), np.zeros(3)
-        m.set_pose(k, R_k, t_k)
+            m.set_pose(k, m.R_wc[k - 1], m.t_wc[k - 1])
         logger.info("keyframe %d: new segment re-anchored at the motion model's prediction", k)
+        speed = None if self._motion is None else float(np.linalg.norm(self._motion[2]))
         return self._two_views(m, source, k, speed=speed)
+
+    def _predict(self, m: Map, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ``k``'s pose by the last segment's motion (constant velocity)."""
+        j, omega, velocity = self._motion
+        dt = m.timestamps[k] - m.timestamps[j]
+        return so3_exp(dt * omega) @ m.R_wc[j], m.t_wc[j] + dt * velocity
 
     def georeference(self, slam_map: Map, k: int) -> bool:
         if self.gps is None:
@@ -321,12 +325,16 @@ class TwoViewStart:
                 self._fill_between(m, a, b)
                 return StartResult(np.array([a, b]), georeferenced=self.georeferenced)
             tries += 1
-            if tries >= cfg.max_tries:  # the reference has too few usable tracks left
+            few = m.obs_active[m.keyframe_observations(a)].sum() < cfg.min_matches
+            if few or tries >= cfg.max_tries:  # the reference has too few usable tracks
                 logger.warning(
                     "keyframes %d-%d: no two-view start; keyframe %d is the new reference", a, b, b
                 )
                 m.obs_active[m.keyframe_observations(a)] = False
-                m.set_pose(b, m.R_wc[a], m.t_wc[a])
+                if self._motion is not None:
+                    m.set_pose(b, *self._predict(m, b))
+                else:
+                    m.set_pose(b, m.R_wc[a], m.t_wc[a])
                 self._fill_between(m, a, b)
                 m.start_segment(b)
                 a, tries = b, 0

@@ -94,3 +94,14 @@ def test_settings_are_checked():
     with pytest.raises(SlamError, match="t_ratio"):
         FusionConfig(t_ratio=1.0)
     WindowConfig(consistency_share=None, mpc_length_sigma_m=None)
+
+
+def test_gps_constraints_interpolate_between_close_fixes():
+    t = np.array([0.0, 1.0, 2.0, 5.0])
+    xy = np.array([[0.0, 0.0], [10.0, 2.0], [np.nan, np.nan], [30.0, 0.0]])
+    gps = GpsConstraints(t, xy, tolerance_s=0.01, interpolate_gap_s=1.5)
+    np.testing.assert_allclose(gps.fix_at(0.25), [2.5, 0.5])
+    np.testing.assert_array_equal(gps.fix_at(1.0), [10.0, 2.0])
+    assert gps.fix_at(1.5) is None  # the next fix is a dropout
+    assert gps.fix_at(4.0) is None  # fixes 3 s apart: too far to interpolate
+    assert gps.fix_at(-0.5) is None and gps.fix_at(5.5) is None  # outside the log
