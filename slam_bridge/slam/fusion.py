@@ -7,7 +7,7 @@ window is fused with the constraints ``C_i`` the providers give for it:
 Sherman-Morrison, so a provider must add no dense term, appendix B). A provider is anything
 with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
 keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
-constraints plug in the same way. A keyframe for which no provider has a constraint keeps
+constraints plug in the same way (:class:`DemConstraints`: terrain elevation). A keyframe for which no provider has a constraint keeps
 ``X*`` (a GPS dropout, for instance).
 """
 
@@ -23,13 +23,21 @@ import numpy as np
 from geoseg.errors import check_finite, check_positive, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import Factor
+from slam_bridge.factors.dem import DEMFactor
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.slam.map import Map
 from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ConstraintProvider", "GpsConstraints", "FusionConfig", "FusionOutcome", "fuse"]
+__all__ = [
+    "ConstraintProvider",
+    "GpsConstraints",
+    "DemConstraints",
+    "FusionConfig",
+    "FusionOutcome",
+    "fuse",
+]
 
 
 class ConstraintProvider(Protocol):
@@ -125,6 +133,46 @@ class GpsConstraints:
             st = problem.state
             fix = fix - (st.R_wc[st.free_cameras[-1]] @ self.antenna_c)[:2]
         return [GPSFactor.most_recent(problem.state, fix, weight=self.weight)]
+
+
+class DemConstraints:
+    """Terrain elevation of the newest camera: its altitude is the road's under it plus the
+    camera height (appendix B.3.2, :class:`slam_bridge.factors.dem.DEMFactor`).
+
+    A camera farther than ``max_distance_m`` from every DEM segment (off the modelled roads) is
+    not constrained (logged): the nearest segment's altitude would be a guess.
+
+    Args:
+        terrain: the road DEM (:class:`slam_bridge.factors.dem.DemSegments`).
+        camera_height_m: camera height above the road.
+        weight: weight of the elevation term (1 / sigma^2, metres).
+        max_distance_m: farthest horizontal distance to a segment.
+    """
+
+    name = "dem"
+
+    def __init__(
+        self, terrain, camera_height_m: float, *, weight: float = 1.0, max_distance_m: float = 15.0
+    ) -> None:
+        check_positive("camera_height_m", camera_height_m)
+        check_positive("weight", weight)
+        check_positive("max_distance_m", max_distance_m)
+        self.terrain = terrain
+        self.camera_height_m = float(camera_height_m)
+        self.weight = float(weight)
+        self.max_distance_m = float(max_distance_m)
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One :class:`DEMFactor` on the newest free camera, or none off the DEM's roads."""
+        st = problem.state
+        cam = st.free_cameras[-1]
+        distance = float(self.terrain.distance_at(st.t_wc[cam, :2])[0])
+        if distance > self.max_distance_m:
+            logger.debug("keyframe %d: %.0f m from the DEM's roads, no elevation term", k, distance)
+            return []
+        return [
+            DEMFactor(np.array([cam]), self.terrain, self.camera_height_m, np.array([self.weight]))
+        ]
 
 
 @dataclass

@@ -91,10 +91,14 @@ class InitConfig:
         threshold_px: RANSAC threshold of the essential matrix.
         min_fixes: keyframes with a GPS fix needed to georeference.
         min_distance_m: spread of those fixes (largest distance from the first), metres.
-        up_weight: weight of the up-axis pair against the positions in the similarity fit.
-        refit_keyframes: the similarity is fitted again at every keyframe until the segment
-            has this many: its start keyframes hold the gauge of the k-BA while they are in the
-            window, so their georeferencing errors (heading ~ GPS noise / distance) would stay.
+        up_weight: weight of the up-axis pair against the positions in the similarity fit:
+            small, so that it only pins what the positions leave free (the roll about a straight
+            start); the cameras' -y axes lean with the road's slope.
+        refit_distance_m: the similarity is fitted again at every keyframe, to all the
+            segment's fixes, until its fixes spread over this distance: the map keeps the
+            orientation it is given (the fusion moves the newest camera only, within the
+            barrier's slack), and a fit's heading error falls with the distance it spans (GPS
+            noise / distance).
     """
 
     min_matches: int = 60
@@ -103,8 +107,8 @@ class InitConfig:
     threshold_px: float = 1.0
     min_fixes: int = 8
     min_distance_m: float = 25.0
-    up_weight: float = 1.0
-    refit_keyframes: int = 40
+    up_weight: float = 0.05
+    refit_distance_m: float = 200.0
 
     def __post_init__(self) -> None:
         if self.min_matches < 8 or self.min_points < 8:
@@ -236,6 +240,7 @@ class TwoViewStart:
         self.gps, self.odometry, self.dem = gps, odometry, dem
         self.georeferenced = False
         self._motion = None  # (keyframe, rad/s, m/s) of the segment before a restart
+        self._spread = 0.0  # spread of the fixes of the last georeferencing, metres
 
     # ------------------------------------------------------------------------- StartUp
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
@@ -249,6 +254,7 @@ class TwoViewStart:
     def restart(self, slam_map: Map, source: ObservationSource, k: int) -> StartResult | None:
         m = slam_map
         self._motion = None
+        self._spread = 0.0  # the new segment is fitted to its own fixes
         if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:  # the last motion, per second
             dt = m.timestamps[k - 1] - m.timestamps[k - 2]
             omega = so3_log(m.R_wc[k - 1] @ m.R_wc[k - 2].T) / dt
@@ -272,7 +278,7 @@ class TwoViewStart:
             return False
         m, cfg = slam_map, self.config
         seg = np.flatnonzero(m.segment[: k + 1] == m.segment[k])
-        if self.georeferenced and seg.size > cfg.refit_keyframes:
+        if self.georeferenced and self._spread >= cfg.refit_distance_m:
             return False
         fixes = [self.gps.fix_at(float(m.timestamps[j])) for j in seg]
         have = np.array([f is not None for f in fixes])
@@ -280,7 +286,8 @@ class TwoViewStart:
             return False
         kf = seg[have]
         xy = np.array([f for f in fixes if f is not None])
-        if np.max(np.linalg.norm(xy - xy[0], axis=1)) < cfg.min_distance_m:
+        spread = float(np.max(np.linalg.norm(xy - xy[0], axis=1)))
+        if spread < cfg.min_distance_m:
             return False
         z = np.full(kf.size, self.rig.camera_height_m)
         if self.dem is not None:
@@ -306,6 +313,7 @@ class TwoViewStart:
             float(np.sqrt(np.mean(resid**2))),
         )  # fmt: skip
         self.georeferenced = True
+        self._spread = spread
         return True
 
     # ------------------------------------------------------------------------- internals
