@@ -104,7 +104,7 @@ def triangulate(
 
     Args:
         K: ``(3, 3)`` shared or ``(C, 3, 3)`` per-camera calibration.
-        R_wc: ``(C, 3, 3)`` camera-to-world rotations.
+        R_wc: ``(C, 3, 3)`` camera-to-world rotations (finite for the cameras observed).
         t_wc: ``(C, 3)`` optical centres.
         obs_cameras: ``(M,)`` camera index of each observation.
         obs_points: ``(M,)`` point index of each observation (``0..P-1``).
@@ -129,10 +129,11 @@ def triangulate(
     check_shape("obs_points", pts, (M,))
     check_shape("uv", uv, (M, 2))
     check_finite("uv", uv)
-    check_finite("R_wc", R_wc)
-    check_finite("t_wc", t_wc)
     if M and (cams.min() < 0 or cams.max() >= R_wc.shape[0]):
         raise SlamError("obs_cameras: index out of range")
+    used = np.unique(cams)  # cameras no observation refers to may be unset (NaN)
+    check_finite("R_wc", R_wc[used])
+    check_finite("t_wc", t_wc[used])
     if M and pts.min() < 0:
         raise SlamError("obs_points: negative index")
     P = int(num_points if num_points is not None else (pts.max() + 1 if M else 0))

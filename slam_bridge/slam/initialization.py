@@ -101,8 +101,8 @@ class InitConfig:
             noise / distance).
     """
 
-    min_matches: int = 60
-    min_points: int = 40
+    min_matches: int = 40
+    min_points: int = 25
     max_tries: int = 6
     threshold_px: float = 1.0
     min_fixes: int = 8
@@ -339,11 +339,13 @@ class TwoViewStart:
                     "keyframes %d-%d: no two-view start; keyframe %d is the new reference", a, b, b
                 )
                 m.obs_active[m.keyframe_observations(a)] = False
+                for j in range(a, b):  # never placed
+                    m.set_pose(j, np.full((3, 3), np.nan), np.full(3, np.nan))
+                    m.mark_online(j)
                 if self._motion is not None:
                     m.set_pose(b, *self._predict(m, b))
                 else:
-                    m.set_pose(b, m.R_wc[a], m.t_wc[a])
-                self._fill_between(m, a, b)
+                    m.set_pose(b, np.eye(3), np.zeros(3))
                 m.start_segment(b)
                 a, tries = b, 0
 

@@ -209,8 +209,10 @@ class SlamResult:
     Attributes:
         method: ``ba``, ``dpc`` or ``mpc``.
         map: the final map (poses, online poses, points, observations).
-        records: one :class:`KeyframeRecord` per keyframe that went through the loop.
-        georeferenced: the map ended in the world frame.
+        records: one :class:`KeyframeRecord` per keyframe.
+        georeferenced: the last segment ended in the world frame.
+        georeferenced_segments: the segments placed in the world frame (the others stayed in
+            their first camera's frame: a start or restart that never met the GPS).
         seconds: total wall time.
     """
 
@@ -218,7 +220,18 @@ class SlamResult:
     map: Map
     records: list[KeyframeRecord] = field(default_factory=list)
     georeferenced: bool = True
+    georeferenced_segments: list[int] = field(default_factory=list)
     seconds: float = 0.0
+
+    @property
+    def placed(self) -> np.ndarray:
+        """``(C,)`` bool: the keyframe has a pose (a failed start leaves some without)."""
+        return np.isfinite(self.map.t_wc).all(axis=1) & np.isfinite(self.map.R_wc).all(axis=(1, 2))
+
+    @property
+    def in_world(self) -> np.ndarray:
+        """``(C,)`` bool: the keyframe has a pose in the world frame."""
+        return self.placed & np.isin(self.map.segment, self.georeferenced_segments)
 
     @property
     def R_wc(self) -> np.ndarray:
@@ -283,6 +296,7 @@ class _Loop:
         self.left = np.zeros(0, dtype=bool)  # points that left a hybrid window (carried)
         self.fixed = np.zeros(0, dtype=np.int64)
         self.georeferenced = False
+        self.georeferenced_segments: set[int] = set()
         self.segment_start = 0
         self.first_observation = 0
         self.records: list[KeyframeRecord] = []
@@ -318,6 +332,7 @@ class _Loop:
             map=self.map,
             records=self.records,
             georeferenced=self.georeferenced,
+            georeferenced_segments=sorted(self.georeferenced_segments),
             seconds=time.perf_counter() - t_start,
         )
 
@@ -336,6 +351,8 @@ class _Loop:
     def _begin_segment(self, got: StartResult) -> None:
         self.fixed = np.asarray(got.fixed_keyframes, dtype=np.int64)
         self.georeferenced = got.georeferenced
+        if got.georeferenced:
+            self.georeferenced_segments.add(int(self.map.segment[self.fixed[0]]))
         self.segment_start = int(self.fixed.min())
         self.first_observation = int(self.map.starts[self.segment_start])
 
@@ -360,6 +377,7 @@ class _Loop:
         self._optimise(k, rec)
         if self.start_up.georeference(m, k):
             self.georeferenced = True
+            self.georeferenced_segments.add(int(m.segment[k]))
             self.links = cfg.window.links()  # references re-taken in the moved map
 
     def _optimise(self, k: int, rec: KeyframeRecord) -> None:
@@ -391,7 +409,8 @@ class _Loop:
                     [self.left, np.zeros(m.num_points - self.left.size, bool)]
                 )
             self.left[moved] = True
-        if not (np.all(np.isfinite(m.t_wc[: k + 1])) and np.all(np.isfinite(m.R_wc[: k + 1]))):
+        seg = slice(self.segment_start, k + 1)
+        if not (np.all(np.isfinite(m.t_wc[seg])) and np.all(np.isfinite(m.R_wc[seg]))):
             raise SlamError(f"keyframe {k}: non-finite pose estimate")
         m.mark_online(k)
         # 5. gating (the fusion window's reprojection rows)
