@@ -20,9 +20,11 @@ same keyframes (``bench/colmap_peer.py``: SIFT, sequential matching, incremental
 robust similarity to the GPS fixes as a user would align it): ``translation_error_over_colmap``
 and ``wall_time_over_colmap`` (our whole SLAM over COLMAP's extraction + matching + mapping);
 ``frames_per_second`` of the whole SLAM on the pre-rendered images, with where the time goes.
-The chapter-3 figures (hybrid windows DPC / MPC against ``n = 0``) are measured on the image
-tracks of the first drive (``chapter3_*`` keys, beside ``bench/results/fusion_ch3.json``'s
-simulated tracks).
+The chapter-3 figures (hybrid windows DPC / MPC against ``n = 0``: ``chapter3_dpc_time_ratio``,
+``..._mpc_time_ratio``, ``..._memory_ratio``, ``..._inlier_loss_max``, translation errors) come
+from the chapter-3 experiment on image tracks (``configs/slam_ch3.yaml`` with ``tracks=images``:
+known start poses, GPS at every keyframe), beside the same experiment on simulated tracks
+(``chapter3_simulated_*``).
 
 Usage: ``python bench/slam_images.py [--full] [--data DIR] [--no-colmap]``: by default one
 300 m drive; ``--full`` the six drives of >= 600 m (car and tram, light and dense occlusion, one
@@ -32,7 +34,6 @@ winter and one dusk). Prints Markdown tables and writes ``bench/results/slam_ima
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import logging
 import os
@@ -42,10 +43,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from slam_bridge.evaluate_tracks import RenderTruth, TrackTable, evaluate_tracks
 
 from geoseg.config import load_config
 from slam_bridge import evaluate as ev
+from slam_bridge.evaluate_tracks import RenderTruth, TrackTable, evaluate_tracks
 from slam_bridge.image_slam import ImageSlamConfig, evaluate_run, load_inputs, run_on_images
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -185,19 +186,25 @@ def colmap_figures(folder: Path, inputs, result, work: Path) -> dict:
     }
 
 
-def chapter3_on_images(folder: Path, gps_logs: dict[str, Path], cfg: ImageSlamConfig) -> dict:
-    """The chapter-3 figures (hybrid DPC / MPC against n = 0) on the image tracks."""
-    runs = []
-    for setting, path in gps_logs.items():
-        for method in ("ba", "dpc", "mpc"):
-            inputs, result, _, _ = run_drive(folder, path, dataclasses.replace(cfg, method=method))
-            t_true, R_true, T_true = inputs.truth
-            idx = np.searchsorted(t_true, result.map.timestamps)
-            runs.append(ev.summarize_run(result, R_true[idx], T_true[idx], setting))
-    summary = ev.build_summary(runs, ["ba", "dpc", "mpc"], list(gps_logs))
+def chapter3_on_images(data: Path, full: bool) -> dict:
+    """The chapter-3 experiment (``configs/slam_ch3.yaml``: known start poses, GPS at every
+    keyframe) on image tracks, and on simulated tracks beside it (same drive, same GPS)."""
+    from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
+
     keys = ["dpc_time_ratio", "mpc_time_ratio", "memory_ratio", "inlier_loss_max"]
-    keys += [k for k in summary if k.endswith("_t_mean")]
-    return {f"chapter3_{k}": float(summary[k]) for k in keys if k in summary}
+    out = {}
+    for tracks in ("images", "simulated"):
+        cfg = load_config(
+            ExperimentConfig, ROOT / "configs" / "slam_ch3.yaml", overrides=[f"tracks={tracks}"]
+        )
+        cfg = cfg if full else cfg.quick()
+        folder = run_experiment(cfg, data / f"chapter3_{tracks}_{'full' if full else 'quick'}")
+        summary = json.loads((folder / "fusion_ch3.json").read_text())
+        tag = "chapter3" if tracks == "images" else "chapter3_simulated"
+        for k in keys + [k for k in summary if k.endswith("_t_mean")]:
+            if isinstance(summary.get(k), int | float):
+                out[f"{tag}_{k}"] = float(summary[k])
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -215,8 +222,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = load_config(ImageSlamConfig, args.config)
     drives = FULL_DRIVES if args.full else QUICK_DRIVES
     per_drive: dict[str, dict] = {}
-    chapter3: dict = {}
-    for i, (name, rig, preset, condition, seed, length) in enumerate(drives):
+    for name, rig, preset, condition, seed, length in drives:
         folder = render_drive(args.data, name, rig, preset, condition, seed, length)
         gps_logs = write_gps_logs(folder, seed)
         fig: dict = {"rig": rig, "preset": preset, "condition": condition}
@@ -252,8 +258,8 @@ def main(argv: list[str] | None = None) -> int:
         logger.info(
             "%s: %s", name, {k: round(v, 3) if isinstance(v, float) else v for k, v in fig.items()}
         )
-        if i == 0 and not args.no_chapter3:
-            chapter3 = chapter3_on_images(folder, gps_logs, cfg)
+
+    chapter3 = {} if args.no_chapter3 else chapter3_on_images(args.data, args.full)
     keys = [
         "tracking_failures", "bad_observation_share", "bad_observation_share_used",
         "translation_error_m", "gps_error_m", "translation_error_over_gps", "rotation_error_deg",

@@ -104,31 +104,40 @@ class KnownStartPoses:
     georeferenced. The points they see are triangulated. A lost tracking cannot be recovered.
 
     Args:
-        R_wc: ``(A, 3, 3)`` poses of the first ``A >= 2`` keyframes.
-        t_wc: ``(A, 3)``.
+        R_wc: ``(F, 3, 3)`` known poses, indexed by the source's ``frame_index`` (the keyframe
+            index for simulated tracks, the image index for image tracks).
+        t_wc: ``(F, 3)``.
         outlier_gate_px: the start's triangulation gate (the tracking's outlier gate).
+        count: how many first keyframes are placed and fixed (default 3).
     """
 
-    def __init__(self, R_wc: np.ndarray, t_wc: np.ndarray, outlier_gate_px: float = 20.0) -> None:
+    def __init__(
+        self, R_wc: np.ndarray, t_wc: np.ndarray, outlier_gate_px: float = 20.0, count: int = 3
+    ) -> None:
         self.R_wc = np.asarray(R_wc, dtype=np.float64)
         self.t_wc = np.asarray(t_wc, dtype=np.float64)
         check_shape("R_wc", self.R_wc, (None, 3, 3))
         check_shape("t_wc", self.t_wc, (self.R_wc.shape[0], 3))
         check_finite("R_wc", self.R_wc)
         check_finite("t_wc", self.t_wc)
-        if self.R_wc.shape[0] < 2:
-            raise SlamError(f"KnownStartPoses: expected >= 2 poses, got {self.R_wc.shape[0]}")
+        if not 2 <= count <= self.R_wc.shape[0]:
+            raise SlamError(
+                f"KnownStartPoses: expected 2 <= count <= {self.R_wc.shape[0]} poses, got {count}"
+            )
+        self.count = int(count)
         self.outlier_gate_px = float(outlier_gate_px)
         self.mapping = None  # set by run_slam: the loop's MappingConfig
 
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
-        A = self.R_wc.shape[0]
-        for i in range(A):
+        A = self.count
+        for _ in range(A):
             obs = source.next_keyframe(slam_map)
             if obs is None:
                 return None
             k = slam_map.add_keyframe(obs.timestamp, obs.point_ids, obs.uv)
-            slam_map.set_pose(k, self.R_wc[i], self.t_wc[i])
+            if not 0 <= obs.frame_index < self.R_wc.shape[0]:
+                raise SlamError(f"KnownStartPoses: no pose for frame {obs.frame_index}")
+            slam_map.set_pose(k, self.R_wc[obs.frame_index], self.t_wc[obs.frame_index])
             slam_map.mark_online(k)
         n0 = triangulate_new(slam_map, A - 1, self.mapping, self.outlier_gate_px)
         logger.debug("%d points from the %d known start poses", n0, A)
