@@ -175,8 +175,10 @@ def test_bad_inputs(noiseless):
     )
     with pytest.raises(SlamError, match="ended before"):
         run_slam(short, "ba", start, [], cfg.slam)
-    with pytest.raises(SlamError, match=">= 2 poses"):
+    with pytest.raises(SlamError, match="count"):
         KnownStartPoses(seq.R_wc_true[:1], seq.t_wc_true[:1])
+    with pytest.raises(SlamError, match="count"):
+        KnownStartPoses(seq.R_wc_true, seq.t_wc_true, count=1)
 
 
 def test_blas_threads_limit_holds_inside_the_loop_only(noiseless, monkeypatch):
