@@ -10,12 +10,15 @@ the loop). Figures per case:
 
 * ``bad_share``: observations whose true reprojection error exceeds 2 px
   (:func:`slam_bridge.evaluate_tracks.evaluate_tracks`: depth-referenced), and error percentiles;
-* ``tracks_per_keyframe``, ``track_length_*`` (keyframes per point), ``reobservations`` and
-  their bad share;
+* ``bad_share_consistency``: observations farther than 2 px from the static point that fits the
+  track best at the true poses (what would bias the poses);
+* ``tracks_per_keyframe``, ``continued_per_keyframe`` (median number of tracks shared with the
+  previous keyframe), ``track_length_*`` (keyframes per point), ``reobservations`` (a point seen
+  again after missing a keyframe) and their bad share;
 * ``two_view_rot_deg`` / ``two_view_dir_deg``: :func:`slam_bridge.geometry.two_view_init` on
-  the tracks shared by two keyframes ~3 keyframes apart, against the true relative pose;
+  the tracks shared by two keyframes up to 3 apart, against the true relative pose (medians);
 * ``ms_per_frame`` / ``ms_per_keyframe``: CPU time of the front end alone (frames decoded in
-  memory beforehand, OpenCV on one thread), and ``read_ms_per_frame`` (PNG decoding);
+  memory beforehand, OpenCV and BLAS on one thread), and ``read_ms_per_frame`` (PNG decoding);
   ``stage_*``: where the time goes.
 
 Usage: ``python bench/frontend_tracks.py [--frames N] [--full] [--parallax]``. Prints a Markdown
@@ -34,6 +37,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from geoseg.config import load_config
 from geoseg.synth.export import render_sequence
@@ -76,14 +80,20 @@ def rotation_deg(R: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
 
 
-def two_view_errors(kfs, truth: RenderTruth, K: np.ndarray, gap: int = 3) -> tuple[float, float]:
-    """Median rotation and translation-direction errors (degrees) of two-view initialisations
-    between keyframes ``gap`` apart, over the sequence."""
+def two_view_errors(kfs, truth: RenderTruth, K: np.ndarray) -> tuple[float, float]:
+    """Median rotation and translation-direction errors (degrees) of
+    :func:`~slam_bridge.geometry.two_view_init` between keyframes up to 3 apart (the widest gap
+    that still shares 30 tracks), from 6 starting keyframes along the drive."""
     rot, dirn = [], []
-    for a in range(1, len(kfs) - gap, max(1, (len(kfs) - gap) // 6)):
-        k0, k1 = kfs[a], kfs[a + gap]
-        common, i0, i1 = np.intersect1d(k0.point_ids, k1.point_ids, return_indices=True)
-        if common.size < 20:
+    for a in range(1, len(kfs) - 1, max(1, (len(kfs) - 2) // 6)):
+        for gap in (3, 2, 1):
+            if a + gap >= len(kfs):
+                continue
+            k0, k1 = kfs[a], kfs[a + gap]
+            common, i0, i1 = np.intersect1d(k0.point_ids, k1.point_ids, return_indices=True)
+            if common.size >= 30:
+                break
+        else:
             continue
         res = two_view_init(K, k0.uv[i0], k1.uv[i1])
         f0, f1 = k0.frame_index, k1.frame_index
@@ -133,6 +143,11 @@ def run_case(folder: Path, parallax: bool) -> dict[str, float]:
         "track_length_p90": s["track_length_p90"],
         "reobservations": s["reobservations"],
         "bad_share_reobserved": s["bad_share_reobserved"],
+        "continued_per_keyframe": float(
+            np.median(
+                [np.isin(kfs[k].point_ids, kfs[k - 1].point_ids).sum() for k in range(1, len(kfs))]
+            )
+        ),
         "two_view_rot_deg": rot,
         "two_view_dir_deg": dirn,
         "ms_per_frame": 1e3 * cpu / len(frames),
@@ -141,7 +156,7 @@ def run_case(folder: Path, parallax: bool) -> dict[str, float]:
     }
     for key in ("track_ms_per_frame", "epipolar_ms_per_frame", "gray_ms_per_frame"):
         out["stage_" + key] = timing[key]
-    for key in ("checks", "map_check", "detect", "describe", "reobserve"):
+    for key in ("checks", "map_check", "detect", "reobserve", "describe", "topup"):
         out[f"stage_{key}_ms_per_keyframe"] = timing[f"{key}_ms_per_keyframe"]
     return out
 
@@ -155,6 +170,7 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     p.add_argument("--cache-dir", type=Path, default=ROOT / "runs" / "cache" / "frontend_tracks")
     args = p.parse_args(argv)
     cv2.setNumThreads(1)
+    threadpool_limits(1)  # idle BLAS threads would count in the process CPU time
     frames = args.frames or (120 if args.full else 40)
     cases = dict(CASES, **(FULL_CASES if args.full else {}))
     if args.cases:
@@ -182,15 +198,18 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
         "python bench/frontend_tracks.py " + " ".join(argv or sys.argv[1:])
     ).strip()
     print(
-        "| case | rig | condition | world | size | bad share | err p50/p90 px | tracks/kf | "
-        "track len (mean/p90) | re-obs (bad) | two-view rot/dir deg | ms/frame | ms/kf |"
+        "| case | rig | condition | world | size | bad share | consistency | err p50/p90 px | "
+        "tracks/kf | continued/kf | track len mean/p90 | re-obs (bad) | two-view rot/dir deg | "
+        "ms/frame | ms/kf |"
     )
-    print("|" + "---|" * 13)
+    print("|" + "---|" * 15)
     for name, rig, cond, world, size, f in rows:
         print(
             f"| {name} | {rig} | {cond} | {world} | {size[0]}x{size[1]} | {f['bad_share']:.3f} | "
-            f"{f['error_median_px']:.2f}/{f['error_p90_px']:.2f} | {f['tracks_per_keyframe']:.0f} | "
-            f"{f['track_length_mean']:.1f}/{f['track_length_p90']:.0f} | "
+            f"{f['bad_share_consistency']:.3f} | "
+            f"{f['error_median_px']:.2f}/{f['error_p90_px']:.2f} | "
+            f"{f['tracks_per_keyframe']:.0f} | {f['continued_per_keyframe']:.0f} | "
+            f"{f['track_length_mean']:.2f}/{f['track_length_p90']:.0f} | "
             f"{f['reobservations']:.0f} ({f['bad_share_reobserved']:.2f}) | "
             f"{f['two_view_rot_deg']:.2f}/{f['two_view_dir_deg']:.1f} | {f['ms_per_frame']:.1f} | "
             f"{f['ms_per_keyframe']:.1f} |"

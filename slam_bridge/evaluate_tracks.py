@@ -29,8 +29,11 @@ non-reference observations farther than ``threshold_px`` from the projection of 
 that fits all the point's observations best at the true poses (linear triangulation + Gauss-Newton,
 :func:`slam_bridge.geometry.triangulate`): what would pull the SLAM's poses away from the truth,
 blind to a drift along the epipolar lines (a wrong depth), which ``bad_share`` sees; with two
-observations only the distance to the epipolar line counts. :class:`RenderTruth` reads the truth from a
-``geoseg render`` folder (``poses.csv``, ``camera.json``, ``geometry/NNNNNN.npz``).
+observations only the distance to the epipolar line counts.
+
+:class:`RenderTruth` reads the truth from a ``geoseg render`` folder (``poses.csv``,
+``camera.json``, ``geometry/NNNNNN.npz``); :class:`TruthMap` keeps a map at the truth while a
+front end runs, for tests and benchmarks without the SLAM loop.
 """
 
 from __future__ import annotations

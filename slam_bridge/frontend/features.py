@@ -8,10 +8,15 @@
 * motion statistics over the ``k`` nearest tracks: :func:`flow_consistent` (a track that moves
   unlike its neighbours is stuck or has jumped) and :func:`local_affine` (the local deformation of
   the image since the last keyframe);
+* photometry: :class:`GammaNormaliser` (dark frames brightened by a global, slowly varying
+  lookup table);
+* geometry: :func:`epipolar_inliers` (essential-matrix RANSAC, guarded against the degenerate
+  cases);
 * descriptors: :class:`OrbDescriptors` (upright ORB at given pixels) and
   :func:`match_in_radius` (descriptor matching within a pixel radius, ratio test, one-to-one).
 
-Pixels follow OpenCV: ``uv = (x right, y down)``, pixel centres at integers.
+:class:`TrackSet` holds the live tracks. Pixels follow OpenCV: ``uv = (x right, y down)``,
+pixel centres at integers.
 """
 
 from __future__ import annotations
@@ -24,6 +29,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 __all__ = [
+    "TrackSet",
+    "GammaNormaliser",
+    "epipolar_inliers",
     "Gradients",
     "gradients",
     "isotropic",
@@ -43,48 +51,161 @@ _POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
 
 
 @dataclass
+class TrackSet:
+    """Live tracks, ``N`` of them, in parallel arrays.
+
+    Attributes:
+        ids: ``(N,)`` int64 point ids.
+        uv: ``(N, 2)`` float32 pixels in the current frame.
+        vel: ``(N, 2)`` float32 last frame-to-frame displacement (NaN: not tracked yet).
+        uv_kf: ``(N, 2)`` float32 pixels at the last keyframe.
+        A: ``(N, 2, 2)`` local linear map of the image accumulated since the track's birth.
+    """
+
+    ids: np.ndarray
+    uv: np.ndarray
+    vel: np.ndarray
+    uv_kf: np.ndarray
+    A: np.ndarray
+
+    @classmethod
+    def empty(cls) -> TrackSet:
+        z = np.zeros((0, 2), dtype=np.float32)
+        return cls(np.zeros(0, np.int64), z, z.copy(), z.copy(), np.zeros((0, 2, 2)))
+
+    def __len__(self) -> int:
+        return int(self.ids.size)
+
+    def keep(self, mask: np.ndarray) -> None:
+        for name in ("ids", "uv", "vel", "uv_kf", "A"):
+            setattr(self, name, getattr(self, name)[mask])
+
+    def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
+        uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
+        self.ids = np.concatenate([self.ids, ids])
+        self.uv = np.concatenate([self.uv, uv])
+        self.vel = np.concatenate([self.vel, np.full_like(uv, np.nan)])
+        self.uv_kf = np.concatenate([self.uv_kf, uv])
+        self.A = np.concatenate([self.A, np.broadcast_to(np.eye(2), (len(ids), 2, 2))])
+
+
+class GammaNormaliser:
+    """Global gamma lookup that maps the median grey level to ``target`` (brightens only).
+
+    The gamma follows a running median (weight 0.2 per frame) and is quantised to 0.05, so that
+    consecutive frames almost always share one table and brightness constancy (Lucas-Kanade's
+    assumption) holds between them.
+
+    Args:
+        target: share of 255 for the median grey level, in (0, 1).
+    """
+
+    def __init__(self, target: float) -> None:
+        self.target = target
+        self.gamma = 1.0
+        self._median: float | None = None
+        self._lut: np.ndarray | None = None
+
+    def __call__(self, gray: np.ndarray) -> np.ndarray:
+        """``(H, W)`` uint8 -> the normalised image (the input itself when gamma is 1)."""
+        median = float(np.median(gray[::8, ::8])) + 0.5
+        self._median = median if self._median is None else 0.8 * self._median + 0.2 * median
+        m = min(max(self._median / 255.0, 1e-3), 0.999)
+        gamma = min(1.0, max(0.2, round(math.log(self.target) / math.log(m) * 20) / 20))
+        if gamma >= 1.0:
+            return gray
+        if self._lut is None or gamma != self.gamma:
+            self.gamma = gamma
+            self._lut = np.round(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
+        return cv2.LUT(gray, self._lut)
+
+
+def epipolar_inliers(
+    uv0: np.ndarray,
+    uv1: np.ndarray,
+    K: np.ndarray,
+    *,
+    magsac: bool = True,
+    threshold_px: float = 1.0,
+    confidence: float = 0.999,
+    seed: int = 0,
+    min_tracks: int = 15,
+    min_motion_px: float = 1.0,
+    min_inlier_share: float = 0.3,
+) -> np.ndarray | None:
+    """Tracks consistent with one essential matrix (``cv2.findEssentialMat``).
+
+    Args:
+        uv0: ``(N, 2)`` pixels in the first view.
+        uv1: ``(N, 2)`` the same tracks in the second view.
+        K: ``(3, 3)`` intrinsics.
+        magsac: ``cv2.USAC_MAGSAC`` (else ``cv2.RANSAC``).
+        threshold_px: inlier threshold.
+        confidence: RANSAC confidence.
+        seed: OpenCV RNG seed.
+        min_tracks: fewer tracks: no check.
+        min_motion_px: smaller median displacement: no check (no motion, no model).
+        min_inlier_share: a model explaining fewer tracks is no model.
+
+    Returns:
+        ``(N,)`` bool, or None when the check is skipped.
+    """
+    n = uv0.shape[0]
+    if n < max(min_tracks, 5) or np.median(np.linalg.norm(uv1 - uv0, axis=1)) < min_motion_px:
+        return None
+    cv2.setRNGSeed(seed)
+    E, mask = cv2.findEssentialMat(
+        uv0.astype(np.float64),
+        uv1.astype(np.float64),
+        K,
+        cv2.USAC_MAGSAC if magsac else cv2.RANSAC,
+        confidence,
+        threshold_px,
+    )
+    if E is None or E.shape != (3, 3) or mask is None:
+        return None
+    inl = mask.reshape(-1) > 0
+    return inl if inl.sum() >= min_inlier_share * n else None
+
+
+@dataclass
 class Gradients:
-    """Sobel gradients of an image, ``(H, W)`` float32, and integral images of their products,
-    ``(H + 1, W + 1)`` float64 (window sums in four look-ups)."""
+    """Sobel gradients of an image, ``(H, W)`` float32 each."""
 
     Ix: np.ndarray
     Iy: np.ndarray
-    Ixx: np.ndarray
-    Iyy: np.ndarray
-    Ixy: np.ndarray
 
 
 def gradients(gray: np.ndarray) -> Gradients:
     """Gradients of ``gray`` ``(H, W)`` uint8 (3x3 Sobel)."""
-    Ix = cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3)
-    Iy = cv2.Sobel(gray, cv2.CV_16S, 0, 1, ksize=3)
-    products = (
-        cv2.multiply(Ix, Ix, dtype=cv2.CV_32F),
-        cv2.multiply(Iy, Iy, dtype=cv2.CV_32F),
-        cv2.multiply(Ix, Iy, dtype=cv2.CV_32F),
-    )
-    Ixx, Iyy, Ixy = (cv2.integral(p, sdepth=cv2.CV_64F) for p in products)
-    return Gradients(Ix.astype(np.float32), Iy.astype(np.float32), Ixx, Iyy, Ixy)
+    Ix = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3)
+    Iy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+    return Gradients(Ix, Iy)
 
 
-def _window_sums(grads: Gradients, uv: np.ndarray, window: int) -> tuple[np.ndarray, ...]:
-    """``(Sxx, Syy, Sxy)``, each ``(N,)``: gradient products summed over the ``window`` x
-    ``window`` square centred at the pixel nearest to ``uv`` (clipped at the border)."""
+def _window_gradients(
+    grads: Gradients, uv: np.ndarray, window: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Gradients in the ``window`` x ``window`` square centred at the pixel nearest to each
+    point of ``uv`` ``(N, 2)`` (clamped at the border): ``gx, gy (N, w * w)`` and the pixel
+    coordinates ``U (N, w)``, ``V (N, w)`` of its columns and rows."""
     H, W = grads.Ix.shape
-    r = window // 2
-    u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, W - 1)
-    v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, H - 1)
-    u0, u1 = np.maximum(u - r, 0), np.minimum(u + r + 1, W)
-    v0, v1 = np.maximum(v - r, 0), np.minimum(v + r + 1, H)
-    return tuple(
-        I[v1, u1] - I[v0, u1] - I[v1, u0] + I[v0, u0] for I in (grads.Ixx, grads.Iyy, grads.Ixy)
-    )
+    off = np.arange(-(window // 2), window // 2 + 1)
+    U = np.clip(np.round(uv[:, 0]).astype(np.int64)[:, None] + off, 0, W - 1)
+    V = np.clip(np.round(uv[:, 1]).astype(np.int64)[:, None] + off, 0, H - 1)
+    flat = (V[:, :, None] * W + U[:, None, :]).reshape(uv.shape[0], -1)  # row-major
+    return grads.Ix.ravel()[flat], grads.Iy.ravel()[flat], U, V
 
 
 def isotropic(grads: Gradients, uv: np.ndarray, window: int, min_ratio: float) -> np.ndarray:
     """``(N,)`` bool: the structure tensor of the window at ``uv`` ``(N, 2)`` has
     ``lambda_min >= min_ratio * lambda_max`` (a corner, not an edge)."""
-    a, b, c = _window_sums(grads, uv, window)
+    if uv.shape[0] == 0:
+        return np.zeros(0, dtype=bool)
+    gx, gy, _, _ = _window_gradients(grads, uv, window)
+    a = np.einsum("ij,ij->i", gx, gx)
+    b = np.einsum("ij,ij->i", gy, gy)
+    c = np.einsum("ij,ij->i", gx, gy)
     half_tr = 0.5 * (a + b)
     disc = np.sqrt(np.maximum(half_tr * half_tr - (a * b - c * c), 0.0))
     return half_tr - disc >= min_ratio * np.maximum(half_tr + disc, 1e-12)
@@ -113,16 +234,11 @@ def centre(grads: Gradients, uv: np.ndarray, window: int, iterations: int = 3) -
     n = p.shape[0]
     if n == 0 or iterations <= 0:
         return p
-    H, W = grads.Ix.shape
-    off = np.arange(-(window // 2), window // 2 + 1)
-    gxf, gyf = grads.Ix.ravel(), grads.Iy.ravel()
+    w = window // 2 * 2 + 1
     for _ in range(iterations):
-        U = np.clip(np.round(p[:, 0]).astype(np.int64)[:, None] + off, 0, W - 1)  # (N, w)
-        V = np.clip(np.round(p[:, 1]).astype(np.int64)[:, None] + off, 0, H - 1)
-        flat = (V[:, :, None] * W + U[:, None, :]).reshape(n, -1)  # (N, w * w), row-major
-        gx, gy = gxf[flat], gyf[flat]
-        xx = np.broadcast_to((U - p[:, :1])[:, None, :], (n, off.size, off.size)).reshape(n, -1)
-        yy = np.broadcast_to((V - p[:, 1:])[:, :, None], (n, off.size, off.size)).reshape(n, -1)
+        gx, gy, U, V = _window_gradients(grads, p, window)
+        xx = np.broadcast_to((U - p[:, :1])[:, None, :], (n, w, w)).reshape(n, -1)
+        yy = np.broadcast_to((V - p[:, 1:])[:, :, None], (n, w, w)).reshape(n, -1)
         a, b, c = gx * gx, gy * gy, gx * gy
         Sa, Sb, Sc = a.sum(axis=1), b.sum(axis=1), c.sum(axis=1)
         mx = np.einsum("ij,ij->i", a, xx) + np.einsum("ij,ij->i", c, yy)

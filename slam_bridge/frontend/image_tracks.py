@@ -43,14 +43,17 @@ Then new observations:
 
 9. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) ``min_distance_px`` from
    each other and from the live tracks, with the eigenvalue ratio of step 5;
-10. **re-observation** (``reobserve``): the map's triangulated points of the current segment
-    that no track follows (and that no check dropped: retired points) are projected (:func:`slam_bridge.camera.project`) with the map-check
-    pose (radius ``match_radius_pnp_px``) or, without it, with
-    :meth:`slam_bridge.slam.map.Map.predict_pose` (radius ``match_radius_px``) and matched to the
-    candidates by their stored ORB descriptor (Hamming <= ``max_descriptor_distance``, ratio test
-    ``match_ratio``, one point per candidate); the matches are verified against the map-check
-    pose, or by a PnP of their own with the tracked points, within ``map_check_threshold_px``; a
-    verified candidate becomes a track with the point's old id;
+10. **re-observation** (``reobserve``, :mod:`slam_bridge.frontend.reobservation`): the map's
+    triangulated points of the current segment that no track follows and no check dropped
+    (*retired* points) are projected with the map-check pose (search radius
+    ``match_radius_pnp_px``) or, without it, with :meth:`slam_bridge.slam.map.Map.predict_pose`
+    (radius ``match_radius_px``). Those that one of the last ``reacquire_keyframes`` keyframes
+    saw are **re-acquired** by LK from that keyframe's image, started at the projection
+    (forward-backward checked, within the radius); the others are **matched** by their stored ORB
+    descriptor to the candidates within the radius (Hamming <= ``max_descriptor_distance``,
+    ratio test ``match_ratio``, one point per candidate). Both are verified against the
+    map-check pose, or by a PnP of their own with the tracked points, within
+    ``map_check_threshold_px``, and then tracked on with the point's old id;
 11. **top-up**: the other candidates, strongest first, fill the grid (``grid`` cells,
     ``max_tracks / cells`` tracks each, then what is left of ``max_tracks`` up to twice that);
 12. **centring**: new and re-observed tracks start at the fixed point of LK under a change of
@@ -59,23 +62,31 @@ Then new observations:
 13. **descriptors**: upright ORB for the new tracks and (``refresh_descriptors``) every live
     track: a lost point is then matched by its latest appearance.
 
+New corners go preferably where corners survive: a grid cell's quota is scaled by the recent
+first-frame survival of its new tracks (``adaptive_grid``; the near road of a forward camera,
+aliased or too fast, loses most of them), and corners that do not survive their first frame do
+not count in the keyframe rule's tracked share.
+
 Before tracking on, :meth:`ImageTracks.next_keyframe` drops the tracks whose observation in the
 previous keyframe the loop rejected (``Map.obs_active`` False).
 
 The first frame is the first keyframe; :meth:`ImageTracks.next_keyframe` returns None once the
 frames are exhausted (the frames after the last keyframe are not delivered). A keyframe left
-without any track (a blank frame) is not delivered: the next frame is a keyframe instead. Pixel lengths of the
-config (``min_distance_px``, ``border_px``, ``match_radius*_px``, ``flow_abs_px``, the keyframe
-parallax) are given at ``reference_width`` and scaled by ``W / reference_width``; accuracies
-(``fb_threshold_px``, ``ransac_threshold_px``, ``map_check_threshold_px``) and the LK window are
-in pixels of the images as they are.
+without any track (a blank frame) is not delivered: the next frame is a keyframe instead.
+
+Pixel lengths of the config (``min_distance_px``, ``border_px``, ``match_radius*_px``,
+``flow_abs_px``, the keyframe parallax) are given at ``reference_width`` and scaled by
+``W / reference_width``; accuracies (``fb_threshold_px``, ``ransac_threshold_px``,
+``map_check_threshold_px``) and the LK window are in pixels of the images as they are.
 
 Segments: keyframes of different map segments share no point. When the loop starts a segment it
 calls :meth:`ImageTracks.start_segment`, which gives every live track a fresh id (returning the
 new ids of the ids it is given) and limits re-observation to points born after it.
 
-The time of each stage is accumulated in :attr:`ImageTracks.timings` (see
+The CPU time of each stage is accumulated in :attr:`ImageTracks.timings` (see
 :meth:`ImageTracks.timing_report`) and the effect of each check in :attr:`ImageTracks.stats`.
+Deterministic: the same frames, config and map give the same keyframes (``seed`` fixes
+OpenCV's RANSAC).
 """
 
 from __future__ import annotations
@@ -84,6 +95,8 @@ import logging
 import math
 import time
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -97,6 +110,7 @@ from slam_bridge.frontend import features as ft
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import FrameSequence, check_intrinsics
 from slam_bridge.frontend.keyframes import DistanceFn, KeyframeConfig, KeyframeRule
+from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.geometry import PnPResult, pnp
 
 if TYPE_CHECKING:
@@ -204,95 +218,55 @@ class ImageTracksConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        def check(key: str, ok: bool, expected: str) -> None:
-            if not ok:
+        for key, (ok, expected) in _CHECKS.items():
+            if not ok(getattr(self, key)):
                 raise SlamError(
                     f"ImageTracksConfig.{key}: expected {expected}, got {getattr(self, key)!r}"
                 )
 
-        def number(v: object) -> bool:
-            return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
-        def integer(v: object) -> bool:
-            return isinstance(v, int) and not isinstance(v, bool)
-
-        for key in ("max_tracks", "block_size", "lk_iterations", "reference_width"):
-            v = getattr(self, key)
-            check(key, integer(v) and v > 0, "an integer > 0")
-        for key in ("pyramid_levels", "centre_iterations", "min_epipolar_tracks"):
-            v = getattr(self, key)
-            check(key, integer(v) and v >= 0, "an integer >= 0")
-        v = self.flow_neighbours
-        check("flow_neighbours", integer(v) and v >= 2, "an integer >= 2")
-        for key in (
-            "min_distance_px",
-            "quality_level",
-            "lk_epsilon",
-            "fb_threshold_px",
-            "ransac_threshold_px",
-            "match_radius_px",
-            "match_radius_pnp_px",
-            "map_check_threshold_px",
-            "flow_abs_px",
-            "centre_max_shift_px",
-        ):
-            v = getattr(self, key)
-            check(key, number(v) and v > 0, "a number > 0")
-        for key in ("border_px", "lk_min_eigenvalue", "min_epipolar_motion_px", "flow_rel"):
-            v = getattr(self, key)
-            check(key, number(v) and v >= 0, "a number >= 0")
-        w = self.window_px
-        check("window_px", integer(w) and w >= 5 and w % 2 == 1, "an odd integer >= 5")
-        g = self.grid
-        ok = isinstance(g, tuple | list) and len(g) == 2 and all(integer(c) and c >= 1 for c in g)
-        check("grid", ok, "(columns, rows), integers >= 1")
-        check("epipolar", self.epipolar in ("frame", "keyframe", "both", "off"), "frame, "
-              "keyframe, both or off")  # fmt: skip
-        check("ransac_method", self.ransac_method in ("magsac", "ransac"), "magsac or ransac")
-        check("ransac_confidence", 0 < self.ransac_confidence < 1, "a number in (0, 1)")
-        gt = self.gamma_target
-        check("gamma_target", gt is None or (number(gt) and 0 < gt < 1), "None or in (0, 1)")
-        check("min_eigen_ratio", number(self.min_eigen_ratio) and 0 <= self.min_eigen_ratio < 1,
-              "a number in [0, 1)")  # fmt: skip
-        md = self.max_deformation
-        check("max_deformation", md is None or (number(md) and md > 0), "None or a number > 0")
-        check("match_ratio", number(self.match_ratio) and 0 < self.match_ratio <= 1, "in (0, 1]")
-        d = self.max_descriptor_distance
-        check("max_descriptor_distance", integer(d) and 0 <= d <= 256, "an integer in [0, 256]")
-        check("min_map_points", integer(self.min_map_points) and self.min_map_points >= 6,
-              "an integer >= 6")  # fmt: skip
+def _number(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
-@dataclass
-class _Tracks:
-    """The live tracks (``N``): ids, pixels, last displacement (NaN: unknown), pixels at the
-    last keyframe and the local linear map accumulated since the track's birth."""
+def _integer(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
 
-    ids: np.ndarray
-    uv: np.ndarray
-    vel: np.ndarray
-    uv_kf: np.ndarray
-    A: np.ndarray
 
-    @classmethod
-    def empty(cls) -> _Tracks:
-        z = np.zeros((0, 2), dtype=np.float32)
-        return cls(np.zeros(0, np.int64), z, z.copy(), z.copy(), np.zeros((0, 2, 2)))
-
-    def __len__(self) -> int:
-        return int(self.ids.size)
-
-    def keep(self, mask: np.ndarray) -> None:
-        for name in ("ids", "uv", "vel", "uv_kf", "A"):
-            setattr(self, name, getattr(self, name)[mask])
-
-    def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
-        uv = np.asarray(uv, dtype=np.float32).reshape(-1, 2)
-        self.ids = np.concatenate([self.ids, ids])
-        self.uv = np.concatenate([self.uv, uv])
-        self.vel = np.concatenate([self.vel, np.full_like(uv, np.nan)])
-        self.uv_kf = np.concatenate([self.uv_kf, uv])
-        self.A = np.concatenate([self.A, np.broadcast_to(np.eye(2), (len(ids), 2, 2))])
+_POSITIVE_INT = (lambda v: _integer(v) and v > 0, "an integer > 0")
+_NATURAL = (lambda v: _integer(v) and v >= 0, "an integer >= 0")
+_POSITIVE = (lambda v: _number(v) and v > 0, "a number > 0")
+_NON_NEGATIVE = (lambda v: _number(v) and v >= 0, "a number >= 0")
+# fmt: off
+_CHECKS = {
+    **dict.fromkeys(("max_tracks", "block_size", "lk_iterations", "reference_width"),
+                    _POSITIVE_INT),
+    **dict.fromkeys(("pyramid_levels", "centre_iterations", "min_epipolar_tracks",
+                     "reacquire_keyframes"), _NATURAL),
+    **dict.fromkeys(("border_px", "lk_min_eigenvalue", "min_epipolar_motion_px", "flow_rel"),
+                    _NON_NEGATIVE),
+    **dict.fromkeys(("min_distance_px", "quality_level", "lk_epsilon", "fb_threshold_px",
+                     "flow_abs_px", "ransac_threshold_px", "match_radius_px",
+                     "match_radius_pnp_px", "centre_max_shift_px", "map_check_threshold_px"),
+                    _POSITIVE),
+    "flow_neighbours": (lambda v: _integer(v) and v >= 2, "an integer >= 2"),
+    "window_px": (lambda v: _integer(v) and v >= 5 and v % 2 == 1, "an odd integer >= 5"),
+    "grid": (lambda g: isinstance(g, tuple | list) and len(g) == 2
+             and all(_integer(c) and c >= 1 for c in g), "(columns, rows), integers >= 1"),
+    "epipolar": (lambda v: v in ("frame", "keyframe", "both", "off"),
+                 "frame, keyframe, both or off"),
+    "ransac_method": (lambda v: v in ("magsac", "ransac"), "magsac or ransac"),
+    "ransac_confidence": (lambda v: _number(v) and 0 < v < 1, "a number in (0, 1)"),
+    "gamma_target": (lambda v: v is None or (_number(v) and 0 < v < 1),
+                     "None or a number in (0, 1)"),
+    "min_eigen_ratio": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
+    "max_deformation": (lambda v: v is None or (_number(v) and v > 0), "None or a number > 0"),
+    "match_ratio": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
+    "max_descriptor_distance": (lambda v: _integer(v) and 0 <= v <= 256,
+                                "an integer in [0, 256]"),
+    "min_map_points": (lambda v: _integer(v) and v >= 6, "an integer >= 6"),
+}
+# fmt: on
 
 
 class ImageTracks:
@@ -313,10 +287,15 @@ class ImageTracks:
         keyframe_log: per delivered keyframe, ``(reason, tracked share, median displacement
             px)`` as the keyframe rule saw them (reasons: ``first``, ``spacing``, ``parallax``,
             ``tracks``, ``gap``; :mod:`slam_bridge.frontend.keyframes`).
-        timings: seconds per stage (``read``, ``gray``, ``track``, ``epipolar``, ``checks``,
-            ``map_check``, ``detect``, ``describe``, ``reobserve``, ``total``) and counts
-            (``frames``, ``keyframes``).
-        stats: how many tracks each check dropped, keyframes per reason, re-observations.
+        timings: CPU seconds of the process (``time.process_time``: all its threads; a busy
+            shared machine does not inflate them) per stage (``read``, ``gray``, ``track``,
+            ``epipolar``, ``checks``, ``map_check``, ``detect``, ``reobserve``, ``describe``,
+            ``topup``, ``keyframe``: all the keyframe stages, ``total``) and counts (``frames``,
+            ``keyframes``).
+        stats: how many tracks each check dropped (``fb_lost``, ``epipolar_frame``,
+            ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``map_rejected``,
+            ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
+            matches, keyframes per reason (``keyframe_*``), ``empty_keyframes``.
     """
 
     def __init__(
@@ -352,28 +331,19 @@ class ImageTracks:
             minEigThreshold=cfg.lk_min_eigenvalue,
         )
         self._orb = ft.OrbDescriptors()
-        self._tracks = _Tracks.empty()
+        self._tracks = ft.TrackSet.empty()
         self._n_kf = 0  # established tracks (tracked through a frame) at the last keyframe
         self._established: np.ndarray | None = np.zeros(0, dtype=np.int64)  # their ids
         ncell = cfg.grid[0] * cfg.grid[1]
         self._born = np.zeros(ncell)  # new tracks per cell (decaying sum)
         self._survived = np.zeros(ncell)  # of which tracked through their first frame
-        self._desc = np.zeros((0, ft.DESCRIPTOR_BYTES), dtype=np.uint8)  # per point id
-        self._has_desc = np.zeros(0, dtype=bool)
+        self._memory = PointMemory(cfg.reacquire_keyframes)
         self._next_id = 0
-        self._segment_first_id = 0
-        self._retired = np.zeros(0, dtype=bool)  # per point id: dropped by a check
-        self._kf_count = 0  # keyframes made (delivered or not)
-        self._kf_grays: dict[int, np.ndarray] = {}  # the last few keyframes' images
-        self._last_kf = np.zeros(0, dtype=np.int64)  # per point id: last keyframe seen (-1)
-        self._last_uv = np.zeros((0, 2), dtype=np.float32)  # ... and where
         self._next_frame = 0
         self._prev_gray: np.ndarray | None = None
         self._kf_frame = -1
         self._kf_time = math.nan
-        self._median_gray: float | None = None
-        self._gamma = 1.0
-        self._lut: np.ndarray | None = None
+        self._gamma = ft.GammaNormaliser(cfg.gamma_target) if cfg.gamma_target else None
         self.pose_estimate: tuple[np.ndarray, np.ndarray] | None = None
         self.keyframe_log: list[tuple[str, float, float]] = []
         self.timings: dict[str, float] = defaultdict(float)
@@ -390,7 +360,7 @@ class ImageTracks:
         Returns:
             The keyframe, or None when the frames are exhausted.
         """
-        t_start = time.perf_counter()
+        t_start = time.process_time()
         try:
             if slam_map is not None and self._next_frame > 0:
                 self._drop_rejected(slam_map)
@@ -416,7 +386,7 @@ class ImageTracks:
                 self.stats["empty_keyframes"] += 1  # nothing to observe: not delivered
             return None
         finally:
-            self.timings["total"] += time.perf_counter() - t_start
+            self.timings["total"] += time.process_time() - t_start
 
     def start_segment(self, point_ids: np.ndarray | None = None) -> np.ndarray:
         """Give every live track a fresh id (the loop starts a new map segment).
@@ -429,10 +399,9 @@ class ImageTracks:
             ``(N,)`` the new ids of ``point_ids`` (empty when None).
         """
         old = self._tracks.ids
-        self._segment_first_id = self._next_id
+        self._memory.first_id = self._next_id
         self._tracks.ids = self._new_ids(old.size)
-        ok = old < self._has_desc.size
-        self._store_descriptors(self._tracks.ids[ok], self._desc[old[ok]], self._has_desc[old[ok]])
+        self._memory.copy_descriptors(old, self._tracks.ids)
         if point_ids is None:
             return np.zeros(0, dtype=np.int64)
         point_ids = np.asarray(point_ids, dtype=np.int64).reshape(-1)
@@ -448,7 +417,7 @@ class ImageTracks:
         n = max(self.timings.get("frames", 0), 1)
         k = max(self.timings.get("keyframes", 0), 1)
         per_frame = ("read", "gray", "track", "epipolar", "total")
-        per_kf = ("checks", "map_check", "detect", "describe", "reobserve", "keyframe")
+        per_kf = ("checks", "map_check", "detect", "reobserve", "describe", "topup", "keyframe")
         out = {f"{s}_ms_per_frame": 1e3 * self.timings.get(s, 0.0) / n for s in per_frame}
         out.update({f"{s}_ms_per_keyframe": 1e3 * self.timings.get(s, 0.0) / k for s in per_kf})
         out["frontend_ms_per_frame"] = out["total_ms_per_frame"] - out["read_ms_per_frame"]
@@ -457,30 +426,15 @@ class ImageTracks:
 
     # ------------------------------------------------------------------------------ frames
     def _read(self, i: int) -> tuple[float, np.ndarray, np.ndarray]:
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         t, rgb = self.frames[i]
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-        if self.config.gamma_target is not None:
-            gray = self._normalise(gray)
+        if self._gamma is not None:
+            gray = self._gamma(gray)
         self.timings["read"] += t1 - t0
-        self.timings["gray"] += time.perf_counter() - t1
+        self.timings["gray"] += time.process_time() - t1
         return float(t), rgb, gray
-
-    def _normalise(self, gray: np.ndarray) -> np.ndarray:
-        """Global gamma lookup: median grey -> ``gamma_target`` (brighten only)."""
-        median = float(np.median(gray[::8, ::8])) + 0.5
-        m0 = self._median_gray
-        self._median_gray = median if m0 is None else 0.8 * m0 + 0.2 * median
-        m = min(max(self._median_gray / 255.0, 1e-3), 0.999)
-        gamma = math.log(self.config.gamma_target) / math.log(m)
-        gamma = min(1.0, max(0.2, round(gamma * 20) / 20))  # quantised: one table for long
-        if gamma >= 1.0:
-            return gray
-        if self._lut is None or gamma != self._gamma:
-            self._gamma = gamma
-            self._lut = np.round(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
-        return cv2.LUT(gray, self._lut)
 
     # ------------------------------------------------------------------------------ tracking
     def _track(self, gray: np.ndarray) -> None:
@@ -488,7 +442,7 @@ class ImageTracks:
         if len(tr) == 0 or self._prev_gray is None:
             return
         cfg = self.config
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         p0 = tr.uv.reshape(-1, 1, 2)
         guess = (tr.uv + self._predicted_velocity()).astype(np.float32).reshape(-1, 1, 2)
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
@@ -500,15 +454,15 @@ class ImageTracks:
         ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < cfg.fb_threshold_px)
         ok &= self._inside(p1)
         self.stats["fb_lost"] += int(len(tr) - ok.sum())
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         self.timings["track"] += t1 - t0
         if cfg.epipolar in ("frame", "both"):
             inl = self._epipolar_inliers(tr.uv[ok], p1[ok])
             outliers = np.flatnonzero(ok)[~inl]
             self.stats["epipolar_frame"] += outliers.size
-            self._retire(tr.ids[outliers])
+            self._memory.retire(tr.ids[outliers])
             ok[outliers] = False
-            self.timings["epipolar"] += time.perf_counter() - t1
+            self.timings["epipolar"] += time.process_time() - t1
         new = np.isnan(tr.vel[:, 0])
         if new.any():  # first-frame survival of new tracks, per grid cell
             cells = ft.grid_cells(tr.uv[new], cfg.grid, self.image_size)
@@ -551,29 +505,17 @@ class ImageTracks:
             return (u >= b) & (u <= W - 1 - b) & (v >= b) & (v <= H - 1 - b)
 
     def _epipolar_inliers(self, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: consistent with one essential matrix (all True when the check is
-        skipped: too few tracks, too little motion, or no model found)."""
+        """``(N,)`` bool: consistent with one essential matrix (all True when skipped)."""
         cfg = self.config
-        n = uv0.shape[0]
-        keep = np.ones(n, dtype=bool)
-        if n < max(cfg.min_epipolar_tracks, 5):
-            return keep
-        if np.median(np.linalg.norm(uv1 - uv0, axis=1)) < cfg.min_epipolar_motion_px:
-            return keep
-        method = cv2.USAC_MAGSAC if cfg.ransac_method == "magsac" else cv2.RANSAC
-        cv2.setRNGSeed(cfg.seed)
-        E, mask = cv2.findEssentialMat(
-            uv0.astype(np.float64),
-            uv1.astype(np.float64),
-            self.K,
-            method,
-            cfg.ransac_confidence,
-            cfg.ransac_threshold_px,
-        )
-        inl = None if mask is None else mask.reshape(-1) > 0
-        if E is None or E.shape != (3, 3) or inl is None or inl.sum() < 0.3 * n:
-            self.stats["epipolar_skipped"] += 1  # a model that explains so little is no model
-            return keep
+        inl = ft.epipolar_inliers(
+            uv0, uv1, self.K, magsac=cfg.ransac_method == "magsac",
+            threshold_px=cfg.ransac_threshold_px, confidence=cfg.ransac_confidence,
+            seed=cfg.seed, min_tracks=cfg.min_epipolar_tracks,
+            min_motion_px=cfg.min_epipolar_motion_px,
+        )  # fmt: skip
+        if inl is None:
+            self.stats["epipolar_skipped"] += 1
+            return np.ones(uv0.shape[0], dtype=bool)
         return inl
 
     def _since_keyframe(self) -> tuple[float, float]:
@@ -613,26 +555,26 @@ class ImageTracks:
         slam_map: Map | None,
         reason: str,
     ) -> KeyframeObservations:
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         self.stats[f"keyframe_{reason}"] += 1
         self.timings["keyframes"] += 1
         grads = ft.gradients(gray)
         self._check_tracks(grads)
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         self.timings["checks"] += t1 - t0
         self.pose_estimate = None
         if slam_map is not None and self.config.map_check:
             self.pose_estimate = self._map_check(slam_map)
-        self.timings["map_check"] += time.perf_counter() - t1
+        self.timings["map_check"] += time.process_time() - t1
         self._add_tracks(t, gray, grads, slam_map)
         tr = self._tracks
         tr.uv_kf = tr.uv.copy()
-        self._remember(gray)
+        self._memory.remember(gray, tr.ids, tr.uv)
         established = np.isfinite(tr.vel[:, 0])
         self._established = tr.ids[established] if established.any() else None
         self._n_kf = int(established.sum())
         self._kf_frame, self._kf_time = i, t
-        self.timings["keyframe"] += time.perf_counter() - t0
+        self.timings["keyframe"] += time.process_time() - t0
         logger.debug("keyframe at frame %d (%s): %d tracks", i, reason, len(tr))
         return KeyframeObservations(
             timestamp=t,
@@ -646,9 +588,9 @@ class ImageTracks:
         """Stages 4-7 on the live tracks (module docstring)."""
         cfg, tr = self.config, self._tracks
         if len(tr) and cfg.epipolar in ("keyframe", "both"):
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             self._drop(self._epipolar_inliers(tr.uv_kf, tr.uv), "epipolar_keyframe")
-            self.timings["epipolar"] += time.perf_counter() - t0
+            self.timings["epipolar"] += time.process_time() - t0
         if len(tr) and cfg.min_eigen_ratio > 0:
             self._drop(
                 ft.isotropic(grads, tr.uv, cfg.window_px, cfg.min_eigen_ratio), "aperture_rejected"
@@ -666,7 +608,7 @@ class ImageTracks:
             if renew.any():
                 idx = np.flatnonzero(renew)
                 uv, good = self._centred(grads, tr.uv[idx])
-                self._retire(tr.ids[idx])
+                self._memory.retire(tr.ids[idx])
                 r = idx[good]
                 tr.ids[r] = self._new_ids(r.size)
                 tr.uv[r], tr.vel[r], tr.A[r] = uv[good], np.nan, np.eye(2)
@@ -680,16 +622,8 @@ class ImageTracks:
         are retired (never re-acquired nor re-observed)."""
         tr = self._tracks
         self.stats[reason] += int((~keep).sum())
-        self._retire(tr.ids[~keep])
+        self._memory.retire(tr.ids[~keep])
         tr.keep(keep)
-
-    def _retire(self, ids: np.ndarray) -> None:
-        if ids.size == 0:
-            return
-        if ids.max() >= self._retired.size:
-            grow = max(int(ids.max()) + 1, 2 * self._retired.size, 1024) - self._retired.size
-            self._retired = np.concatenate([self._retired, np.zeros(grow, dtype=bool)])
-        self._retired[ids] = True
 
     def _map_check(self, slam_map: Map) -> tuple[np.ndarray, np.ndarray] | None:
         """Stage 8: PnP on the tracks of triangulated points, dropping those it rejects.
@@ -738,55 +672,71 @@ class ImageTracks:
     ) -> None:
         """Stages 9-13: candidates, re-observation, top-up, centring, descriptors."""
         cfg, tr = self.config, self._tracks
-        t0 = time.perf_counter()
-        cand = ft.detect_corners(
-            gray,
-            max_corners=2 * cfg.max_tracks + len(tr),
-            quality_level=cfg.quality_level,
-            min_distance=self._min_dist,
-            border=self._border,
-            block_size=cfg.block_size,
-            avoid=tr.uv,
-        )
-        if cfg.min_eigen_ratio > 0 and cand.shape[0]:
-            cand = cand[ft.isotropic(grads, cand, cfg.window_px, cfg.min_eigen_ratio)]
-        t1 = time.perf_counter()
-        self.timings["detect"] += t1 - t0
+        with self._clock("detect"):
+            cand = ft.detect_corners(
+                gray,
+                max_corners=2 * cfg.max_tracks + len(tr),
+                quality_level=cfg.quality_level,
+                min_distance=self._min_dist,
+                border=self._border,
+                block_size=cfg.block_size,
+                avoid=tr.uv,
+            )
+            if cfg.min_eigen_ratio > 0 and cand.shape[0]:
+                cand = cand[ft.isotropic(grads, cand, cfg.window_px, cfg.min_eigen_ratio)]
         proj = None
         near = np.zeros(0, dtype=np.int64)
-        if cfg.reobserve and slam_map is not None and cand.shape[0]:
-            proj = self._projected_points(t, slam_map)
-        if proj is not None and cfg.reacquire_keyframes > 0:
-            point, uv, tried = self._reacquire(slam_map, proj, gray)
-            tr.append(point, uv)
-            self.stats["reacquired"] += int(point.size)
-            keep = ~tried
-            proj = (proj[0][keep], proj[1][keep], proj[2][keep], proj[3]) if keep.any() else None
-            if point.size:  # no new corner on them
-                d, _ = cKDTree(uv).query(cand, k=1, distance_upper_bound=self._min_dist)
-                cand = cand[~np.isfinite(d)]
-        if proj is not None:  # candidates that may be a projected point, centred like tracks
-            d, _ = cKDTree(proj[1]).query(cand, k=1, distance_upper_bound=proj[3])
-            near = np.flatnonzero(np.isfinite(d))
-            uv, ok = self._centred(grads, cand[near])
-            near = near[ok]
-            cand[near] = uv[ok]
-        live = len(tr) if cfg.refresh_descriptors else 0
-        desc, has = self._orb.compute(gray, np.concatenate([tr.uv[:live], cand[near]]))
-        self._store_descriptors(tr.ids[:live], desc[:live], has[:live])
-        t2 = time.perf_counter()
-        self.timings["describe"] += t2 - t1
+        radius = self._radius_pnp if self.pose_estimate is not None else self._radius
+        with self._clock("reobserve"):
+            pose = self.pose_estimate
+            if cfg.reobserve and slam_map is not None and pose is None:
+                pose = slam_map.predict_pose(t)
+            if cfg.reobserve and slam_map is not None and pose is not None:
+                proj = self._memory.projected(slam_map, pose, self.K, tr.ids, self._inside)
+            if proj is not None and cfg.reacquire_keyframes > 0:
+                idx, uv, tried = self._memory.reacquire(
+                    proj, gray, radius=radius, lk=self._lk, fb_threshold=cfg.fb_threshold_px,
+                    inside=self._inside,
+                )  # fmt: skip
+                if cfg.map_check and idx.size:
+                    ok = self._verify(slam_map, proj[2][idx], uv)
+                    self.stats["reacquire_rejected"] += int((~ok).sum())
+                    idx, uv = idx[ok], uv[ok]
+                tr.append(proj[0][idx], uv)
+                self.stats["reacquired"] += int(idx.size)
+                proj = None if tried.all() else tuple(a[~tried] for a in proj)
+                if idx.size:  # no new corner on them
+                    d, _ = cKDTree(uv).query(cand, k=1, distance_upper_bound=self._min_dist)
+                    cand = cand[~np.isfinite(d)]
+            if proj is not None:  # candidates that may be a projected point, centred as tracks
+                d, _ = cKDTree(proj[1]).query(cand, k=1, distance_upper_bound=radius)
+                near = np.flatnonzero(np.isfinite(d))
+                uv, ok = self._centred(grads, cand[near])
+                near = near[ok]
+                cand[near] = uv[ok]
+        with self._clock("describe"):
+            live = len(tr) if cfg.refresh_descriptors else 0
+            desc, has = self._orb.compute(gray, np.concatenate([tr.uv[:live], cand[near]]))
+            self._memory.store_descriptors(tr.ids[:live], desc[:live], has[:live])
         taken = np.zeros(cand.shape[0], dtype=bool)
         if proj is not None and near.size:
-            point, ci = self._reobserve(slam_map, proj, cand[near], desc[live:], has[live:])
-            taken[near[ci]] = True
-            tr.append(point, cand[near[ci]])
-            self.stats["reobserved"] += int(point.size)
-        t3 = time.perf_counter()
-        self.timings["reobserve"] += t3 - t2
+            with self._clock("reobserve"):
+                pi, ci = self._memory.match(
+                    proj, cand[near], desc[live:], has[live:], radius=radius,
+                    max_distance=cfg.max_descriptor_distance, ratio=cfg.match_ratio,
+                )  # fmt: skip
+                if cfg.map_check and pi.size:
+                    ok = self._verify(slam_map, proj[2][pi], cand[near[ci]])
+                    self.stats["reobserve_rejected"] += int((~ok).sum())
+                    pi, ci = pi[ok], ci[ok]
+                taken[near[ci]] = True
+                tr.append(proj[0][pi], cand[near[ci]])
+                self.stats["reobserved"] += int(pi.size)
         room = cfg.max_tracks - len(tr)
         free = np.flatnonzero(~taken)
-        if room > 0 and free.size:
+        if room <= 0 or free.size == 0:
+            return
+        with self._clock("topup"):
             chosen = ft.grid_top_up(
                 ft.grid_cells(cand[free], cfg.grid, self.image_size),
                 ft.grid_cells(tr.uv, cfg.grid, self.image_size),
@@ -797,75 +747,17 @@ class ImageTracks:
             uv = uv[ok]
             ids = self._new_ids(uv.shape[0])
             tr.append(ids, uv)
-            t4 = time.perf_counter()
-            self._store_descriptors(ids, *self._orb.compute(gray, uv))
-            self.timings["describe"] += time.perf_counter() - t4
-        self.timings["detect"] += time.perf_counter() - t3
+        with self._clock("describe"):
+            self._memory.store_descriptors(ids, *self._orb.compute(gray, uv))
 
-    def _remember(self, gray: np.ndarray) -> None:
-        """Keep this keyframe's image and where each live track is, for re-acquisition."""
-        n = self.config.reacquire_keyframes
-        if n <= 0:
-            return
-        self._kf_grays[self._kf_count] = gray
-        self._kf_grays.pop(self._kf_count - n, None)
-        tr = self._tracks
-        if len(tr) and tr.ids.max() >= self._last_kf.size:
-            cap = max(int(tr.ids.max()) + 1, 2 * self._last_kf.size, 1024)
-            self._last_kf = np.concatenate(
-                [self._last_kf, np.full(cap - self._last_kf.size, -1, dtype=np.int64)]
-            )
-            self._last_uv = np.concatenate(
-                [self._last_uv, np.zeros((cap - self._last_uv.shape[0], 2), dtype=np.float32)]
-            )
-        self._last_kf[tr.ids] = self._kf_count
-        self._last_uv[tr.ids] = tr.uv
-        self._kf_count += 1
-
-    def _reacquire(
-        self, slam_map: Map, proj: tuple[np.ndarray, np.ndarray, np.ndarray, float], gray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Stage 10, first part: LK from the last keyframe that saw each projected point (if
-        kept) to this one, started at the projection; forward-backward check, within the search
-        radius of the projection, verified like the matches.
-
-        Returns:
-            ``(ids (R,), uv (R, 2) float32, tried (P,) bool)``: the re-acquired points and which
-            of ``proj`` were tried (the others go to descriptor matching).
-        """
-        ids, uv_pred, X, radius = proj
-        cfg = self.config
-        seen = np.full(ids.size, -1, dtype=np.int64)
-        known = ids < self._last_kf.size
-        seen[known] = self._last_kf[ids[known]]
-        tried = np.isin(seen, list(self._kf_grays))
-        got = np.zeros(ids.size, dtype=bool)
-        uv_out = np.zeros((ids.size, 2), dtype=np.float32)
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        for k in np.unique(seen[tried]):
-            sel = np.flatnonzero(seen == k)
-            p0 = self._last_uv[ids[sel]].reshape(-1, 1, 2)
-            guess = uv_pred[sel].astype(np.float32).reshape(-1, 1, 2)
-            old = self._kf_grays[int(k)]
-            p1, st1, _ = cv2.calcOpticalFlowPyrLK(old, gray, p0, guess, flags=flags, **self._lk)
-            back, st2, _ = cv2.calcOpticalFlowPyrLK(
-                gray, old, p1, p0.copy(), flags=flags, **self._lk
-            )
-            p1 = p1.reshape(-1, 2)
-            ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & self._inside(p1)
-            ok &= (
-                np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1)
-                < cfg.fb_threshold_px
-            )
-            ok &= np.linalg.norm(p1 - uv_pred[sel], axis=1) < radius
-            got[sel[ok]] = True
-            uv_out[sel] = p1
-        idx = np.flatnonzero(got)
-        if cfg.map_check and idx.size:
-            ok = self._verify(slam_map, X[idx], uv_out[idx])
-            self.stats["reacquire_rejected"] += int((~ok).sum())
-            idx = idx[ok]
-        return ids[idx], uv_out[idx], tried
+    @contextmanager
+    def _clock(self, stage: str) -> Iterator[None]:
+        """Add the CPU time of the block to ``timings[stage]``."""
+        t0 = time.process_time()
+        try:
+            yield
+        finally:
+            self.timings[stage] += time.process_time() - t0
 
     def _cell_quota(self) -> np.ndarray:
         """``(C,)`` new tracks per grid cell: ``max_tracks / C`` scaled by the cell's recent
@@ -889,79 +781,6 @@ class ImageTracks:
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         return ids
-
-    def _store_descriptors(self, ids: np.ndarray, desc: np.ndarray, has: np.ndarray) -> None:
-        if ids.size == 0:
-            return
-        need = int(ids.max()) + 1
-        if need > self._desc.shape[0]:
-            cap = max(need, 2 * self._desc.shape[0], 1024)
-            d = np.zeros((cap, ft.DESCRIPTOR_BYTES), dtype=np.uint8)
-            d[: self._desc.shape[0]] = self._desc
-            h = np.zeros(cap, dtype=bool)
-            h[: self._has_desc.size] = self._has_desc
-            self._desc, self._has_desc = d, h
-        self._desc[ids[has]] = desc[has]
-        self._has_desc[ids[has]] = True
-
-    def _projected_points(
-        self, t: float, slam_map: Map
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float] | None:
-        """The map's triangulated points of the current segment that no track follows and that
-        the loop did not just reject, projected with the map-check pose or the predicted one:
-        ``(ids (P,), uv (P, 2), X_w (P, 3), search radius)``, or None (no pose, no point)."""
-        pose, radius = self.pose_estimate, self._radius_pnp
-        if pose is None:
-            pose, radius = slam_map.predict_pose(t), self._radius
-        if pose is None:
-            return None
-        ids, X = slam_map.triangulated_points()
-        sel = (ids >= self._segment_first_id) & (ids < self._has_desc.size)
-        ids, X = ids[sel], X[sel]
-        sel = self._has_desc[ids] & np.isfinite(X).all(axis=1)
-        sel &= ~np.isin(ids, self._tracks.ids)
-        ids, X = ids[sel], X[sel]
-        ids_ok = ids < self._retired.size
-        sel = np.ones(ids.size, dtype=bool)
-        sel[ids_ok] = ~self._retired[ids[ids_ok]]
-        ids, X = ids[sel], X[sel]
-        if ids.size == 0:
-            return None
-        uv, _, front = project(self.K, pose[0], pose[1], X)
-        inside = front & self._inside(np.where(front[:, None], uv, -1.0))
-        if not inside.any():
-            return None
-        return ids[inside], uv[inside], X[inside], radius
-
-    def _reobserve(
-        self,
-        slam_map: Map,
-        proj: tuple[np.ndarray, np.ndarray, np.ndarray, float],
-        cand: np.ndarray,
-        desc: np.ndarray,
-        has: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Stage 10: ``(point ids (R,), candidate indices (R,))`` of the verified matches of the
-        projected points ``proj`` (:meth:`_projected_points`) with the candidates ``cand``
-        ``(C, 2)`` (centred) and their descriptors."""
-        cfg = self.config
-        ids, uv, X, radius = proj
-        cidx = np.flatnonzero(has)
-        mp, mc = ft.match_in_radius(
-            uv,
-            self._desc[ids],
-            cand[cidx],
-            desc[cidx],
-            radius=radius,
-            max_distance=cfg.max_descriptor_distance,
-            ratio=cfg.match_ratio,
-        )
-        mc = cidx[mc]
-        if cfg.map_check and mp.size:
-            ok = self._verify(slam_map, X[mp], cand[mc])
-            self.stats["reobserve_rejected"] += int((~ok).sum())
-            mp, mc = mp[ok], mc[ok]
-        return ids[mp], mc
 
     def _verify(self, slam_map: Map, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """``(R,)`` bool: re-observations consistent with the keyframe's pose: the map check's
