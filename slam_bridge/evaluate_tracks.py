@@ -9,11 +9,14 @@ pixel neighbourhood (pixel centres at integers):
 
 * **surface**: all four depths valid and within ``edge_tolerance`` (relative) of each other: one
   candidate, the bilinear interpolation of the *inverse* depth (exact on a plane);
-* **edge**: the four disagree (a depth discontinuity: silhouettes, T-junctions): four
-  candidates, one per neighbour, and the error is the smallest of the four (the track may follow
-  either side; a track that slides along the edge fits none and counts as bad);
+* **edge**: the four disagree (a depth discontinuity: silhouettes, T-junctions): seven
+  candidates, the four neighbours' depths, the nearest and the farthest depth within
+  ``EDGE_RADIUS`` (2) pixels and infinity, and the error is the smallest (a corner on a
+  silhouette belongs to either side, within a pixel or two of the reference pixel; a track that
+  slides along the edge fits none and counts as bad);
 * **sky**: depth 0 (the renderer's sky) is a point at infinity: it reprojects through the
-  rotations only (a sky neighbour is one of the edge candidates, too).
+  rotations only; an all-sky 2x2 neighbourhood is treated as an edge (a roof corner against the
+  sky is detected a pixel off the roof).
 
 A point on a moving vehicle is reprojected as if static, so its later observations are bad, as
 they are for the SLAM. References themselves have error 0 and are left out of the shares.
@@ -21,8 +24,16 @@ they are for the SLAM. References themselves have error 0 and are left out of th
 :func:`evaluate_tracks` gives per-observation errors and a summary: ``bad_share`` (non-reference
 observations with error above ``threshold_px``), error percentiles, the reference kinds, tracks
 per keyframe, track lengths (keyframes per point), and re-observations (an observation whose point
-was missing from the previous keyframe). :class:`RenderTruth` reads the truth from a
-``geoseg render`` folder (``poses.csv``, ``camera.json``, ``geometry/NNNNNN.npz``).
+was missing from the previous keyframe). It also gives ``bad_share_consistency``: the share of
+non-reference observations farther than ``threshold_px`` from the projection of the static point
+that fits all the point's observations best at the true poses (linear triangulation + Gauss-Newton,
+:func:`slam_bridge.geometry.triangulate`): what would pull the SLAM's poses away from the truth,
+blind to a drift along the epipolar lines (a wrong depth), which ``bad_share`` sees; with two
+observations only the distance to the epipolar line counts.
+
+:class:`RenderTruth` reads the truth from a ``geoseg render`` folder (``poses.csv``,
+``camera.json``, ``geometry/NNNNNN.npz``); :class:`TruthMap` keeps a map at the truth while a
+front end runs, for tests and benchmarks without the SLAM loop.
 """
 
 from __future__ import annotations
@@ -142,6 +153,7 @@ class TrackEvaluation:
         kind: ``(M,)`` the kind of the point's reference: 0 surface, 1 edge, 2 sky.
         reobserved: ``(M,)`` bool, the point was missing from the previous keyframe.
         summary: figures (module docstring); all floats.
+        fit_error_px: ``(M,)`` distance to the best-fitting static point's projection.
     """
 
     table: TrackTable
@@ -150,6 +162,10 @@ class TrackEvaluation:
     kind: np.ndarray
     reobserved: np.ndarray
     summary: dict[str, float] = field(default_factory=dict)
+    fit_error_px: np.ndarray | None = None
+
+
+EDGE_RADIUS = 2  # pixels: an edge reference also tries the nearest and farthest depth this close
 
 
 def _reference_points(
@@ -160,7 +176,7 @@ def _reference_points(
     uv: np.ndarray,
     edge_tolerance: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Candidate world points of references seen from one frame.
+    """Candidate world points of references seen from one frame (module docstring).
 
     Args:
         K: ``(3, 3)``.
@@ -171,7 +187,9 @@ def _reference_points(
         edge_tolerance: relative depth spread below which the 2x2 neighbourhood agrees.
 
     Returns:
-        ``X (R, 4, 3)`` candidates, ``valid (R, 4)`` bool, ``kind (R,)``.
+        ``X (R, 7, 3)`` candidates (the 2x2 neighbours' depths, the nearest and farthest depth
+        within ``EDGE_RADIUS`` pixels, infinity), ``valid (R, 7)`` bool (a surface reference has
+        one: the interpolated depth), ``kind (R,)``.
     """
     H, W = depth.shape
     u = np.clip(uv[:, 0], 0.0, W - 1.0)
@@ -188,14 +206,25 @@ def _reference_points(
     dmax = np.where(sky, 0.0, d).max(axis=1)
     surface = ~sky.any(axis=1) & (dmax - dmin <= edge_tolerance * dmin)
     kind = np.where(surface, KIND_SURFACE, np.where(sky.all(axis=1), KIND_SKY, KIND_EDGE))
-    cand = np.where(sky, SKY_DISTANCE, d)  # (R, 4) z-depths
+    # the neighbourhood of an edge reference: nearest and farthest surface, and the sky
+    off = np.arange(-EDGE_RADIUS, EDGE_RADIUS + 1)
+    pu = np.clip(np.round(u).astype(np.int64)[:, None, None] + off[None, None, :], 0, W - 1)
+    pv = np.clip(np.round(v).astype(np.int64)[:, None, None] + off[None, :, None], 0, H - 1)
+    patch = depth[pv, pu].reshape(uv.shape[0], -1).astype(np.float64)
+    hit = patch > 0
+    near = np.where(hit, patch, np.inf).min(axis=1)
+    far = np.where(hit, patch, 0.0).max(axis=1)
+    cand = np.column_stack(
+        [np.where(sky, SKY_DISTANCE, d), near, far, np.full(d.shape[0], SKY_DISTANCE)]
+    )
+    valid = np.column_stack([np.ones_like(sky), hit.any(axis=1), hit.any(axis=1), ~hit.all(axis=1)])
+    cand[~valid] = 1.0
     with np.errstate(divide="ignore"):
         interp = 1.0 / np.sum(wts / np.where(sky, np.inf, d), axis=1)
-    cand[surface] = interp[surface, None]
-    valid = np.ones_like(cand, dtype=bool)
+    cand[surface, 0] = interp[surface]
     valid[surface, 1:] = False
     ray = np.column_stack([uv, np.ones(uv.shape[0])]) @ np.linalg.inv(K).T  # z = 1
-    X_c = cand[:, :, None] * ray[:, None, :]  # (R, 4, 3)
+    X_c = cand[:, :, None] * ray[:, None, :]  # (R, 7, 3)
     X_w = X_c @ R_wc.T + t_wc
     return X_w, valid, kind
 
@@ -247,8 +276,8 @@ def evaluate_tracks(
     reference = np.zeros(M, dtype=bool)
     reference[ref_idx] = True
     P = uniq.size
-    X = np.zeros((P, 4, 3))
-    valid = np.zeros((P, 4), dtype=bool)
+    X = np.zeros((P, 7, 3))
+    valid = np.zeros((P, 7), dtype=bool)
     kind_p = np.zeros(P, dtype=np.int64)
     ref_frames = table.frame[ref_idx]
     for f in np.unique(ref_frames):
@@ -257,9 +286,9 @@ def evaluate_tracks(
             K, R_wc[f], t_wc[f], depth(int(f)), table.uv[ref_idx[sel]], edge_tolerance
         )
     # every observation against its point's candidates
-    err = np.full((M, 4), np.inf)
+    err = np.full((M, X.shape[1]), np.inf)
     Xo = X[inverse]
-    for c in range(4):
+    for c in range(X.shape[1]):
         uv_hat, _, front = project(K, R_wc[table.frame], t_wc[table.frame], Xo[:, c])
         e = np.linalg.norm(uv_hat - table.uv, axis=1)
         ok = valid[inverse, c] & front
@@ -274,7 +303,33 @@ def evaluate_tracks(
     prev_kf[order[1:][same]] = table.keyframe[order][:-1][same]
     reobserved = ~reference & (prev_kf != table.keyframe - 1)
     summary = _summary(table, error, reference, kind, reobserved, active, threshold_px)
-    return TrackEvaluation(table, error, reference, kind, reobserved, summary)
+    fit = _best_fit_errors(K, R_wc, t_wc, table, inverse, P)
+    counted = ~reference & active
+    summary["bad_share_consistency"] = (
+        float(np.mean(fit[counted] > threshold_px)) if counted.any() else 0.0
+    )
+    return TrackEvaluation(table, error, reference, kind, reobserved, summary, fit)
+
+
+def _best_fit_errors(
+    K: np.ndarray, R_wc: np.ndarray, t_wc: np.ndarray, table: TrackTable, inverse, P: int
+) -> np.ndarray:
+    """``(M,)`` distance of each observation to the projection of its point's best-fitting
+    static point at the true poses (inf where that point is behind the camera)."""
+    from slam_bridge.geometry import triangulate
+
+    M = table.point.size
+    if M == 0:
+        return np.zeros(0)
+    res = triangulate(
+        K, R_wc, t_wc, table.frame, inverse, table.uv, num_points=P, min_parallax_deg=0.0
+    )
+    X = np.nan_to_num(res.X_w[inverse])
+    uv_hat, _, front = project(K, R_wc[table.frame], t_wc[table.frame], X)
+    err = np.where(front, np.linalg.norm(uv_hat - table.uv, axis=1), np.inf)
+    single = np.bincount(inverse, minlength=P)[inverse] < 2
+    err[single] = 0.0
+    return err
 
 
 def _summary(

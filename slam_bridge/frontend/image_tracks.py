@@ -1,60 +1,93 @@
 """The visual front end: corners tracked through a frame sequence, delivered as keyframe tracks.
 
 :class:`ImageTracks` implements :class:`slam_bridge.frontend.base.ObservationSource` over a
-:class:`slam_bridge.frontend.frames.FrameSequence`. Per frame (grayscale, OpenCV throughout):
+:class:`slam_bridge.frontend.frames.FrameSequence` (OpenCV throughout, grayscale).
 
-1. **photometric normalisation**: a global gamma lookup table brings the median grey level to
-   ``gamma_target`` (dark dusk and night frames get contrast the detector and the tracker can
-   use); the gamma follows a running median, quantised, so that consecutive frames almost always
-   share one table and the brightness-constancy assumption of Lucas-Kanade holds;
+Every frame:
+
+1. **photometric normalisation**: a global gamma lookup table maps the median grey level to
+   ``gamma_target`` (dusk and night frames get contrast that the detector and the tracker can
+   use); the gamma follows a running median and is quantised, so consecutive frames almost
+   always share one table and Lucas-Kanade's brightness constancy holds;
 2. **tracking**: pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``) from the previous frame,
    started at a constant-velocity prediction (each track's last displacement; new tracks take
-   the mean displacement of the tracks in their grid cell, else the median of all), then
-   tracked back; a track survives when both passes converge (LK status), the back-tracked point
-   lands within ``fb_threshold_px`` of its start and it stays ``border_px`` inside the image;
-3. **epipolar check** (``epipolar`` = ``frame`` or ``both``): ``cv2.findEssentialMat``
-   (MAGSAC++ by default) between the previous and the current positions; tracks it rejects are
-   dropped. The check is skipped (nothing dropped) with fewer than ``min_epipolar_tracks`` tracks
-   or a median displacement under ``min_epipolar_motion_px`` (no motion: the essential matrix is
-   undetermined).
+   the mean of their grid cell, else the median of all), then tracked back: a track survives when
+   both passes converge, the back-tracked point lands within ``fb_threshold_px`` of its start and
+   it stays ``border_px`` inside the image;
+3. **epipolar check** (``epipolar`` = ``frame`` or ``both``): ``cv2.findEssentialMat`` (MAGSAC++
+   by default) between the previous and the current positions drops the tracks it rejects;
+   skipped (nothing dropped) with fewer than ``min_epipolar_tracks`` tracks, a median
+   displacement under ``min_epipolar_motion_px`` (no motion, no model) or a model with under 30 %
+   inliers.
 
-After each frame the keyframe rule (:mod:`slam_bridge.frontend.keyframes`) decides whether the
-frame is a keyframe. At a keyframe:
+After each frame, the keyframe rule (:mod:`slam_bridge.frontend.keyframes`) decides. At a
+keyframe, the live tracks are checked, in order:
 
 4. **epipolar check against the last keyframe** (``epipolar`` = ``keyframe`` or ``both``): the
-   same test on the displacement accumulated since the last keyframe (moving vehicles and slow
-   drifts, invisible from one frame to the next, show there);
-5. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) at least
-   ``min_distance_px`` from each other and from the live tracks;
-6. **re-observation** (``reobserve``): the map's triangulated points of the current segment that
-   no live track follows are projected (:func:`slam_bridge.camera.project`) with the pose that
-   :meth:`slam_bridge.slam.map.Map.predict_pose` predicts; each is matched to the candidates
-   within ``match_radius_px`` by its stored ORB descriptor (Hamming distance at most
-   ``max_descriptor_distance``, ratio test ``match_ratio`` against the second best candidate,
-   one point per candidate); a matched candidate becomes a track with the point's old id;
-7. **top-up**: the other candidates, strongest first, fill the grid cells (``grid`` cells,
-   ``max_tracks / cells`` tracks each, then what is left of ``max_tracks`` to any cell up to twice
-   that) with new ids;
-8. **descriptors**: ORB (``cv2.ORB_create``, upright, one pyramid level: the tracks follow the
-   scale, and upright descriptors are more distinctive for a camera that does not roll) for every
-   new track and, with ``refresh_descriptors``, every live track: a lost point is then matched
-   by its latest appearance.
+   displacement accumulated since the last keyframe shows moving vehicles and slow slides;
+5. **aperture**: a track whose window became an edge (structure-tensor eigenvalue ratio under
+   ``min_eigen_ratio``) slides along it: dropped;
+6. **local flow**: a track whose displacement since the last keyframe differs from the median of
+   its ``flow_neighbours`` nearest tracks by more than ``flow_abs_px + flow_rel * |median|`` is
+   stuck or has jumped (repeated texture): dropped;
+7. **deformation**: the local linear map of each track's neighbourhood since the last keyframe
+   (least squares over its neighbours) is accumulated since the track's birth; once its singular
+   values leave ``exp(+-max_deformation)`` (scale change, foreshortening), LK's translation model
+   no longer holds and the track drifts: it is **renewed** (a new id from here, re-centred);
+8. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
+   points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.pnp`, RANSAC +
+   refinement) on those tracks; the tracks it does not explain within
+   ``map_check_threshold_px`` are dropped. The pose is kept in :attr:`ImageTracks.pose_estimate`.
+
+Then new observations:
+
+9. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) ``min_distance_px`` from
+   each other and from the live tracks, with the eigenvalue ratio of step 5;
+10. **re-observation** (``reobserve``, :mod:`slam_bridge.frontend.reobservation`): the map's
+    triangulated points of the current segment that no track follows and no check dropped
+    (*retired* points) are projected with the map-check pose (search radius
+    ``match_radius_pnp_px``) or, without it, with :meth:`slam_bridge.slam.map.Map.predict_pose`
+    (radius ``match_radius_px``). Those that one of the last ``reacquire_keyframes`` keyframes
+    saw are **re-acquired** by LK from that keyframe's image, started at the projection
+    (forward-backward checked, within the radius); the others are **matched** by their stored ORB
+    descriptor to the candidates within the radius (Hamming <= ``max_descriptor_distance``,
+    ratio test ``match_ratio``, one point per candidate). Both are verified against the
+    map-check pose, or by a PnP of their own with the tracked points, within
+    ``map_check_threshold_px``, and then tracked on with the point's old id;
+11. **top-up**: the other candidates, strongest first, fill the grid (``grid`` cells,
+    ``max_tracks / cells`` tracks each, then what is left of ``max_tracks`` up to twice that);
+12. **centring**: new and re-observed tracks start at the fixed point of LK under a change of
+    scale (:func:`slam_bridge.frontend.features.centre`), so that they do not drift while the
+    vehicle approaches their surface;
+13. **descriptors**: upright ORB for the new tracks and (``refresh_descriptors``) every live
+    track: a lost point is then matched by its latest appearance.
+
+New corners go preferably where corners survive: a grid cell's quota is scaled by the recent
+first-frame survival of its new tracks (``adaptive_grid``; the near road of a forward camera,
+aliased or too fast, loses most of them), and corners that do not survive their first frame do
+not count in the keyframe rule's tracked share.
 
 Before tracking on, :meth:`ImageTracks.next_keyframe` drops the tracks whose observation in the
-previous keyframe the loop rejected (``Map.obs_active`` False).
+previous keyframe the loop rejected (``Map.obs_active`` False; unless it deactivated most of the
+keyframe: that gives up the keyframe, not its points).
 
 The first frame is the first keyframe; :meth:`ImageTracks.next_keyframe` returns None once the
-frames are exhausted (frames after the last keyframe are not delivered). Pixel lengths of the
-config (``min_distance_px``, ``border_px``, ``match_radius_px``, the keyframe parallax) are given
-at ``reference_width`` and scaled by ``W / reference_width``; accuracies (``fb_threshold_px``,
-``ransac_threshold_px``) and the LK window are in pixels of the images as they are.
+frames are exhausted (the frames after the last keyframe are not delivered). A keyframe left
+without any track (a blank frame) is not delivered: the next frame is a keyframe instead.
 
-Segments: keyframes of different map segments share no point. When the loop starts a new segment
-it calls :meth:`ImageTracks.start_segment`, which gives every live track a fresh id (returning the
+Pixel lengths of the config (``min_distance_px``, ``border_px``, ``match_radius*_px``,
+``flow_abs_px``, the keyframe parallax) are given at ``reference_width`` and scaled by
+``W / reference_width``; accuracies (``fb_threshold_px``, ``ransac_threshold_px``,
+``map_check_threshold_px``) and the LK window are in pixels of the images as they are.
+
+Segments: keyframes of different map segments share no point. When the loop starts a segment it
+calls :meth:`ImageTracks.start_segment`, which gives every live track a fresh id (returning the
 new ids of the ids it is given) and limits re-observation to points born after it.
 
-Timing of each stage is accumulated in :attr:`ImageTracks.timings` (seconds, see
-:meth:`ImageTracks.timing_report`).
+The CPU time of each stage is accumulated in :attr:`ImageTracks.timings` (see
+:meth:`ImageTracks.timing_report`) and the effect of each check in :attr:`ImageTracks.stats`.
+Deterministic: the same frames, config and map give the same keyframes (``seed`` fixes
+OpenCV's RANSAC).
 """
 
 from __future__ import annotations
@@ -63,6 +96,8 @@ import logging
 import math
 import time
 from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
 
@@ -72,9 +107,11 @@ from scipy.spatial import cKDTree
 
 from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
+from slam_bridge.frontend import features as ft
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import FrameSequence, check_intrinsics
 from slam_bridge.frontend.keyframes import DistanceFn, KeyframeConfig, KeyframeRule
+from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.geometry import PnPResult, pnp
 
 if TYPE_CHECKING:
@@ -84,13 +121,10 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["ImageTracksConfig", "ImageTracks"]
 
-_POPCOUNT = np.array([bin(i).count("1") for i in range(256)], dtype=np.uint8)
-_DESC_BYTES = 32
-
 
 @dataclass
 class ImageTracksConfig:
-    """Settings of :class:`ImageTracks` (module docstring for the stages).
+    """Settings of :class:`ImageTracks` (the module docstring numbers the stages).
 
     Attributes:
         max_tracks: most live tracks (corners are topped up to it at keyframes).
@@ -99,35 +133,45 @@ class ImageTracksConfig:
         quality_level: Shi-Tomasi threshold, share of the strongest corner's response.
         block_size: Shi-Tomasi neighbourhood (pixels).
         border_px: corners and tracks stay this far inside the image (at ``reference_width``).
-        gamma_target: the median grey level is mapped to this share of 255 (only brightened:
-            gamma <= 1); None: no normalisation.
-        window_px: Lucas-Kanade window side (odd, pixels).
-        pyramid_levels: LK pyramid levels above the image (its reach is about
+        gamma_target: the median grey level is mapped to this share of 255 (brighten only);
+            None: no normalisation.
+        window_px: Lucas-Kanade window side (odd, pixels); small windows drift less when the
+            view changes.
+        pyramid_levels: LK pyramid levels above the image (reach about
             ``2 ** levels * window_px / 2`` pixels from the prediction).
         lk_iterations: LK iterations per level.
         lk_epsilon: LK convergence threshold (pixels).
-        lk_min_eigenvalue: LK's minimal eigenvalue of the window's gradient matrix (divided by
+        lk_min_eigenvalue: LK's least eigenvalue of the window's gradient matrix (divided by
             the window area); weaker windows fail.
         fb_threshold_px: largest forward-backward distance.
-        epipolar: where the essential-matrix check runs: ``frame`` (frame to frame),
-            ``keyframe`` (keyframe to keyframe), ``both`` or ``off``.
+        epipolar: where the essential-matrix check runs: ``frame``, ``keyframe``, ``both``,
+            ``off``.
         ransac_method: ``magsac`` (``cv2.USAC_MAGSAC``) or ``ransac`` (``cv2.RANSAC``).
         ransac_threshold_px: inlier threshold (pixels).
         ransac_confidence: RANSAC confidence.
         min_epipolar_tracks: fewer tracks: no check.
         min_epipolar_motion_px: smaller median displacement: no check.
-        map_check: at keyframes, estimate the pose from the tracks of triangulated map points
-            (:func:`slam_bridge.geometry.pnp`, RANSAC) and drop the tracks it does not explain.
-        map_check_threshold_px: reprojection error above which a track fails the map check.
-        min_map_points: fewer tracked triangulated points: no map check (the predicted pose
-            serves re-observation).
-        reobserve: match untracked map points at keyframes (projection-guided).
-        match_radius_px: search radius around a point projected with the predicted pose
-            (:meth:`~slam_bridge.slam.map.Map.predict_pose`), at ``reference_width``.
-        match_radius_pnp_px: the same with the map check's pose (PnP on the tracks).
+        min_eigen_ratio: least ``lambda_min / lambda_max`` of a track's LK window (0: off).
+        centre_iterations: LK fixed-point iterations for new tracks (0: off).
+        centre_max_shift_px: a corner that centring moves further is not used.
+        flow_neighbours: neighbours of the local-flow and deformation checks.
+        flow_abs_px: local-flow tolerance, pixels (at ``reference_width``).
+        flow_rel: local-flow tolerance, share of the neighbours' median displacement.
+        max_deformation: a track is renewed when a singular value of its accumulated local
+            linear map leaves ``exp(+-max_deformation)`` (None: never).
+        map_check: the PnP check of the tracks of triangulated points (stage 8).
+        map_check_threshold_px: reprojection error above which a track fails it.
+        min_map_points: fewer tracked triangulated points: no map check.
+        reobserve: match untracked map points at keyframes (stage 10).
+        reacquire_keyframes: keyframe images kept to re-acquire, by LK, the untracked map points
+            that one of them observed (0: descriptors only).
+        match_radius_px: search radius around a point projected with the predicted pose (at
+            ``reference_width``).
+        match_radius_pnp_px: the same with the map-check pose.
         max_descriptor_distance: largest Hamming distance (of 256 bits) of a match.
         match_ratio: best / second-best distance must be below this.
         refresh_descriptors: store each live track's descriptor again at every keyframe.
+        adaptive_grid: scale each cell's quota by the first-frame survival of its new tracks.
         keyframes: the keyframe rule.
         reference_width: image width at which pixel lengths are given.
         seed: OpenCV RNG seed (RANSAC), for deterministic output.
@@ -145,78 +189,85 @@ class ImageTracksConfig:
     lk_iterations: int = 20
     lk_epsilon: float = 0.03
     lk_min_eigenvalue: float = 1e-4
-    fb_threshold_px: float = 1.0
+    fb_threshold_px: float = 0.5
     epipolar: Literal["frame", "keyframe", "both", "off"] = "both"
     ransac_method: Literal["magsac", "ransac"] = "magsac"
-    ransac_threshold_px: float = 1.0
+    ransac_threshold_px: float = 0.7
     ransac_confidence: float = 0.999
     min_epipolar_tracks: int = 15
     min_epipolar_motion_px: float = 1.0
     min_eigen_ratio: float = 0.1
     centre_iterations: int = 3
-    centre_max_shift_px: float = 2.0
-    flow_check: bool = True
+    centre_max_shift_px: float = 3.0
     flow_neighbours: int = 8
     flow_abs_px: float = 3.0
     flow_rel: float = 0.3
+    max_deformation: float | None = 0.2
     map_check: bool = True
-    map_check_threshold_px: float = 2.0
+    map_check_threshold_px: float = 1.5
     min_map_points: int = 12
     reobserve: bool = True
+    reacquire_keyframes: int = 3
     match_radius_px: float = 12.0
     match_radius_pnp_px: float = 5.0
-    max_descriptor_distance: int = 64
+    max_descriptor_distance: int = 48
     match_ratio: float = 0.8
     refresh_descriptors: bool = True
+    adaptive_grid: bool = True
     keyframes: KeyframeConfig = field(default_factory=KeyframeConfig)
     reference_width: int = 640
     seed: int = 0
 
     def __post_init__(self) -> None:
-        def positive(key: str, integer: bool = False) -> None:
-            v = getattr(self, key)
-            kinds = int if integer else int | float
-            if isinstance(v, bool) or not isinstance(v, kinds) or not v > 0:
-                raise SlamError(f"ImageTracksConfig.{key}: expected a number > 0, got {v!r}")
+        for key, (ok, expected) in _CHECKS.items():
+            if not ok(getattr(self, key)):
+                raise SlamError(
+                    f"ImageTracksConfig.{key}: expected {expected}, got {getattr(self, key)!r}"
+                )
 
-        for key in ("max_tracks", "block_size", "lk_iterations", "reference_width"):
-            positive(key, integer=True)
-        for key in (
-            "min_distance_px",
-            "quality_level",
-            "lk_epsilon",
-            "fb_threshold_px",
-            "ransac_threshold_px",
-            "match_radius_px",
-        ):
-            positive(key)
-        if not (isinstance(self.window_px, int) and self.window_px >= 5 and self.window_px % 2):
-            raise SlamError(
-                f"ImageTracksConfig.window_px: expected an odd integer >= 5, got {self.window_px!r}"
-            )
-        if len(self.grid) != 2 or min(self.grid) < 1:
-            raise SlamError(
-                f"ImageTracksConfig.grid: expected (columns, rows) >= 1, got {self.grid}"
-            )
-        if self.epipolar not in ("frame", "keyframe", "both", "off"):
-            raise SlamError(
-                f"ImageTracksConfig.epipolar: expected frame, keyframe, both or off, got "
-                f"{self.epipolar!r}"
-            )
-        if self.ransac_method not in ("magsac", "ransac"):
-            raise SlamError(
-                f"ImageTracksConfig.ransac_method: expected magsac or ransac, got "
-                f"{self.ransac_method!r}"
-            )
-        if self.gamma_target is not None and not 0.0 < self.gamma_target < 1.0:
-            raise SlamError(
-                f"ImageTracksConfig.gamma_target: expected a share in (0, 1) or None, got "
-                f"{self.gamma_target!r}"
-            )
-        if not 0 < self.match_ratio <= 1:
-            raise SlamError(
-                f"ImageTracksConfig.match_ratio: expected a number in (0, 1], got {self.match_ratio!r}"
-            )
+
+def _number(v: object) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _integer(v: object) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+_POSITIVE_INT = (lambda v: _integer(v) and v > 0, "an integer > 0")
+_NATURAL = (lambda v: _integer(v) and v >= 0, "an integer >= 0")
+_POSITIVE = (lambda v: _number(v) and v > 0, "a number > 0")
+_NON_NEGATIVE = (lambda v: _number(v) and v >= 0, "a number >= 0")
+# fmt: off
+_CHECKS = {
+    **dict.fromkeys(("max_tracks", "block_size", "lk_iterations", "reference_width"),
+                    _POSITIVE_INT),
+    **dict.fromkeys(("pyramid_levels", "centre_iterations", "min_epipolar_tracks",
+                     "reacquire_keyframes"), _NATURAL),
+    **dict.fromkeys(("border_px", "lk_min_eigenvalue", "min_epipolar_motion_px", "flow_rel"),
+                    _NON_NEGATIVE),
+    **dict.fromkeys(("min_distance_px", "quality_level", "lk_epsilon", "fb_threshold_px",
+                     "flow_abs_px", "ransac_threshold_px", "match_radius_px",
+                     "match_radius_pnp_px", "centre_max_shift_px", "map_check_threshold_px"),
+                    _POSITIVE),
+    "flow_neighbours": (lambda v: _integer(v) and v >= 2, "an integer >= 2"),
+    "window_px": (lambda v: _integer(v) and v >= 5 and v % 2 == 1, "an odd integer >= 5"),
+    "grid": (lambda g: isinstance(g, tuple | list) and len(g) == 2
+             and all(_integer(c) and c >= 1 for c in g), "(columns, rows), integers >= 1"),
+    "epipolar": (lambda v: v in ("frame", "keyframe", "both", "off"),
+                 "frame, keyframe, both or off"),
+    "ransac_method": (lambda v: v in ("magsac", "ransac"), "magsac or ransac"),
+    "ransac_confidence": (lambda v: _number(v) and 0 < v < 1, "a number in (0, 1)"),
+    "gamma_target": (lambda v: v is None or (_number(v) and 0 < v < 1),
+                     "None or a number in (0, 1)"),
+    "min_eigen_ratio": (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)"),
+    "max_deformation": (lambda v: v is None or (_number(v) and v > 0), "None or a number > 0"),
+    "match_ratio": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
+    "max_descriptor_distance": (lambda v: _integer(v) and 0 <= v <= 256,
+                                "an integer in [0, 256]"),
+    "min_map_points": (lambda v: _integer(v) and v >= 6, "an integer >= 6"),
+}
+# fmt: on
 
 
 class ImageTracks:
@@ -232,11 +283,20 @@ class ImageTracks:
         K: ``(3, 3)`` intrinsics of the frames.
         image_size: ``(W, H)``.
         frames: the frame sequence.
-        timings: seconds spent per stage (``read``, ``gray``, ``track``, ``epipolar``,
-            ``detect``, ``describe``, ``reobserve``, ``total``) and counts (``frames``,
+        pose_estimate: ``(R_wc (3, 3), t_wc (3,))`` of the last keyframe from the map check's
+            PnP (in the map's frame), or None (no map check at that keyframe).
+        keyframe_log: per delivered keyframe, ``(reason, tracked share, median displacement
+            px)`` as the keyframe rule saw them (reasons: ``first``, ``spacing``, ``parallax``,
+            ``tracks``, ``gap``; :mod:`slam_bridge.frontend.keyframes`).
+        timings: CPU seconds of the process (``time.process_time``: all its threads; a busy
+            shared machine does not inflate them) per stage (``read``, ``gray``, ``track``,
+            ``epipolar``, ``checks``, ``map_check``, ``detect``, ``reobserve``, ``describe``,
+            ``topup``, ``keyframe``: all the keyframe stages, ``total``) and counts (``frames``,
             ``keyframes``).
-        stats: counters (``reobserved``, ``rejected_by_loop``, ``fb_lost``, ``epipolar_frame``,
-            ``epipolar_keyframe``, ...).
+        stats: how many tracks each check dropped (``fb_lost``, ``epipolar_frame``,
+            ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``map_rejected``,
+            ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
+            matches, keyframes per reason (``keyframe_*``), ``empty_keyframes``.
     """
 
     def __init__(
@@ -257,40 +317,36 @@ class ImageTracks:
         self._min_dist = cfg.min_distance_px * s
         self._border = max(cfg.border_px * s, cfg.window_px / 2 + 1)
         self._radius = cfg.match_radius_px * s
-        self._flow_abs = cfg.flow_abs_px * s
         self._radius_pnp = cfg.match_radius_pnp_px * s
+        self._flow_abs = cfg.flow_abs_px * s
         self._rule = KeyframeRule(cfg.keyframes, W, distance)
+        criteria = (
+            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+            cfg.lk_iterations,
+            cfg.lk_epsilon,
+        )
         self._lk = dict(
             winSize=(cfg.window_px, cfg.window_px),
             maxLevel=cfg.pyramid_levels,
-            criteria=(
-                cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
-                cfg.lk_iterations,
-                cfg.lk_epsilon,
-            ),
+            criteria=criteria,
             minEigThreshold=cfg.lk_min_eigenvalue,
         )
-        self._orb = cv2.ORB_create(nlevels=1, edgeThreshold=16, patchSize=31)
-        # live tracks
-        self._ids = np.zeros(0, dtype=np.int64)
-        self._uv = np.zeros((0, 2), dtype=np.float32)
-        self._vel = np.zeros((0, 2), dtype=np.float32)
-        self._uv_kf = np.zeros((0, 2), dtype=np.float32)
-        self._n_kf = 0  # tracks at the last keyframe
-        # per point id
-        self._desc = np.zeros((0, _DESC_BYTES), dtype=np.uint8)
-        self._has_desc = np.zeros(0, dtype=bool)
+        self._orb = ft.OrbDescriptors()
+        self._tracks = ft.TrackSet.empty()
+        self._n_kf = 0  # established tracks (tracked through a frame) at the last keyframe
+        self._established: np.ndarray | None = np.zeros(0, dtype=np.int64)  # their ids
+        ncell = cfg.grid[0] * cfg.grid[1]
+        self._born = np.zeros(ncell)  # new tracks per cell (decaying sum)
+        self._survived = np.zeros(ncell)  # of which tracked through their first frame
+        self._memory = PointMemory(cfg.reacquire_keyframes)
         self._next_id = 0
-        self._segment_first_id = 0
-        # frame state
         self._next_frame = 0
         self._prev_gray: np.ndarray | None = None
         self._kf_frame = -1
         self._kf_time = math.nan
-        self._median_gray: float | None = None
-        self._gamma = 1.0
-        self._lut: np.ndarray | None = None
+        self._gamma = ft.GammaNormaliser(cfg.gamma_target) if cfg.gamma_target else None
         self.pose_estimate: tuple[np.ndarray, np.ndarray] | None = None
+        self.keyframe_log: list[tuple[str, float, float]] = []
         self.timings: dict[str, float] = defaultdict(float)
         self.stats: dict[str, int] = defaultdict(int)
 
@@ -299,139 +355,145 @@ class ImageTracks:
         """Track frames up to the next keyframe and return its observations.
 
         Args:
-            slam_map: the loop's map (read only): its poses predict where untracked points
-                appear, its rejected observations end tracks. None: no re-observation and no
-                rejection feedback.
+            slam_map: the loop's map (read only): its points verify the tracks and are
+                re-observed, its rejected observations end tracks. None: none of that.
 
         Returns:
             The keyframe, or None when the frames are exhausted.
         """
-        t_start = time.perf_counter()
+        t_start = time.process_time()
         try:
-            if self._next_frame >= len(self.frames):
-                return None
             if slam_map is not None and self._next_frame > 0:
                 self._drop_rejected(slam_map)
             while self._next_frame < len(self.frames):
                 i = self._next_frame
                 self._next_frame += 1
                 t, rgb, gray = self._read(i)
-                if i == 0:
-                    return self._keyframe(i, t, rgb, gray, slam_map, "first")
-                self._track(gray)
-                self._prev_gray = gray
                 self.timings["frames"] += 1
-                reason = self._rule.decide(
-                    i - self._kf_frame, self._kf_time, t, *self._since_keyframe()
-                )
-                if reason is not None:
-                    return self._keyframe(i, t, rgb, gray, slam_map, reason)
+                if i == 0:
+                    reason: str | None = "first"
+                    share, flow = 1.0, 0.0
+                else:
+                    self._track(gray)
+                    share, flow = self._since_keyframe()
+                    reason = self._rule.decide(i - self._kf_frame, self._kf_time, t, share, flow)
+                self._prev_gray = gray
+                if reason is None:
+                    continue
+                kf = self._keyframe(i, t, rgb, gray, slam_map, reason)
+                if kf.point_ids.size:
+                    self.keyframe_log.append((reason, share, flow))
+                    return kf
+                self.stats["empty_keyframes"] += 1  # nothing to observe: not delivered
             return None
         finally:
-            self.timings["total"] += time.perf_counter() - t_start
+            self.timings["total"] += time.process_time() - t_start
 
     def start_segment(self, point_ids: np.ndarray | None = None) -> np.ndarray:
         """Give every live track a fresh id (the loop starts a new map segment).
 
         Args:
             point_ids: ``(N,)`` ids to translate (e.g. the last keyframe's, so that the loop can
-                add that keyframe to the new segment); ids without a live track get fresh ids
-                too.
+                add that keyframe to the new segment); ids without a live track get fresh ids.
 
         Returns:
             ``(N,)`` the new ids of ``point_ids`` (empty when None).
         """
-        old = self._ids
-        self._segment_first_id = self._next_id
-        self._ids = self._new_ids(old.size)
-        self._copy_descriptors(old, self._ids)
+        old = self._tracks.ids
+        self._memory.first_id = self._next_id
+        self._tracks.ids = self._new_ids(old.size)
+        self._memory.copy_descriptors(old, self._tracks.ids)
         if point_ids is None:
             return np.zeros(0, dtype=np.int64)
         point_ids = np.asarray(point_ids, dtype=np.int64).reshape(-1)
-        lookup = dict(zip(old.tolist(), self._ids.tolist()))
+        lookup = dict(zip(old.tolist(), self._tracks.ids.tolist()))
         out = np.array([lookup.get(p, -1) for p in point_ids.tolist()], dtype=np.int64)
         missing = out < 0
         out[missing] = self._new_ids(int(missing.sum()))
         return out
 
+    def timing_report(self) -> dict[str, float]:
+        """Milliseconds per frame of each stage (``*_ms_per_frame``; ``frontend``: all but
+        reading the image) and per keyframe of the keyframe stages (``*_ms_per_keyframe``)."""
+        n = max(self.timings.get("frames", 0), 1)
+        k = max(self.timings.get("keyframes", 0), 1)
+        per_frame = ("read", "gray", "track", "epipolar", "total")
+        per_kf = ("checks", "map_check", "detect", "reobserve", "describe", "topup", "keyframe")
+        out = {f"{s}_ms_per_frame": 1e3 * self.timings.get(s, 0.0) / n for s in per_frame}
+        out.update({f"{s}_ms_per_keyframe": 1e3 * self.timings.get(s, 0.0) / k for s in per_kf})
+        out["frontend_ms_per_frame"] = out["total_ms_per_frame"] - out["read_ms_per_frame"]
+        out["frames"], out["keyframes"] = float(n), float(k)
+        return out
+
     # ------------------------------------------------------------------------------ frames
     def _read(self, i: int) -> tuple[float, np.ndarray, np.ndarray]:
-        t0 = time.perf_counter()
+        t0 = time.process_time()
         t, rgb = self.frames[i]
-        t1 = time.perf_counter()
+        t1 = time.process_time()
         gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
-        if self.config.gamma_target is not None:
-            gray = self._normalise(gray)
+        if self._gamma is not None:
+            gray = self._gamma(gray)
         self.timings["read"] += t1 - t0
-        self.timings["gray"] += time.perf_counter() - t1
+        self.timings["gray"] += time.process_time() - t1
         return float(t), rgb, gray
-
-    def _normalise(self, gray: np.ndarray) -> np.ndarray:
-        """Global gamma lookup: median grey -> ``gamma_target`` (brighten only)."""
-        median = float(np.median(gray[::8, ::8])) + 0.5
-        self._median_gray = (
-            median if self._median_gray is None else 0.8 * self._median_gray + 0.2 * median
-        )
-        m = min(max(self._median_gray / 255.0, 1e-3), 0.999)
-        gamma = math.log(self.config.gamma_target) / math.log(m)
-        gamma = min(1.0, max(0.2, round(gamma * 20) / 20))  # quantised: one table for long
-        if gamma >= 1.0:
-            return gray
-        if self._lut is None or gamma != self._gamma:
-            self._gamma = gamma
-            self._lut = np.round(255.0 * (np.arange(256) / 255.0) ** gamma).astype(np.uint8)
-        return cv2.LUT(gray, self._lut)
 
     # ------------------------------------------------------------------------------ tracking
     def _track(self, gray: np.ndarray) -> None:
-        n = self._ids.size
-        if n == 0 or self._prev_gray is None:
+        tr = self._tracks
+        if len(tr) == 0 or self._prev_gray is None:
             return
         cfg = self.config
-        t0 = time.perf_counter()
-        p0 = self._uv.reshape(-1, 1, 2)
-        guess = (self._uv + self._predicted_velocity()).reshape(-1, 1, 2).astype(np.float32)
+        t0 = time.process_time()
+        p0 = tr.uv.reshape(-1, 1, 2)
+        guess = (tr.uv + self._predicted_velocity()).astype(np.float32).reshape(-1, 1, 2)
         flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-            self._prev_gray, gray, p0, guess, flags=flags, **self._lk
-        )
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            gray, self._prev_gray, p1, p0.copy(), flags=flags, **self._lk
-        )
+        prev = self._prev_gray
+        p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev, gray, p0, guess, flags=flags, **self._lk)
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(gray, prev, p1, p0.copy(), flags=flags, **self._lk)
         p1 = p1.reshape(-1, 2)
-        fb = np.linalg.norm(back.reshape(-1, 2) - self._uv, axis=1)
+        fb = np.linalg.norm(back.reshape(-1, 2) - tr.uv, axis=1)
         ok = (st1.reshape(-1) == 1) & (st2.reshape(-1) == 1) & (fb < cfg.fb_threshold_px)
         ok &= self._inside(p1)
-        self.stats["fb_lost"] += int(n - ok.sum())
-        t1 = time.perf_counter()
+        self.stats["fb_lost"] += int(len(tr) - ok.sum())
+        t1 = time.process_time()
         self.timings["track"] += t1 - t0
         if cfg.epipolar in ("frame", "both"):
-            inl = self._epipolar_inliers(self._uv[ok], p1[ok])
-            self.stats["epipolar_frame"] += int((~inl).sum())
-            ok[np.flatnonzero(ok)[~inl]] = False
-            self.timings["epipolar"] += time.perf_counter() - t1
-        self._vel = (p1 - self._uv)[ok]
-        self._uv = p1[ok]
-        self._ids = self._ids[ok]
-        self._uv_kf = self._uv_kf[ok]
+            inl = self._epipolar_inliers(tr.uv[ok], p1[ok])
+            outliers = np.flatnonzero(ok)[~inl]
+            self.stats["epipolar_frame"] += outliers.size
+            self._memory.retire(tr.ids[outliers])
+            ok[outliers] = False
+            self.timings["epipolar"] += time.process_time() - t1
+        new = np.isnan(tr.vel[:, 0])
+        if new.any():  # first-frame survival of new tracks, per grid cell
+            cells = ft.grid_cells(tr.uv[new], cfg.grid, self.image_size)
+            n = self._born.size
+            self._born = 0.8 * self._born + np.bincount(cells, minlength=n)
+            self._survived = 0.8 * self._survived + np.bincount(cells[ok[new]], minlength=n)
+        tr.vel = p1 - tr.uv
+        tr.uv = p1
+        tr.keep(ok)
 
     def _predicted_velocity(self) -> np.ndarray:
         """``(N, 2)`` each track's last displacement; new tracks (NaN) take their cell's mean,
         else the median of all, else zero."""
-        vel = self._vel.copy()
+        tr = self._tracks
+        vel = tr.vel.copy()
         known = np.isfinite(vel[:, 0])
         if known.all():
             return vel
         if not known.any():
-            vel[:] = 0.0
-            return vel
-        cells = self._cells(self._uv)
+            return np.zeros_like(vel)
+        cells = ft.grid_cells(tr.uv, self.config.grid, self.image_size)
         ncell = self.config.grid[0] * self.config.grid[1]
         count = np.bincount(cells[known], minlength=ncell)
-        mean = np.zeros((ncell, 2))
-        for d in range(2):
-            mean[:, d] = np.bincount(cells[known], weights=vel[known, d], minlength=ncell)
-        mean /= np.maximum(count, 1)[:, None]
+        mean = (
+            np.stack(
+                [np.bincount(cells[known], weights=vel[known, d], minlength=ncell) for d in (0, 1)],
+                axis=1,
+            )
+            / np.maximum(count, 1)[:, None]
+        )
         fill = np.where(count[cells][:, None] > 0, mean[cells], np.median(vel[known], axis=0))
         vel[~known] = fill[~known]
         return vel
@@ -440,161 +502,54 @@ class ImageTracks:
         W, H = self.image_size
         b = self._border
         with np.errstate(invalid="ignore"):
-            return (
-                (uv[:, 0] >= b)
-                & (uv[:, 0] <= W - 1 - b)
-                & (uv[:, 1] >= b)
-                & (uv[:, 1] <= H - 1 - b)
-            )
-
-    def _cells(self, uv: np.ndarray) -> np.ndarray:
-        gx, gy = self.config.grid
-        W, H = self.image_size
-        cx = np.clip((uv[:, 0] * gx / W).astype(np.int64), 0, gx - 1)
-        cy = np.clip((uv[:, 1] * gy / H).astype(np.int64), 0, gy - 1)
-        return cy * gx + cx
+            u, v = uv[:, 0], uv[:, 1]
+            return (u >= b) & (u <= W - 1 - b) & (v >= b) & (v <= H - 1 - b)
 
     def _epipolar_inliers(self, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: consistent with one essential matrix (all True when the check is
-        skipped: too few tracks, too little motion, or no model found)."""
+        """``(N,)`` bool: consistent with one essential matrix (all True when skipped)."""
         cfg = self.config
-        n = uv0.shape[0]
-        keep = np.ones(n, dtype=bool)
-        if n < max(cfg.min_epipolar_tracks, 5):
-            return keep
-        if np.median(np.linalg.norm(uv1 - uv0, axis=1)) < cfg.min_epipolar_motion_px:
-            return keep
-        method = cv2.USAC_MAGSAC if cfg.ransac_method == "magsac" else cv2.RANSAC
-        cv2.setRNGSeed(cfg.seed)
-        E, mask = cv2.findEssentialMat(
-            uv0.astype(np.float64),
-            uv1.astype(np.float64),
-            self.K,
-            method,
-            cfg.ransac_confidence,
-            cfg.ransac_threshold_px,
-        )
-        if E is None or mask is None or E.shape != (3, 3):
+        inl = ft.epipolar_inliers(
+            uv0, uv1, self.K, magsac=cfg.ransac_method == "magsac",
+            threshold_px=cfg.ransac_threshold_px, confidence=cfg.ransac_confidence,
+            seed=cfg.seed, min_tracks=cfg.min_epipolar_tracks,
+            min_motion_px=cfg.min_epipolar_motion_px,
+        )  # fmt: skip
+        if inl is None:
             self.stats["epipolar_skipped"] += 1
-            return keep
-        inl = mask.reshape(-1) > 0
-        if inl.sum() < 0.3 * n:  # a model that explains so little is no model
-            self.stats["epipolar_skipped"] += 1
-            return keep
+            return np.ones(uv0.shape[0], dtype=bool)
         return inl
 
-    def _gradients(self, gray: np.ndarray) -> _Gradients:
-        """Sobel gradients of the keyframe and integral images of their products."""
-        Ix16 = cv2.Sobel(gray, cv2.CV_16S, 1, 0, ksize=3)
-        Iy16 = cv2.Sobel(gray, cv2.CV_16S, 0, 1, ksize=3)
-        products = (
-            cv2.multiply(Ix16, Ix16, dtype=cv2.CV_32F),
-            cv2.multiply(Iy16, Iy16, dtype=cv2.CV_32F),
-            cv2.multiply(Ix16, Iy16, dtype=cv2.CV_32F),
-        )
-        integrals = tuple(cv2.integral(p, sdepth=cv2.CV_64F) for p in products)
-        return _Gradients(Ix16.astype(np.float32), Iy16.astype(np.float32), *integrals)
-
-    def _window_tensor(self, grads: _Gradients, uv: np.ndarray) -> tuple[np.ndarray, ...]:
-        """``(Sxx, Syy, Sxy)``, each ``(N,)``: gradient products summed over the LK window
-        centred at the pixel nearest to ``uv`` (clipped at the image border)."""
-        H, W = grads.Ix.shape
-        r = self.config.window_px // 2
-        u = np.clip(np.round(uv[:, 0]).astype(np.int64), 0, W - 1)
-        v = np.clip(np.round(uv[:, 1]).astype(np.int64), 0, H - 1)
-        u0, u1 = np.maximum(u - r, 0), np.minimum(u + r + 1, W)
-        v0, v1 = np.maximum(v - r, 0), np.minimum(v + r + 1, H)
-        return tuple(
-            I[v1, u1] - I[v0, u1] - I[v1, u0] + I[v0, u0] for I in (grads.Ixx, grads.Iyy, grads.Ixy)
-        )
-
-    def _isotropic(self, grads: _Gradients, uv: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: the LK window at ``uv`` has ``lambda_min / lambda_max`` of at least
-        ``min_eigen_ratio`` (not an edge: no aperture problem)."""
-        a, b, c = self._window_tensor(grads, uv)
-        half_tr = 0.5 * (a + b)
-        disc = np.sqrt(np.maximum(half_tr * half_tr - (a * b - c * c), 0.0))
-        return half_tr - disc >= self.config.min_eigen_ratio * np.maximum(half_tr + disc, 1e-12)
-
-    def _centre(self, grads: _Gradients, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Move corners to the point that LK follows under a change of scale.
-
-        Under a scaling about ``o`` by ``s``, LK's translation for a window at ``p`` is
-        ``(s - 1) (c - o)`` with ``c = G^-1 sum(g g^T x)`` (``g`` the gradient at ``x``, ``G``
-        the window's structure tensor): LK follows ``c``, not ``p``, so a track started at
-        ``p != c`` drifts by ``(s - 1) (c - p)`` at every step while the vehicle approaches.
-        Starting at the fixed point ``p = c`` (a few iterations) removes that drift.
-
-        Returns:
-            ``(uv (N, 2) float32, ok (N,) bool)``: ok when the point moved at most
-            ``centre_max_shift_px`` and stays inside the border.
-        """
-        cfg = self.config
-        if cfg.centre_iterations == 0 or uv.shape[0] == 0:
-            return uv.astype(np.float32), np.ones(uv.shape[0], dtype=bool)
-        H, W = grads.Ix.shape
-        r = cfg.window_px // 2
-        off = np.arange(-r, r + 1)
-        gxf, gyf = grads.Ix.ravel(), grads.Iy.ravel()
-        p = uv.astype(np.float64)
-        for _ in range(cfg.centre_iterations):
-            ui = np.round(p[:, 0]).astype(np.int64)
-            vi = np.round(p[:, 1]).astype(np.int64)
-            U = np.clip(ui[:, None] + off, 0, W - 1)  # (N, w)
-            V = np.clip(vi[:, None] + off, 0, H - 1)
-            flat = (V[:, :, None] * W + U[:, None, :]).reshape(p.shape[0], -1)  # (N, w * w)
-            gx, gy = gxf[flat], gyf[flat]
-            xx = np.broadcast_to((U - p[:, :1])[:, None, :], (p.shape[0], off.size, off.size))
-            yy = np.broadcast_to((V - p[:, 1:])[:, :, None], (p.shape[0], off.size, off.size))
-            xx, yy = xx.reshape(p.shape[0], -1), yy.reshape(p.shape[0], -1)
-            a, b, c = gx * gx, gy * gy, gx * gy
-            Sa, Sb, Sc = a.sum(axis=1), b.sum(axis=1), c.sum(axis=1)
-            mx = np.einsum("ij,ij->i", a, xx) + np.einsum("ij,ij->i", c, yy)
-            my = np.einsum("ij,ij->i", c, xx) + np.einsum("ij,ij->i", b, yy)
-            det = Sa * Sb - Sc * Sc
-            det = np.where(np.abs(det) > 1e-9 * (Sa + Sb) ** 2, det, np.inf)
-            d = np.stack([(Sb * mx - Sc * my) / det, (Sa * my - Sc * mx) / det], axis=1)
-            p += np.clip(d, -1.0, 1.0)
-        ok = (np.linalg.norm(p - uv, axis=1) <= cfg.centre_max_shift_px) & self._inside(p)
-        return p.astype(np.float32), ok
-
-    def _flow_consistent(self, uv0: np.ndarray, uv1: np.ndarray) -> np.ndarray:
-        """``(N,)`` bool: each track's displacement agrees with the median displacement of its
-        ``flow_neighbours`` nearest tracks within ``flow_abs_px + flow_rel * |median|``."""
-        cfg = self.config
-        d = (uv1 - uv0).astype(np.float64)
-        k = cfg.flow_neighbours
-        _, nb = cKDTree(uv1).query(uv1, k=k + 1)
-        med = np.median(d[nb[:, 1:]], axis=1)
-        dev = np.linalg.norm(d - med, axis=1)
-        return dev <= self._flow_abs + cfg.flow_rel * np.linalg.norm(med, axis=1)
-
     def _since_keyframe(self) -> tuple[float, float]:
-        """``(share of the last keyframe's tracks still tracked, their median displacement)``."""
-        if self._n_kf == 0:
+        """``(share of the last keyframe's established tracks still tracked, median
+        displacement of the tracks since the last keyframe)``. Established: tracked through at
+        least one frame before that keyframe (when none was, the tracks that survive the first
+        frame after it): corners that do not survive their first frame trigger no keyframe."""
+        tr = self._tracks
+        if self._established is None:  # no established track at the last keyframe: from now
+            self._established = tr.ids.copy()
+            self._n_kf = len(tr)
+        if self._n_kf == 0 or len(tr) == 0:
             return 0.0, math.nan
-        share = self._ids.size / self._n_kf
-        if self._ids.size == 0:
-            return share, math.nan
-        flow = np.linalg.norm(self._uv - self._uv_kf, axis=1)
-        return share, float(np.median(flow))
+        alive = int(np.isin(self._established, tr.ids, assume_unique=True).sum())
+        flow = np.linalg.norm(tr.uv - tr.uv_kf, axis=1)
+        return alive / self._n_kf, float(np.median(flow))
 
-    # ------------------------------------------------------------------------------ feedback
     def _drop_rejected(self, slam_map: Map) -> None:
-        """Drop the tracks whose observation in our last keyframe the loop rejected."""
-        C = slam_map.num_keyframes
-        if C == 0 or self._ids.size == 0:
+        """Drop the tracks whose observation in our last keyframe the loop rejected as outliers.
+
+        When the loop deactivated more than half of that keyframe's observations, it gave up the
+        keyframe (no pose, a failed start), not the points: the tracks go on."""
+        if slam_map.num_keyframes == 0 or len(self._tracks) == 0:
             return
         hits = np.flatnonzero(slam_map.timestamps == self._kf_time)
         if hits.size == 0:
             return
         obs = slam_map.keyframe_observations(int(hits[-1]))
         rejected = slam_map.obs_point[obs][~slam_map.obs_active[obs]]
-        if rejected.size:
-            keep = ~np.isin(self._ids, rejected)
-            self.stats["rejected_by_loop"] += int((~keep).sum())
-            self._ids, self._uv = self._ids[keep], self._uv[keep]
-            self._vel, self._uv_kf = self._vel[keep], self._uv_kf[keep]
+        if rejected.size > 0.5 * obs.size:
+            self.stats["keyframe_given_up"] += 1
+        elif rejected.size:
+            self._drop(~np.isin(self._tracks.ids, rejected), "rejected_by_loop")
 
     # ------------------------------------------------------------------------------ keyframes
     def _keyframe(
@@ -606,96 +561,97 @@ class ImageTracks:
         slam_map: Map | None,
         reason: str,
     ) -> KeyframeObservations:
-        cfg = self.config
+        t0 = time.process_time()
         self.stats[f"keyframe_{reason}"] += 1
         self.timings["keyframes"] += 1
-        if reason == "first":
-            self._prev_gray = gray
-            self.timings["frames"] += 1
-        t0 = time.perf_counter()
-        if cfg.epipolar in ("keyframe", "both") and self._ids.size:
-            inl = self._epipolar_inliers(self._uv_kf, self._uv)
-            self.stats["epipolar_keyframe"] += int((~inl).sum())
-            self._keep(inl)
-        t1 = time.perf_counter()
-        self.timings["epipolar"] += t1 - t0
-        grads = self._gradients(gray)
-        if cfg.min_eigen_ratio > 0 and self._ids.size:
-            ok = self._isotropic(grads, self._uv)
-            self.stats["aperture_rejected"] += int((~ok).sum())
-            self._keep(ok)
-        if cfg.flow_check and self._ids.size > cfg.flow_neighbours:
-            ok = self._flow_consistent(self._uv_kf, self._uv)
-            self.stats["flow_rejected"] += int((~ok).sum())
-            self._keep(ok)
+        grads = ft.gradients(gray)
+        self._check_tracks(grads)
+        t1 = time.process_time()
+        self.timings["checks"] += t1 - t0
         self.pose_estimate = None
-        if slam_map is not None and cfg.map_check:
+        if slam_map is not None and self.config.map_check:
             self.pose_estimate = self._map_check(slam_map)
-        t1b = time.perf_counter()
-        self.timings["map_check"] += t1b - t1
-        t1 = t1b
-        cand = self._detect(gray)
-        if cfg.min_eigen_ratio > 0 and cand.shape[0]:
-            cand = cand[self._isotropic(grads, cand)]
-        t2 = time.perf_counter()
-        self.timings["detect"] += t2 - t1
-        # descriptors of the live tracks (refresh) and of the candidates, in one ORB call
-        n_live = self._ids.size
-        describe_live = cfg.refresh_descriptors and n_live > 0
-        pts = np.concatenate([self._uv, cand]) if describe_live else cand
-        desc, has = self._describe(gray, pts)
-        if describe_live:
-            self._store_descriptors(self._ids, desc[:n_live], has[:n_live])
-            desc, has = desc[n_live:], has[n_live:]
-        t3 = time.perf_counter()
-        self.timings["describe"] += t3 - t2
-        taken = np.zeros(cand.shape[0], dtype=bool)
-        if cfg.reobserve and slam_map is not None and cand.shape[0]:
-            point, cidx = self._reobserve(t, slam_map, cand, desc, has)
-            uv, ok = self._centre(grads, cand[cidx])
-            if ok.any():
-                taken[cidx[ok]] = True
-                self._append(point[ok], uv[ok])
-                self.stats["reobserved"] += int(ok.sum())
-        t4 = time.perf_counter()
-        self.timings["reobserve"] += t4 - t3
-        new = self._top_up(cand, taken)
-        uv, ok = self._centre(grads, cand[new])
-        new, uv = new[ok], uv[ok]
-        if new.size:
-            ids = self._new_ids(new.size)
-            self._append(ids, uv)
-            self._store_descriptors(ids, desc[new], has[new])
-        self.timings["detect"] += time.perf_counter() - t4
-        self._uv_kf = self._uv.copy()
-        self._n_kf = self._ids.size
+        self.timings["map_check"] += time.process_time() - t1
+        self._add_tracks(t, gray, grads, slam_map)
+        tr = self._tracks
+        tr.uv_kf = tr.uv.copy()
+        self._memory.remember(gray, tr.ids, tr.uv)
+        established = np.isfinite(tr.vel[:, 0])
+        self._established = tr.ids[established] if established.any() else None
+        self._n_kf = int(established.sum())
         self._kf_frame, self._kf_time = i, t
-        logger.debug("keyframe at frame %d (%s): %d tracks", i, reason, self._ids.size)
+        self.timings["keyframe"] += time.process_time() - t0
+        logger.debug("keyframe at frame %d (%s): %d tracks", i, reason, len(tr))
         return KeyframeObservations(
             timestamp=t,
-            point_ids=self._ids.copy(),
-            uv=self._uv.astype(np.float64),
+            point_ids=tr.ids.copy(),
+            uv=tr.uv.astype(np.float64),
             frame_index=i,
             image=rgb,
         )
 
+    def _check_tracks(self, grads: ft.Gradients) -> None:
+        """Stages 4-7 on the live tracks (module docstring)."""
+        cfg, tr = self.config, self._tracks
+        if len(tr) and cfg.epipolar in ("keyframe", "both"):
+            t0 = time.process_time()
+            self._drop(self._epipolar_inliers(tr.uv_kf, tr.uv), "epipolar_keyframe")
+            self.timings["epipolar"] += time.process_time() - t0
+        if len(tr) and cfg.min_eigen_ratio > 0:
+            self._drop(
+                ft.isotropic(grads, tr.uv, cfg.window_px, cfg.min_eigen_ratio), "aperture_rejected"
+            )
+        if len(tr) <= cfg.flow_neighbours:
+            return
+        nb = ft.neighbours(tr.uv, cfg.flow_neighbours)
+        ok = ft.flow_consistent(tr.uv_kf, tr.uv, nb, self._flow_abs, cfg.flow_rel)
+        if cfg.max_deformation is not None:
+            tr.A = ft.local_affine(tr.uv_kf, tr.uv, nb) @ tr.A
+        self._drop(ok, "flow_rejected")
+        if cfg.max_deformation is not None:
+            sv = np.linalg.svd(tr.A, compute_uv=False)
+            renew = np.abs(np.log(np.maximum(sv, 1e-9))).max(axis=1) > cfg.max_deformation
+            if renew.any():
+                idx = np.flatnonzero(renew)
+                uv, good = self._centred(grads, tr.uv[idx])
+                self._memory.retire(tr.ids[idx])
+                r = idx[good]
+                tr.ids[r] = self._new_ids(r.size)
+                tr.uv[r], tr.vel[r], tr.A[r] = uv[good], np.nan, np.eye(2)
+                keep = np.ones(len(tr), dtype=bool)
+                keep[idx[~good]] = False
+                tr.keep(keep)
+                self.stats["renewed"] += int(r.size)
+
+    def _drop(self, keep: np.ndarray, reason: str) -> None:
+        """Drop the tracks outside ``keep`` ``(N,)`` for ``reason`` (a stats key): their points
+        are retired (never re-acquired nor re-observed)."""
+        tr = self._tracks
+        self.stats[reason] += int((~keep).sum())
+        self._memory.retire(tr.ids[~keep])
+        tr.keep(keep)
+
     def _map_check(self, slam_map: Map) -> tuple[np.ndarray, np.ndarray] | None:
-        """PnP on the live tracks of triangulated points; drops the tracks it rejects.
+        """Stage 8: PnP on the tracks of triangulated points, dropping those it rejects.
 
         Returns:
             The keyframe's estimated ``(R_wc, t_wc)``, or None (too few points, PnP failed).
         """
-        ids = self._ids
-        sel = np.flatnonzero(ids < slam_map.num_points)
-        sel = sel[slam_map.triangulated[ids[sel]]]
-        res = self._pnp(slam_map.X_w[ids[sel]], self._uv[sel])
+        tr = self._tracks
+        sel = self._triangulated_tracks(slam_map)
+        res = self._pnp(slam_map.X_w[tr.ids[sel]], tr.uv[sel])
         if res is None:
             return None
-        keep = np.ones(ids.size, dtype=bool)
+        keep = np.ones(len(tr), dtype=bool)
         keep[sel[~res.inliers]] = False
-        self.stats["map_rejected"] += int((~keep).sum())
-        self._keep(keep)
+        self._drop(keep, "map_rejected")
         return res.R_wc, res.t_wc
+
+    def _triangulated_tracks(self, slam_map: Map) -> np.ndarray:
+        """Indices of the live tracks whose point the map has triangulated."""
+        ids = self._tracks.ids
+        sel = np.flatnonzero(ids < slam_map.num_points)
+        return sel[slam_map.triangulated[ids[sel]]]
 
     def _pnp(self, X_w: np.ndarray, uv: np.ndarray) -> PnPResult | None:
         """:func:`slam_bridge.geometry.pnp` with the config's threshold, or None (too few
@@ -717,229 +673,138 @@ class ImageTracks:
             logger.debug("pnp failed: %s", err)
             return None
 
-    def _keep(self, keep: np.ndarray) -> None:
-        self._ids, self._uv, self._vel = self._ids[keep], self._uv[keep], self._vel[keep]
-        self._uv_kf = self._uv_kf[keep]
+    def _add_tracks(
+        self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: Map | None
+    ) -> None:
+        """Stages 9-13: candidates, re-observation, top-up, centring, descriptors."""
+        cfg, tr = self.config, self._tracks
+        with self._clock("detect"):
+            cand = ft.detect_corners(
+                gray,
+                max_corners=2 * cfg.max_tracks + len(tr),
+                quality_level=cfg.quality_level,
+                min_distance=self._min_dist,
+                border=self._border,
+                block_size=cfg.block_size,
+                avoid=tr.uv,
+            )
+            if cfg.min_eigen_ratio > 0 and cand.shape[0]:
+                cand = cand[ft.isotropic(grads, cand, cfg.window_px, cfg.min_eigen_ratio)]
+        proj = None
+        near = np.zeros(0, dtype=np.int64)
+        radius = self._radius_pnp if self.pose_estimate is not None else self._radius
+        with self._clock("reobserve"):
+            pose = self.pose_estimate
+            if cfg.reobserve and slam_map is not None and pose is None:
+                pose = slam_map.predict_pose(t)
+            if cfg.reobserve and slam_map is not None and pose is not None:
+                proj = self._memory.projected(slam_map, pose, self.K, tr.ids, self._inside)
+            if proj is not None and cfg.reacquire_keyframes > 0:
+                idx, uv, tried = self._memory.reacquire(
+                    proj, gray, radius=radius, lk=self._lk, fb_threshold=cfg.fb_threshold_px,
+                    inside=self._inside,
+                )  # fmt: skip
+                if cfg.map_check and idx.size:
+                    ok = self._verify(slam_map, proj[2][idx], uv)
+                    self.stats["reacquire_rejected"] += int((~ok).sum())
+                    idx, uv = idx[ok], uv[ok]
+                tr.append(proj[0][idx], uv)
+                self.stats["reacquired"] += int(idx.size)
+                proj = None if tried.all() else tuple(a[~tried] for a in proj)
+                if idx.size:  # no new corner on them
+                    d, _ = cKDTree(uv).query(cand, k=1, distance_upper_bound=self._min_dist)
+                    cand = cand[~np.isfinite(d)]
+            if proj is not None:  # candidates that may be a projected point, centred as tracks
+                d, _ = cKDTree(proj[1]).query(cand, k=1, distance_upper_bound=radius)
+                near = np.flatnonzero(np.isfinite(d))
+                uv, ok = self._centred(grads, cand[near])
+                near = near[ok]
+                cand[near] = uv[ok]
+        with self._clock("describe"):
+            live = len(tr) if cfg.refresh_descriptors else 0
+            desc, has = self._orb.compute(gray, np.concatenate([tr.uv[:live], cand[near]]))
+            self._memory.store_descriptors(tr.ids[:live], desc[:live], has[:live])
+        taken = np.zeros(cand.shape[0], dtype=bool)
+        if proj is not None and near.size:
+            with self._clock("reobserve"):
+                pi, ci = self._memory.match(
+                    proj, cand[near], desc[live:], has[live:], radius=radius,
+                    max_distance=cfg.max_descriptor_distance, ratio=cfg.match_ratio,
+                )  # fmt: skip
+                if cfg.map_check and pi.size:
+                    ok = self._verify(slam_map, proj[2][pi], cand[near[ci]])
+                    self.stats["reobserve_rejected"] += int((~ok).sum())
+                    pi, ci = pi[ok], ci[ok]
+                taken[near[ci]] = True
+                tr.append(proj[0][pi], cand[near[ci]])
+                self.stats["reobserved"] += int(pi.size)
+        room = cfg.max_tracks - len(tr)
+        free = np.flatnonzero(~taken)
+        if room <= 0 or free.size == 0:
+            return
+        with self._clock("topup"):
+            chosen = ft.grid_top_up(
+                ft.grid_cells(cand[free], cfg.grid, self.image_size),
+                ft.grid_cells(tr.uv, cfg.grid, self.image_size),
+                self._cell_quota(),
+                room,
+            )
+            uv, ok = self._centred(grads, cand[free[chosen]])
+            uv = uv[ok]
+            ids = self._new_ids(uv.shape[0])
+            tr.append(ids, uv)
+        with self._clock("describe"):
+            self._memory.store_descriptors(ids, *self._orb.compute(gray, uv))
 
-    def _append(self, ids: np.ndarray, uv: np.ndarray) -> None:
-        uv = uv.astype(np.float32)
-        self._ids = np.concatenate([self._ids, ids])
-        self._uv = np.concatenate([self._uv, uv])
-        self._vel = np.concatenate([self._vel, np.full_like(uv, np.nan)])
-        self._uv_kf = np.concatenate([self._uv_kf, uv])
+    @contextmanager
+    def _clock(self, stage: str) -> Iterator[None]:
+        """Add the CPU time of the block to ``timings[stage]``."""
+        t0 = time.process_time()
+        try:
+            yield
+        finally:
+            self.timings[stage] += time.process_time() - t0
+
+    def _cell_quota(self) -> np.ndarray:
+        """``(C,)`` new tracks per grid cell: ``max_tracks / C`` scaled by the cell's recent
+        first-frame survival of new tracks (``rate / 0.5``, clipped to ``[0.2, 1]``): cells
+        whose corners do not survive a frame (aliased or fast-moving road) get fewer."""
+        cfg = self.config
+        ncell = self._born.size
+        rate = (self._survived + 1.0) / (self._born + 2.0)
+        share = np.clip(rate / 0.5, 0.2, 1.0) if cfg.adaptive_grid else np.ones(ncell)
+        return np.ceil(cfg.max_tracks / ncell * share).astype(np.int64)
+
+    def _centred(self, grads: ft.Gradients, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stage 12: ``(uv (M, 2) float32, ok (M,))``, ok when centring moved the point at most
+        ``centre_max_shift_px`` and it stays inside the border."""
+        cfg = self.config
+        c = ft.centre(grads, uv, cfg.window_px, cfg.centre_iterations)
+        ok = (np.linalg.norm(c - uv, axis=1) <= cfg.centre_max_shift_px) & self._inside(c)
+        return c.astype(np.float32), ok
 
     def _new_ids(self, n: int) -> np.ndarray:
         ids = np.arange(self._next_id, self._next_id + n, dtype=np.int64)
         self._next_id += n
         return ids
 
-    def _detect(self, gray: np.ndarray) -> np.ndarray:
-        """``(M, 2)`` float32 candidate corners, strongest first, ``min_distance`` from each
-        other and from the live tracks, inside the border."""
-        cfg = self.config
-        W, H = self.image_size
-        room = cfg.max_tracks - self._ids.size
-        if room <= 0 and not cfg.reobserve:
-            return np.zeros((0, 2), dtype=np.float32)
-        b = int(math.ceil(self._border))
-        mask = np.zeros((H, W), dtype=np.uint8)
-        mask[b : H - b, b : W - b] = 255
-        want = 2 * cfg.max_tracks + self._ids.size
-        pts = cv2.goodFeaturesToTrack(
-            gray,
-            maxCorners=want,
-            qualityLevel=cfg.quality_level,
-            minDistance=self._min_dist,
-            mask=mask,
-            blockSize=cfg.block_size,
-        )
-        if pts is None:
-            return np.zeros((0, 2), dtype=np.float32)
-        pts = pts.reshape(-1, 2)
-        if self._ids.size:
-            d, _ = cKDTree(self._uv).query(pts, k=1, distance_upper_bound=self._min_dist)
-            pts = pts[~np.isfinite(d)]
-        return pts.astype(np.float32)
-
-    def _top_up(self, cand: np.ndarray, taken: np.ndarray) -> np.ndarray:
-        """Indices of the candidates that become new tracks: strongest first, ``quota`` tracks
-        per grid cell, then what room is left up to ``2 * quota`` per cell."""
-        cfg = self.config
-        room = cfg.max_tracks - self._ids.size
-        free = np.flatnonzero(~taken)
-        if room <= 0 or free.size == 0:
-            return np.zeros(0, dtype=np.int64)
-        ncell = cfg.grid[0] * cfg.grid[1]
-        quota = int(math.ceil(cfg.max_tracks / ncell))
-        count = np.bincount(self._cells(self._uv), minlength=ncell)
-        cells = self._cells(cand[free])
-        chosen = np.zeros(free.size, dtype=bool)
-        for limit in (quota, 2 * quota):
-            rank = _rank_within_cells(cells, ~chosen)
-            ok = np.flatnonzero(~chosen & (rank + count[cells] < limit))
-            ok = ok[: room - int(chosen.sum())]
-            chosen[ok] = True
-            count += np.bincount(cells[ok], minlength=ncell)
-            if chosen.sum() >= room:
-                break
-        return free[chosen]
-
-    # ------------------------------------------------------------------------------ descriptors
-    def _describe(self, gray: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``(M, 32)`` uint8 ORB descriptors at ``uv`` and ``(M,)`` bool (False near the border,
-        where ORB gives none)."""
-        m = uv.shape[0]
-        desc = np.zeros((m, _DESC_BYTES), dtype=np.uint8)
-        has = np.zeros(m, dtype=bool)
-        if m == 0:
-            return desc, has
-        kps = [
-            cv2.KeyPoint(float(x), float(y), 31.0, 0.0, 0.0, 0, j)
-            for j, (x, y) in enumerate(uv.tolist())
-        ]
-        kps, d = self._orb.compute(gray, kps)
-        if d is not None and len(kps):
-            idx = np.array([k.class_id for k in kps], dtype=np.int64)
-            desc[idx] = d
-            has[idx] = True
-        return desc, has
-
-    def _store_descriptors(self, ids: np.ndarray, desc: np.ndarray, has: np.ndarray) -> None:
-        if ids.size == 0:
-            return
-        need = int(ids.max()) + 1
-        if need > self._desc.shape[0]:
-            cap = max(need, 2 * self._desc.shape[0], 1024)
-            d = np.zeros((cap, _DESC_BYTES), dtype=np.uint8)
-            d[: self._desc.shape[0]] = self._desc
-            h = np.zeros(cap, dtype=bool)
-            h[: self._has_desc.size] = self._has_desc
-            self._desc, self._has_desc = d, h
-        self._desc[ids[has]] = desc[has]
-        self._has_desc[ids[has]] = True
-
-    def _copy_descriptors(self, old: np.ndarray, new: np.ndarray) -> None:
-        if old.size:
-            ok = old < self._has_desc.size
-            self._store_descriptors(new[ok], self._desc[old[ok]], self._has_desc[old[ok]])
-
-    def _reobserve(
-        self, t: float, slam_map: Map, cand: np.ndarray, desc: np.ndarray, has: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``(point ids (R,), candidate indices (R,))`` of untracked map points matched to
-        candidates (module docstring, step 6)."""
-        cfg = self.config
-        empty = np.zeros(0, dtype=np.int64)
-        pose, radius = self.pose_estimate, self._radius_pnp
-        if pose is None:
-            pose, radius = slam_map.predict_pose(t), self._radius
-        if pose is None or not has.any():
-            return empty, empty
-        ids, X = slam_map.triangulated_points()
-        sel = (ids >= self._segment_first_id) & (ids < self._has_desc.size)
-        ids, X = ids[sel], X[sel]
-        sel = self._has_desc[ids] & ~np.isin(ids, self._ids) & np.isfinite(X).all(axis=1)
-        ids, X = ids[sel], X[sel]
-        if ids.size == 0:
-            return empty, empty
-        uv, _, front = project(self.K, pose[0], pose[1], X)
-        inside = front & self._inside(np.where(front[:, None], uv, -1.0))
-        ids, uv, X = ids[inside], uv[inside], X[inside]
-        cidx = np.flatnonzero(has)
-        if ids.size == 0 or cidx.size == 0:
-            return empty, empty
-        pairs = cKDTree(uv).sparse_distance_matrix(
-            cKDTree(cand[cidx].astype(np.float64)), radius, output_type="ndarray"
-        )
-        if pairs.size == 0:
-            return empty, empty
-        pi, cj = pairs["i"].astype(np.int64), cidx[pairs["j"]]
-        ham = _POPCOUNT[self._desc[ids[pi]] ^ desc[cj]].sum(axis=1, dtype=np.int64)
-        order = np.lexsort((cj, ham, pi))  # per point: best first (ties: lowest candidate)
-        pi, cj, ham = pi[order], cj[order], ham[order]
-        start = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
-        best = ham[start]
-        nxt = np.minimum(start + 1, pi.size - 1)
-        has_second = (start + 1 < pi.size) & (pi[nxt] == pi[start])
-        second = np.where(has_second, ham[nxt], 256)
-        ok = (best <= cfg.max_descriptor_distance) & (best < cfg.match_ratio * second)
-        mp, mc, mh = pi[start][ok], cj[start][ok], best[ok]
-        # one point per candidate: the closest in descriptor space
-        order = np.lexsort((mp, mh))
-        mp, mc = mp[order], mc[order]
-        _, first = np.unique(mc, return_index=True)
-        mp, mc = mp[first], mc[first]
-        if cfg.map_check and mp.size:
-            ok = self._verify(slam_map, X[mp], cand[mc])
-            self.stats["reobserve_rejected"] += int((~ok).sum())
-            mp, mc = mp[ok], mc[ok]
-        return ids[mp], mc
-
     def _verify(self, slam_map: Map, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """``(R,)`` bool: re-observations consistent with the keyframe's pose: the map check's
-        pose when there is one (reprojection error), else the pose that PnP estimates from them
-        and the tracked triangulated points (whose outliers are then dropped too)."""
+        pose when there is one, else the pose that PnP estimates from them and the tracked
+        triangulated points (whose outliers are then dropped too)."""
         thr = self.config.map_check_threshold_px
         if self.pose_estimate is not None:
             uv_hat, _, front = project(self.K, *self.pose_estimate, X_w)
             return front & (np.linalg.norm(uv_hat - uv, axis=1) < thr)
-        ids = self._ids
-        sel = np.flatnonzero(ids < slam_map.num_points)
-        sel = sel[slam_map.triangulated[ids[sel]]]
+        tr = self._tracks
+        sel = self._triangulated_tracks(slam_map)
         res = self._pnp(
-            np.concatenate([slam_map.X_w[ids[sel]], X_w]), np.concatenate([self._uv[sel], uv])
+            np.concatenate([slam_map.X_w[tr.ids[sel]], X_w]), np.concatenate([tr.uv[sel], uv])
         )
         if res is None:
             return np.zeros(uv.shape[0], dtype=bool)
         self.pose_estimate = (res.R_wc, res.t_wc)
-        keep = np.ones(ids.size, dtype=bool)
+        keep = np.ones(len(tr), dtype=bool)
         keep[sel[~res.inliers[: sel.size]]] = False
-        self.stats["map_rejected"] += int((~keep).sum())
-        self._keep(keep)
+        self._drop(keep, "map_rejected")
         return res.inliers[sel.size :]
-
-    # ------------------------------------------------------------------------------ report
-    def timing_report(self) -> dict[str, float]:
-        """Milliseconds per frame of each stage, and per keyframe of the keyframe stages."""
-        n = max(self.timings.get("frames", 0), 1)
-        k = max(self.timings.get("keyframes", 0), 1)
-        out = {
-            f"{s}_ms_per_frame": 1e3 * self.timings.get(s, 0.0) / n
-            for s in ("read", "gray", "track", "epipolar", "total")
-        }
-        out.update(
-            {
-                f"{s}_ms_per_keyframe": 1e3 * self.timings.get(s, 0.0) / k
-                for s in ("detect", "describe", "reobserve")
-            }
-        )
-        out["frontend_ms_per_frame"] = out["total_ms_per_frame"] - out["read_ms_per_frame"]
-        out["frames"], out["keyframes"] = float(n), float(k)
-        return out
-
-
-@dataclass
-class _Gradients:
-    """Gradients of a keyframe, ``(H, W)`` float32, and integral images of their products,
-    ``(H + 1, W + 1)`` float64."""
-
-    Ix: np.ndarray
-    Iy: np.ndarray
-    Ixx: np.ndarray
-    Iyy: np.ndarray
-    Ixy: np.ndarray
-
-
-def _rank_within_cells(cells: np.ndarray, active: np.ndarray) -> np.ndarray:
-    """Rank of each active entry among the active entries of its cell (in array order); inactive
-    entries get a rank beyond any quota."""
-    rank = np.full(cells.size, np.iinfo(np.int64).max // 2, dtype=np.int64)
-    idx = np.flatnonzero(active)
-    c = cells[idx]
-    order = np.argsort(c, kind="stable")
-    sc = c[order]
-    first = np.searchsorted(sc, sc, side="left")
-    r = np.empty(idx.size, dtype=np.int64)
-    r[order] = np.arange(idx.size) - first
-    rank[idx] = r
-    return rank

@@ -47,7 +47,7 @@ class KeyframeConfig:
     spacing_m: float = 2.0
     parallax_px: float = 24.0
     min_tracked_share: float = 0.6
-    max_frame_gap: int | None = 30
+    max_frame_gap: int | None = 10
     reference_width: int = 640
 
     def __post_init__(self) -> None:
@@ -97,8 +97,8 @@ class KeyframeRule:
             frame_gap: frames since the last keyframe (>= 1).
             t_keyframe: the last keyframe's timestamp.
             t_frame: this frame's timestamp.
-            tracked_share: share of the last keyframe's tracks still tracked (1 when it had
-                none... see :class:`ImageTracks`).
+            tracked_share: share of the last keyframe's tracks still tracked (0 when it had
+                none).
             median_flow_px: median displacement of those tracks since the last keyframe
                 (NaN when none is left).
 
