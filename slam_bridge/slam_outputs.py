@@ -119,8 +119,10 @@ def write_map_points(path: Path, slam_map) -> Path:
     import trimesh
 
     ids, X = slam_map.triangulated_points()
-    cloud = trimesh.PointCloud(X if X.size else np.zeros((0, 3)))
-    return atomic_write(path, cloud.export(file_type="ply"))
+    if X.shape[0] == 0:  # trimesh cannot export an empty cloud: the header alone
+        header = "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+        return atomic_write(path, header + "property float y\nproperty float z\nend_header\n")
+    return atomic_write(path, trimesh.PointCloud(X).export(file_type="ply"))
 
 
 def plot_run(path: Path, result, inputs, *, title: str = "") -> Path:
