@@ -1,10 +1,10 @@
 """The visual front end on short rendered drives (320x240, 24 frames, car and tram).
 
 Measured when these tests were written (320x240, keyframes every 2 m; bench/frontend_tracks.py has
-640x480): true-error bad share (> 2 px, depth-referenced) car 0.020, tram 0.053; best-fit
-consistency share car 0.001, tram 0.004; >= 270 (car) / >= 195 (tram) tracks per keyframe, median
-tracks shared with the previous keyframe car 84, tram 30 (the side camera sees 50-90 px of flow
-per keyframe at 320 px). The bounds leave a margin of about 1.5-2x.
+640x480): true-error bad share (> 2 px, depth-referenced) car 0.045, tram 0.099 (slow drift
+along the epipolar lines: a slightly wrong depth); best-fit consistency share (what would bias
+the poses) car 0.001, tram 0.000; >= 270 (car) / >= 200 (tram) tracks per keyframe, median tracks
+shared with the previous keyframe car 111, tram 84. The bounds leave a margin of about 1.5-2x.
 """
 
 from __future__ import annotations
@@ -55,12 +55,26 @@ def test_true_reprojection_errors_are_small(run):
     kfs, src, tm, truth = run
     ev = evaluate_tracks(kfs, src.K, truth.R_wc, truth.t_wc, truth.depth)
     s = ev.summary
-    assert s["bad_share"] <= 0.08, s
-    assert s["bad_share_consistency"] <= 0.02, s
+    assert s["bad_share"] <= 0.15, s
+    assert s["bad_share_consistency"] <= 0.01, s
     assert s["error_median_px"] < 0.8, s
     assert s["tracks_per_keyframe_min"] >= 150, s
     continued = [np.isin(kfs[k].point_ids, kfs[k - 1].point_ids).sum() for k in range(1, len(kfs))]
-    assert np.median(continued) >= 20
+    assert np.median(continued) >= 60 and min(continued) >= 30
+
+
+def test_renewal_trades_track_length_for_accuracy(car_drive, car_run, helpers):
+    """Renewing deformed tracks (off by default) lowers the depth-referenced bad share and
+    shortens the tracks (measured: 0.045 -> 0.020, continued tracks 111 -> 84)."""
+    run_tracks, true_distance = helpers[:2]
+    cfg = ImageTracksConfig(max_deformation=0.2)
+    kfs, src, _, truth = run_tracks(car_drive, cfg, distance=true_distance(car_drive))
+    renewed = evaluate_tracks(kfs, src.K, truth.R_wc, truth.t_wc, truth.depth).summary
+    base_kfs, base_src, _, _ = car_run
+    base = evaluate_tracks(base_kfs, base_src.K, truth.R_wc, truth.t_wc, truth.depth).summary
+    assert src.stats["renewed"] > 100
+    assert renewed["bad_share"] < 0.8 * base["bad_share"]
+    assert renewed["track_length_mean"] < base["track_length_mean"]
 
 
 def test_keyframes_spaced_by_distance(car_drive, car_run, helpers):
@@ -101,12 +115,12 @@ def _relative_pose_errors(R_wc, t_wc, truth, f0, f1) -> tuple[float, float]:
 
 
 def test_two_view_init_on_keyframes(car_run):
-    """The relative pose of keyframes ~4 m apart from their shared tracks (39-67 of them).
+    """The relative pose of keyframes ~4 m apart from their shared tracks (78-100 of them).
 
-    Measured over the 8 pairs: with ``cv2.USAC_MAGSAC`` on the tracks, rotation <= 0.28 deg and
-    translation direction <= 3.2 deg (median 0.21 / 2.2); ``two_view_init`` as it is
-    (``cv2.RANSAC``) median 0.34 deg / 1.9 deg but up to 1.3 deg / 15.5 deg: the tracks support
-    the ~0.5 deg / few-degree target, ``two_view_init`` would reach it with MAGSAC.
+    Measured over the 8 pairs: with ``cv2.USAC_MAGSAC`` on the tracks, rotation <= 0.14 deg and
+    translation direction <= 1.6 deg (median 0.08 / 0.6); ``two_view_init`` as it is
+    (``cv2.RANSAC``) median 0.69 deg / 4.1 deg, worst 2.3 deg / 24 deg: the tracks support the
+    ~0.5 deg / few-degree target, ``two_view_init`` would reach it with MAGSAC.
     """
     kfs, src, _, truth = car_run
     got, magsac = [], []
@@ -122,10 +136,10 @@ def test_two_view_init_on_keyframes(car_run):
         _, R, t, _ = cv2.recoverPose(E, uv0, uv1, src.K, mask=mask.copy())
         magsac.append(_relative_pose_errors(R.T, -(R.T @ t.reshape(3)), truth, f0, f1))
     got, magsac = np.array(got), np.array(magsac)
-    assert np.median(magsac[:, 0]) < 0.3 and magsac[:, 0].max() < 0.5, magsac
-    assert np.median(magsac[:, 1]) < 3.0 and magsac[:, 1].max() < 5.0, magsac
-    assert np.median(got[:, 0]) < 0.7 and got[:, 0].max() < 2.0, got  # two_view_init as it is
-    assert np.median(got[:, 1]) < 10.0 and got[:, 1].max() < 20.0, got
+    assert np.median(magsac[:, 0]) < 0.2 and magsac[:, 0].max() < 0.5, magsac
+    assert np.median(magsac[:, 1]) < 1.5 and magsac[:, 1].max() < 3.0, magsac
+    assert np.median(got[:, 0]) < 1.2 and got[:, 0].max() < 4.0, got  # two_view_init as it is
+    assert np.median(got[:, 1]) < 10.0 and got[:, 1].max() < 40.0, got
 
 
 @pytest.mark.parametrize("reacquire, least", [(3, 40), (0, 12)])
