@@ -146,6 +146,10 @@ def bad_observation_share(folder: Path, inputs, result) -> dict:
     return {
         "bad_observation_share": float(all_obs.summary["bad_share"]),
         "bad_observation_share_used": float(used.summary["bad_share"]),
+        "bad_observation_share_consistency": float(
+            all_obs.summary.get("bad_share_consistency", float("nan"))
+        ),
+        "track_length_mean_keyframes": float(all_obs.summary["track_length_mean"]),
         "observations_per_keyframe": float(m.num_observations / max(m.num_keyframes, 1)),
     }
 
@@ -262,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     chapter3 = {} if args.no_chapter3 else chapter3_on_images(args.data, args.full)
     keys = [
         "tracking_failures", "bad_observation_share", "bad_observation_share_used",
+        "bad_observation_share_consistency", "track_length_mean_keyframes",
         "translation_error_m", "gps_error_m", "translation_error_over_gps", "rotation_error_deg",
         "translation_error_over_colmap", "wall_time_over_colmap", "frames_per_second",
         "frontend_ms_per_frame", "loop_ms_per_keyframe", "bias_translation_error_m",

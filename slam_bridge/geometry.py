@@ -7,7 +7,7 @@ Poses follow :mod:`slam_bridge.camera` (``R_wc``, ``t_wc``, OpenCV camera frame)
   in one batched ``eigh``), then optional Gauss-Newton refinement of the reprojection error with
   the cameras fixed (also vectorised). Each point is checked for cheirality (in front of every
   view) and parallax (the largest angle between its first view's ray and any other view's ray).
-* :func:`two_view_init`: essential matrix (``cv2.findEssentialMat``, RANSAC) and
+* :func:`two_view_init`: essential matrix (``cv2.findEssentialMat``, MAGSAC++ or RANSAC) and
   ``cv2.recoverPose``; camera 1 is the world frame, the baseline has unit length.
 * :func:`pnp`: ``cv2.solvePnPRansac`` then ``cv2.solvePnPRefineLM`` on the inliers.
 """
@@ -219,6 +219,7 @@ def two_view_init(
     threshold_px: float = 1.0,
     confidence: float = 0.999,
     seed: int = 0,
+    method: str = "magsac",
 ) -> TwoViewResult:
     """Essential-matrix initialisation of a monocular map.
 
@@ -229,6 +230,8 @@ def two_view_init(
         threshold_px: RANSAC inlier threshold.
         confidence: RANSAC confidence.
         seed: OpenCV RNG seed (determinism).
+        method: ``"magsac"`` (``cv2.USAC_MAGSAC``, MAGSAC++: on image tracks its relative
+            rotations were several times closer to the truth than plain RANSAC's) or ``"ransac"``.
 
     Returns:
         A :class:`TwoViewResult`.
@@ -242,10 +245,14 @@ def two_view_init(
     check_finite("uv2", uv2)
     if uv1.shape[0] < 5:
         raise SlamError(f"two_view_init: needs >= 5 correspondences, got {uv1.shape[0]}")
+    estimators = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+    if method not in estimators:
+        raise SlamError(f"method: expected one of {sorted(estimators)}, got {method!r}")
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(uv1, uv2, K, cv2.RANSAC, confidence, threshold_px)
-    if E is None or E.shape != (3, 3):
+    E, mask = cv2.findEssentialMat(uv1, uv2, K, estimators[method], confidence, threshold_px)
+    if E is None or E.shape[0] < 3 or E.shape[1] != 3:
         raise SlamError("two_view_init: no essential matrix found (degenerate motion?)")
+    E = E[:3]  # several stacked solutions: the first, best-supported one
     n_good, R, t, mask2 = cv2.recoverPose(E, uv1, uv2, K, mask=mask.copy())
     if n_good < 5:
         raise SlamError(f"two_view_init: only {n_good} points pass the cheirality test")

@@ -4,7 +4,7 @@
 its images, an optional wheel odometry, an optional GPS and an optional DEM:
 
 1. **Two views.** The first keyframe ``a`` is the reference; each next keyframe ``b`` is tried
-   in turn: the essential matrix of their common tracks (RANSAC, ``cv2.findEssentialMat``) and
+   in turn: the essential matrix of their common tracks (MAGSAC++, ``cv2.findEssentialMat``) and
    ``cv2.recoverPose`` give the relative pose up to scale
    (:func:`slam_bridge.geometry.two_view_init`); it is accepted when at least
    ``min_matches`` tracks are inliers and at least ``min_points`` of them triangulate with
