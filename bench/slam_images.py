@@ -271,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         "translation_error_over_colmap", "wall_time_over_colmap", "frames_per_second",
         "frontend_ms_per_frame", "loop_ms_per_keyframe", "bias_translation_error_m",
         "bias_gps_error_m", "bias_rotation_error_deg", "bias_tracking_failures",
-        "colmap_translation_error_m", "colmap_rotation_error_deg",
+        "colmap_translation_error_m", "colmap_rotation_error_deg", "colmap_registered_share",
     ]  # fmt: skip
     flat: dict = {}
     for k in keys:
@@ -323,6 +323,18 @@ def markdown(flat: dict) -> str:
             f"| {d.get('rotation_error_deg', float('nan')):.2f} | {d.get('colmap_translation_error_m', float('nan')):.2f} "
             f"| {d.get('frames_per_second', float('nan')):.1f} | {d.get('bias_translation_error_m', float('nan')):.2f} |"
         )
+    ch3 = sorted(
+        k[len("chapter3_") :] for k in flat if k.startswith("chapter3_") and "simulated" not in k
+    )
+    if ch3:
+        out += [
+            "",
+            "| chapter 3 (known start, GPS every keyframe) | image tracks | simulated tracks |",
+        ]
+        out.append("|---|---|---|")
+        for k in ch3:
+            sim = flat.get(f"chapter3_simulated_{k}", float("nan"))
+            out.append(f"| {k} | {flat[f'chapter3_{k}']:.3f} | {sim:.3f} |")
     return "\n".join(out)
 
 

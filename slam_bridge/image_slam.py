@@ -67,6 +67,8 @@ class ImageSlamConfig:
         gps_tolerance_s: a fix within this time of a keyframe is its fix.
         gps_interpolate_gap_s: otherwise the two fixes around it are interpolated when at most
             this far apart (None: not).
+        gps_weight: weight of a GPS fix in the fusion (per square metre).
+        dem_weight: weight of the terrain-elevation term (per square metre).
     """
 
     method: str = "ba"
@@ -75,6 +77,8 @@ class ImageSlamConfig:
     frontend: ImageTracksConfig = field(default_factory=ImageTracksConfig)
     gps_tolerance_s: float = 0.02
     gps_interpolate_gap_s: float | None = 1.5
+    gps_weight: float = 1.0
+    dem_weight: float = 1.0
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -294,6 +298,7 @@ def run_on_images(inputs: SlamInputs, cfg: ImageSlamConfig, progress: bool = Tru
             inputs.gps_xy,
             tolerance_s=cfg.gps_tolerance_s,
             interpolate_gap_s=cfg.gps_interpolate_gap_s,
+            weight=cfg.gps_weight,
             antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
         )
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
@@ -308,7 +313,9 @@ def run_on_images(inputs: SlamInputs, cfg: ImageSlamConfig, progress: bool = Tru
     )
     providers = [gps] if gps else []
     if inputs.dem is not None:
-        providers.append(DemConstraints(inputs.dem, inputs.rig.camera_height_m))
+        providers.append(
+            DemConstraints(inputs.dem, inputs.rig.camera_height_m, weight=cfg.dem_weight)
+        )
     source = _Progress(tracks, progress)
     try:
         result = run_slam(source, cfg.method, start, providers, cfg.slam)
