@@ -13,23 +13,12 @@ pycolmap = pytest.importorskip("pycolmap")
 
 from geoseg.errors import GeosegError  # noqa: E402
 from geoseg.synth import build_world, drive, render  # noqa: E402
-from geoseg.synth.world import TerrainConfig, WorldConfig  # noqa: E402
 from slam_bridge.errors import SlamError  # noqa: E402
 from slam_bridge.lie import so3_exp, so3_log  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 
 # the SLAM tests' tiny world (tests/slam_bridge/slam/conftest.py)
-TINY_WORLD = dict(
-    seed=5,
-    preset="light",
-    blocks_x=2,
-    blocks_y=2,
-    block_size=70.0,
-    node_jitter=4.0,
-    removed_street_share=0.0,
-    terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
-)
 
 
 def _load_peer():
@@ -48,9 +37,9 @@ def _angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def sequence():
+def sequence(make_tiny_world):
     """17 frames of a 320x240 drive, one every ~1.5 m (a straight street on a slope)."""
-    world = build_world(WorldConfig(**TINY_WORLD))
+    world = build_world(make_tiny_world())
     traj = drive(world, length_m=24.0, fps=11.0 / 1.5, seed=1, image_size=(320, 240))
     frames = [
         render(world, traj.K, traj.R_wc[i], traj.t_wc[i], traj.image_size).rgb

@@ -11,21 +11,9 @@ import pytest
 
 from geoseg.cli import main
 from geoseg.synth.export import render_sequence
-from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.image_slam import load_inputs
 from slam_bridge.sensor_logs import read_columns
-
-TINY_WORLD = dict(
-    seed=5,
-    preset="light",
-    blocks_x=2,
-    blocks_y=2,
-    block_size=70.0,
-    node_jitter=4.0,
-    removed_street_share=0.0,
-    terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
-)
 
 
 def write_gps(folder, sigma: float = 0.75, seed: int = 3):
@@ -43,10 +31,10 @@ def write_gps(folder, sigma: float = 0.75, seed: int = 3):
 
 
 @pytest.fixture(scope="module")
-def drive(tmp_path_factory):
+def drive(tmp_path_factory, make_tiny_world):
     folder = tmp_path_factory.mktemp("drive") / "render"
     render_sequence(
-        WorldConfig(**TINY_WORLD), folder, frames=70, image_size=(320, 240), seed=1, progress=False
+        make_tiny_world(), folder, frames=70, image_size=(320, 240), seed=1, progress=False
     )
     return folder, write_gps(folder)
 

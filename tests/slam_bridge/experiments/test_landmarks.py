@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from geoseg.synth import build_world, drive
-from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.fusion_ch3 import SequenceConfig  # noqa: F401  (import check of the stage module)
 from slam_bridge.experiments.landmarks import (
@@ -19,24 +18,9 @@ from slam_bridge.experiments.landmarks import (
 )
 
 
-def _tiny_world():
-    return build_world(
-        WorldConfig(
-            seed=5,
-            preset="light",
-            blocks_x=2,
-            blocks_y=2,
-            block_size=70.0,
-            node_jitter=4.0,
-            removed_street_share=0.0,
-            terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
-        )
-    )
-
-
 @pytest.fixture(scope="module")
-def tiny():
-    world = _tiny_world()
+def tiny(make_tiny_world):
+    world = build_world(make_tiny_world())
     traj = drive(world, rig="car", length_m=40.0, fps=5.0, seed=1, image_size=(320, 240))
     return world, traj
 

@@ -11,30 +11,25 @@ from geoseg.cli import main
 from geoseg.config import load_config
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig
 
-TINY = {
-    "world": {
-        "seed": 5,
-        "preset": "light",
-        "blocks_x": 2,
-        "blocks_y": 2,
-        "block_size": 70.0,
-        "node_jitter": 4.0,
-        "removed_street_share": 0.0,
-        "terrain": {"skirt": 60.0, "mesh_spacing": 6.0},
-    },
-    "sequence": {"length_m": 120.0, "fps": 10.0, "seed": 1, "image_size": [640, 480]},
-    "slam": {"window": {"l": 8, "n": 4, "ba_iterations": 8}, "fusion": {"iterations": 8}},
-    "methods": ["ba", "dpc", "mpc"],
-    "quick_length_m": 40.0,
-    "quick_sigmas": [0.0],
-    "quick_bias": True,
-}
+
+@pytest.fixture
+def tiny(tiny_world_dict) -> dict:
+    """The experiment on the tiny city, as a YAML preset would hold it."""
+    return {
+        "world": tiny_world_dict,
+        "sequence": {"length_m": 120.0, "fps": 10.0, "seed": 1, "image_size": [640, 480]},
+        "slam": {"window": {"l": 8, "n": 4, "ba_iterations": 8}, "fusion": {"iterations": 8}},
+        "methods": ["ba", "dpc", "mpc"],
+        "quick_length_m": 40.0,
+        "quick_sigmas": [0.0],
+        "quick_bias": True,
+    }
 
 
 @pytest.fixture
-def tiny_yaml(tmp_path):
+def tiny_yaml(tmp_path, tiny):
     path = tmp_path / "slam_tiny.yaml"
-    path.write_text(yaml.safe_dump(TINY))
+    path.write_text(yaml.safe_dump(tiny))
     return path
 
 
@@ -117,7 +112,7 @@ def test_bench_other_drives_mean_and_worst(tiny_yaml, tmp_path, capsys):
         bench.other_drives(cfg, [2], tmp_path / "none")
 
 
-def test_chapter3_experiment_on_image_tracks(tmp_path):
+def test_chapter3_experiment_on_image_tracks(tmp_path, tiny):
     """The same experiment with the visual front end on rendered frames instead of simulated
     tracks: the frames are rendered once, the runs stay near the truth with an exact GPS."""
     from slam_bridge.experiments.fusion_ch3 import run_experiment
@@ -125,8 +120,8 @@ def test_chapter3_experiment_on_image_tracks(tmp_path):
     cfg = load_config(
         ExperimentConfig,
         {
-            **TINY,
-            "sequence": {**TINY["sequence"], "length_m": 50.0, "image_size": [320, 240]},
+            **tiny,
+            "sequence": {**tiny["sequence"], "length_m": 50.0, "image_size": [320, 240]},
             "tracks": "images",
             "methods": ["ba", "dpc"],
             "gps_sigmas": [0.0],

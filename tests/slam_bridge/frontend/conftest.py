@@ -13,7 +13,6 @@ import numpy as np
 import pytest
 
 from geoseg.synth.export import render_sequence
-from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.evaluate_tracks import RenderTruth, TruthMap
 from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
@@ -22,22 +21,9 @@ SIZE = (320, 240)
 FRAMES = 24
 
 
-def tiny_world(preset: str) -> WorldConfig:
-    return WorldConfig(
-        seed=5,
-        preset=preset,
-        blocks_x=2,
-        blocks_y=2,
-        block_size=70.0,
-        node_jitter=4.0,
-        removed_street_share=0.0,
-        terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
-    )
-
-
-def _render(root: Path, name: str, rig: str, condition: str, preset: str) -> Path:
+def _render(root: Path, name: str, rig: str, condition: str, world) -> Path:
     return render_sequence(
-        tiny_world(preset),
+        world,
         root / name,
         FRAMES,
         condition,
@@ -50,15 +36,15 @@ def _render(root: Path, name: str, rig: str, condition: str, preset: str) -> Pat
 
 
 @pytest.fixture(scope="session")
-def car_drive(tmp_path_factory) -> Path:
-    return _render(tmp_path_factory.mktemp("frontend"), "car", "car", "summer_day", "light")
+def car_drive(tmp_path_factory, make_tiny_world) -> Path:
+    root = tmp_path_factory.mktemp("frontend")
+    return _render(root, "car", "car", "summer_day", make_tiny_world())
 
 
 @pytest.fixture(scope="session")
-def tram_drive(tmp_path_factory) -> Path:
-    return _render(
-        tmp_path_factory.mktemp("frontend"), "tram", "tram", "overcast", "dense_occlusion"
-    )
+def tram_drive(tmp_path_factory, make_tiny_world) -> Path:
+    world = make_tiny_world(preset="dense_occlusion")
+    return _render(tmp_path_factory.mktemp("frontend"), "tram", "tram", "overcast", world)
 
 
 def run_tracks(folder: Path, config: ImageTracksConfig | None = None, distance=None, frames=None,
