@@ -342,11 +342,11 @@ def run_method(
     gate, A = cfg.slam.tracking.outlier_gate_px, cfg.start_keyframes
     if frames is None:
         source, times = seq.source(), seq.timestamps
-        start = KnownStartPoses(seq.R_wc_true, seq.t_wc_true, gate, count=A)
+        start = KnownStartPoses(seq.R_wc_true, seq.t_wc_true, gate, A, cfg.slam.mapping)
     else:
         traj = seq.trajectory
         source, times = image_source(cfg, seq, frames), traj.timestamps
-        start = KnownStartPoses(traj.R_wc, traj.t_wc, gate, count=A)
+        start = KnownStartPoses(traj.R_wc, traj.t_wc, gate, A, cfg.slam.mapping)
     providers = [] if gps_xy is None else [GpsConstraints(times, gps_xy)]
     return run_slam(source, method, start, providers, cfg.slam, max_keyframes=max_keyframes)
 

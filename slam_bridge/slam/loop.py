@@ -39,7 +39,7 @@ from slam_bridge.frontend.base import ObservationSource
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import ConstraintProvider, fuse
 from slam_bridge.slam.map import Map
-from slam_bridge.slam.mapping import gate_window, refine_points, triangulate_new
+from slam_bridge.slam.mapping import MappingConfig, gate_window, refine_points, triangulate_new
 from slam_bridge.slam.tracking import TrackingLost, track_keyframe
 from slam_bridge.slam.windows import METHODS, carry_points, hessian_bytes, optimise_window
 
@@ -109,10 +109,16 @@ class KnownStartPoses:
         t_wc: ``(F, 3)``.
         outlier_gate_px: the start's triangulation gate (the tracking's outlier gate).
         count: how many first keyframes are placed and fixed (default 3).
+        mapping: the loop's mapping settings (triangulation parallax).
     """
 
     def __init__(
-        self, R_wc: np.ndarray, t_wc: np.ndarray, outlier_gate_px: float = 20.0, count: int = 3
+        self,
+        R_wc: np.ndarray,
+        t_wc: np.ndarray,
+        outlier_gate_px: float = 20.0,
+        count: int = 3,
+        mapping: MappingConfig | None = None,
     ) -> None:
         self.R_wc = np.asarray(R_wc, dtype=np.float64)
         self.t_wc = np.asarray(t_wc, dtype=np.float64)
@@ -126,7 +132,7 @@ class KnownStartPoses:
             )
         self.count = int(count)
         self.outlier_gate_px = float(outlier_gate_px)
-        self.mapping = None  # set by run_slam: the loop's MappingConfig
+        self.mapping = mapping or MappingConfig()
 
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
         A = self.count
@@ -309,8 +315,6 @@ class _Loop:
         self.segment_start = 0
         self.first_observation = 0
         self.records: list[KeyframeRecord] = []
-        if isinstance(start, KnownStartPoses) and start.mapping is None:
-            start.mapping = cfg.mapping
 
     def run(self) -> SlamResult:
         t_start = time.perf_counter()
