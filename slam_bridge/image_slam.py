@@ -50,7 +50,14 @@ from slam_bridge.slam.windows import METHODS
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ImageSlamConfig", "SlamInputs", "load_inputs", "run_image_slam", "evaluate_run"]
+__all__ = [
+    "ImageSlamConfig",
+    "SlamInputs",
+    "load_inputs",
+    "run_on_images",
+    "run_image_slam",
+    "evaluate_run",
+]
 
 PRODUCER = "slam run"
 
@@ -272,25 +279,15 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
     return out
 
 
-# --------------------------------------------------------------------------------- internals
-class _Progress:
-    """The front end seen by the loop, with a progress bar over the frames."""
+def run_on_images(
+    inputs: SlamInputs, cfg: ImageSlamConfig | None = None, progress: bool = True
+) -> tuple[SlamResult, ImageTracks]:
+    """The run itself, for programs and benchmarks (no file written).
 
-    def __init__(self, tracks: ImageTracks, enabled: bool) -> None:
-        from tqdm import tqdm
-
-        self.tracks = tracks
-        self.K, self.image_size = tracks.K, tracks.image_size
-        self.bar = tqdm(total=len(tracks.frames), unit="frame", desc="slam", disable=not enabled)
-
-    def next_keyframe(self, slam_map) -> KeyframeObservations | None:
-        obs = self.tracks.next_keyframe(slam_map)
-        self.bar.n = len(self.tracks.frames) if obs is None else obs.frame_index + 1
-        self.bar.refresh()
-        return obs
-
-
-def run_on_images(inputs: SlamInputs, cfg: ImageSlamConfig, progress: bool = True):
+    Returns:
+        ``(the SLAM's result, the front end with its timings and counters)``.
+    """
+    cfg = cfg or ImageSlamConfig()
     gps = None
     if inputs.gps_xy is not None:
         gps = GpsConstraints(
@@ -322,6 +319,24 @@ def run_on_images(inputs: SlamInputs, cfg: ImageSlamConfig, progress: bool = Tru
     finally:
         source.bar.close()
     return result, tracks
+
+
+# --------------------------------------------------------------------------------- internals
+class _Progress:
+    """The front end seen by the loop, with a progress bar over the frames."""
+
+    def __init__(self, tracks: ImageTracks, enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.tracks = tracks
+        self.K, self.image_size = tracks.K, tracks.image_size
+        self.bar = tqdm(total=len(tracks.frames), unit="frame", desc="slam", disable=not enabled)
+
+    def next_keyframe(self, slam_map) -> KeyframeObservations | None:
+        obs = self.tracks.next_keyframe(slam_map)
+        self.bar.n = len(self.tracks.frames) if obs is None else obs.frame_index + 1
+        self.bar.refresh()
+        return obs
 
 
 def _read_rig(path: Path) -> VehicleRig:
