@@ -10,7 +10,9 @@ its images, an optional wheel odometry, an optional GPS and an optional DEM:
    ``min_matches`` tracks are inliers and at least ``min_points`` of them triangulate with
    enough parallax. Tracks the essential matrix rejects lose those observations; keyframes
    between ``a`` and ``b`` take interpolated poses and no observation. After ``max_tries``
-   failures the newest keyframe becomes the reference.
+   failures (or at once when the reference has too few tracks left) the newest keyframe
+   becomes the reference; the keyframes given up keep no pose at the start of a run, and the
+   motion model's prediction (dead reckoning) after a lost tracking.
 2. **Metric scale**: the distance driven between ``a`` and ``b`` by the wheel odometry. Without
    odometry the baseline is 1 and the scale comes from the GPS (step 3), the GPS displacement
    over tens of metres (one baseline of ~2 m between two noisy fixes would not do).
@@ -339,8 +341,11 @@ class TwoViewStart:
                     "keyframes %d-%d: no two-view start; keyframe %d is the new reference", a, b, b
                 )
                 m.obs_active[m.keyframe_observations(a)] = False
-                for j in range(a, b):  # never placed
-                    m.set_pose(j, np.full((3, 3), np.nan), np.full(3, np.nan))
+                for j in range(a, b):  # dead-reckoned after a loss, else never placed
+                    if self._motion is not None:
+                        m.set_pose(j, *self._predict(m, j))
+                    else:
+                        m.set_pose(j, np.full((3, 3), np.nan), np.full(3, np.nan))
                     m.mark_online(j)
                 if self._motion is not None:
                     m.set_pose(b, *self._predict(m, b))

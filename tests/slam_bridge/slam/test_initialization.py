@@ -129,7 +129,6 @@ def test_lost_tracking_restarts_a_segment(noisy):
     seg = res.map.segment
     assert seg[19] == 0 and seg[20] > 0 and np.all(seg[21:] == seg[21])
     assert res.map.num_keyframes == seq.num_keyframes
-    assert np.flatnonzero(~res.placed).tolist() == [20]  # left without a pose
-    assert res.in_world[21:].all()  # re-anchored in the world frame
+    assert res.placed.all() and res.in_world[20:].all()  # 20 dead-reckoned, then re-anchored
     e = np.linalg.norm(res.t_wc[:, :2] - seq.t_wc_true[:, :2], axis=1)
-    assert e[21:].mean() < 2.0
+    assert e[20] < 1.0 and e[21:].mean() < 2.0
