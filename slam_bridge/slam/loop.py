@@ -439,10 +439,13 @@ class _Loop:
         self._refine_segment(int(m.starts[k]))
         m.start_segment(k)
         m.triangulated[:] = False
+        first_segment = int(m.segment[k])
         try:
             got = self.start_up.restart(m, self.source, k)
         except TrackingLost as exc:
             raise TrackingLost(f"{lost}; {exc}") from exc
+        if self.georeferenced:  # re-anchored in the world frame, given-up keyframes included
+            self.georeferenced_segments.update(range(first_segment, int(m.segment[-1]) + 1))
         if got is None:
             return
         self._begin_segment(got)
