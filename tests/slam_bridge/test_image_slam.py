@@ -147,3 +147,22 @@ def test_bad_inputs_are_clear_errors(drive, tmp_path, capsys):
         geo = tmp_path / "geo.json"
         geo.write_text("{}")
         load_inputs(folder, georeference=geo)
+
+
+def test_a_bad_image_mid_sequence_stops_the_run_without_finished_outputs(drive, tmp_path, capsys):
+    """Images are read as the run goes: an unreadable one is named, and the output folder is
+    left without ``summary.json`` (what marks a finished run)."""
+    folder, gps = drive
+    broken = tmp_path / "broken"
+    shutil.copytree(folder, broken)
+    (broken / "rgb" / "000040.png").write_bytes(b"not a png")
+    out = tmp_path / "out"
+    assert main(slam_args(broken, gps, out)) == 2
+    assert "000040.png" in capsys.readouterr().err
+    assert not (out / "summary.json").exists() and not (out / "trajectory.csv").exists()
+    # a camera.json whose image size does not match the images is refused before any work
+    cam = json.loads((broken / "camera.json").read_text())
+    cam["image_size"] = [640, 480]
+    (broken / "camera.json").write_text(json.dumps(cam))
+    assert main(slam_args(broken, gps, tmp_path / "out2")) == 2
+    assert "expected 640x480" in capsys.readouterr().err
