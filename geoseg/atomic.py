@@ -42,6 +42,7 @@ _CAUSES = {
     errno.EISDIR: ("a folder is in the way", "remove it or choose another name"),
     errno.ENOTDIR: ("a file is in the way of a folder", "remove it or choose another path"),
     errno.ENOENT: ("the folder does not exist", "create it or choose another path"),
+    errno.EIO: ("the write failed", "check the disk (full, or a file size limit?)"),
 }
 
 

@@ -11,7 +11,8 @@ Model checkpoints (:func:`save_model_checkpoint`) are dicts saved with ``torch.s
      "state_dict": {...}, "normalization": {"mean": [r, g, b], "std": [r, g, b]}, ...}
 
 Extra keys (optimizer, epoch, ... from a training checkpoint) are ignored. They are read with
-``torch.load(..., weights_only=True)`` only.
+``torch.load(..., weights_only=True)`` only, and carry a SHA-256 of their content (key
+``"sha256"``, :mod:`geoseg.integrity`) that every load verifies.
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError, check_shape
+from geoseg.integrity import read_torch_file, save_torch_file, seal
 
 logger = logging.getLogger(__name__)
 
@@ -88,8 +89,7 @@ def save_model_checkpoint(
         state_dict={k: v.detach().cpu() for k, v in model.state_dict().items()},
         normalization=_check_normalization("normalization", normalization or DEFAULT_NORMALIZATION),
     )
-    with atomic_output(path) as handle:
-        torch.save(payload, handle)
+    save_torch_file(seal(payload), path)
     return path
 
 
@@ -106,22 +106,14 @@ def load_model_checkpoint(
         ``(model in eval mode, checkpoint dict)``.
 
     Raises:
-        GeosegError: missing or corrupt file, missing keys, unknown model, or weights that do
-            not match the architecture (the message names the file).
+        GeosegError: missing or corrupt file (including a SHA-256 mismatch), CUDA asked for
+            but unavailable, missing keys, unknown model, or weights that do not match the
+            architecture (the message names the file).
     """
     from geoseg.models.registry import get_model
 
     path = Path(path)
-    if not path.is_file():
-        raise GeosegError(f"{path}: no such checkpoint file")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:
-        raise GeosegError(
-            f"{path}: not a readable torch checkpoint ({type(err).__name__}: {err})"
-        ) from None
-    if not isinstance(ckpt, dict):
-        raise GeosegError(f"{path}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    ckpt = read_torch_file(path, map_location=map_location)
     missing = [k for k in ("model_name", "state_dict") if k not in ckpt]
     if missing:
         raise GeosegError(f"{path}: not a geoseg model checkpoint (missing {missing})")

@@ -442,8 +442,8 @@ def finish_head_run(
 ) -> Path:
     """The end of a head trainer's ``main``: best weights, best epoch's metrics, artefacts.
 
-    Loads the best weights into ``model`` (:func:`training.common.load_best_weights`), takes the
-    metrics of the best epoch by ``cfg.best_metric``/``cfg.best_mode``, adds
+    Loads the best weights into ``model`` and takes the metrics of the epoch they come from
+    (:func:`training.common.load_best_weights`), adds
     ``extra_metrics(head)`` when given (run on the best weights before the head moves to the
     CPU), then writes the head's ``model.pt``, ``model.onnx`` (when ``cfg.export``) and card
     (:func:`finalize_head_run`).
@@ -465,8 +465,7 @@ def finish_head_run(
     Returns:
         ``run_dir``.
     """
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
+    _, metrics = common.load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model.head))
     c, h, w = data.shape
