@@ -293,6 +293,37 @@ def available_providers(device: str | None = None) -> list[str]:
     return chosen
 
 
+def check_providers(providers: Sequence[str] | None) -> list[str]:
+    """``providers`` checked against onnxruntime's (default: :func:`available_providers`).
+
+    Raises:
+        GeosegError: an empty list, a name onnxruntime does not know, or one this installation
+            does not have (onnxruntime would silently fall back to the CPU).
+    """
+    import onnxruntime as ort
+
+    if providers is None:
+        return available_providers()
+    if isinstance(providers, str):
+        providers = [providers]
+    chosen = list(providers)
+    if not chosen:
+        raise GeosegError("providers: expected at least one onnxruntime execution provider")
+    known, have = set(ort.get_all_providers()), ort.get_available_providers()
+    for name in chosen:
+        if name not in known:
+            raise GeosegError(
+                f"providers: unknown onnxruntime execution provider {name!r}; available here: "
+                f"{have}"
+            )
+        if name not in have:
+            raise GeosegError(
+                f"providers: {name} is not available in this onnxruntime installation "
+                f"(available: {have})"
+            )
+    return chosen
+
+
 class OnnxModel:
     """An onnxruntime session with the torch model's call signature and named outputs.
 
@@ -339,7 +370,11 @@ class OnnxModel:
         if isinstance(fixed_dims, str) and fixed_dims != "auto":
             raise GeosegError(f"fixed_dims: expected a mapping, 'auto' or None, got {fixed_dims!r}")
         self._auto = fixed_dims == "auto"
-        self._providers = list(providers or available_providers())
+        self._providers = check_providers(providers)
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1
+        ):
+            raise GeosegError(f"threads: expected None or an int >= 1, got {threads!r}")
         self._threads = threads
         self.session = self._new_session(None if self._auto else fixed_dims)
         raw = self.session.get_modelmeta().custom_metadata_map
@@ -379,11 +414,18 @@ class OnnxModel:
                 raise GeosegError(f"fixed_dims[{name!r}]: expected a positive int, got {size!r}")
             options.add_free_dimension_override_by_name(name, int(size))
         try:
-            return ort.InferenceSession(
+            session = ort.InferenceSession(
                 str(self.path), sess_options=options, providers=self._providers
             )
         except Exception as err:
             raise GeosegError(f"{self.path}: not a valid ONNX model ({err})") from None
+        used = session.get_providers()
+        if self._providers[0] not in used:  # onnxruntime fell back silently
+            raise GeosegError(
+                f"{self.path}: onnxruntime could not use {self._providers[0]} (the session runs "
+                f"on {used}); fix its installation or ask for another provider"
+            )
+        return session
 
     def _session_for(self, shapes: tuple[tuple[int, ...], ...]):
         """With ``fixed_dims="auto"``: the session fixed to these input shapes (built on first

@@ -34,6 +34,8 @@ from geoseg.integrity import read_torch_file, save_torch_file, seal
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "geoseg-model"
+# Smallest image side the networks accept: one layer-21 cell (the trunk downsamples by 8).
+MIN_IMAGE_SIDE = 8
 # ImageNet statistics, applied to images scaled to [0, 1]; trainers store their own.
 DEFAULT_NORMALIZATION: dict[str, list[float]] = {
     "mean": [0.485, 0.456, 0.406],
@@ -198,13 +200,21 @@ class Segmenter:
             raise GeosegError(f"{path}: model {ckpt['model_name']!r} is not a segmentation network")
 
         def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
-            x = torch.from_numpy(batch).to(device)
-            with torch.inference_mode():
-                if isinstance(model, NaiveCNN):
-                    out = {"log_probs": model.dense(x, band_rows=64)}
-                else:
-                    out = model(x)
-            return {k: v.float().cpu().numpy() for k, v in out.items()}
+            try:
+                x = torch.from_numpy(batch).to(device)
+                with torch.inference_mode():
+                    if isinstance(model, NaiveCNN):
+                        out = {"log_probs": model.dense(x, band_rows=64)}
+                    else:
+                        out = model(x)
+                return {k: v.float().cpu().numpy() for k, v in out.items()}
+            except (RuntimeError, MemoryError) as err:  # allocator failures, mostly
+                b, _, h, w = batch.shape
+                first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+                raise GeosegError(
+                    f"{path}: the torch model failed on a batch of {b} image(s) of {w}x{h} "
+                    f"pixels on {device} ({first}); downscale the images or use the ONNX model"
+                ) from None
 
         return cls(
             backend,
@@ -277,8 +287,13 @@ class Segmenter:
         check_shape("images", images, (None, None, None, 3))
         if images.dtype != np.uint8:
             raise GeosegError(f"images: expected uint8 RGB images, got dtype {images.dtype}")
-        if min(images.shape[:3]) < 1:
-            raise GeosegError(f"images: empty batch or image, shape {images.shape}")
+        if images.shape[0] < 1:
+            raise GeosegError(f"images: empty batch, shape {images.shape}")
+        if min(images.shape[1:3]) < MIN_IMAGE_SIDE:
+            raise GeosegError(
+                f"images: {images.shape[2]}x{images.shape[1]} pixels is too small; the network "
+                f"needs at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
+            )
         x = images.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
         return np.ascontiguousarray((x - self._mean) / self._std)
 
@@ -293,11 +308,25 @@ class Segmenter:
         """
         out = self.backend(self.preprocess(images))
         if "logits" in out:
-            probs = _softmax(np.asarray(out["logits"], np.float32))
+            scores = np.asarray(out["logits"], np.float32)
         elif "log_probs" in out:
-            probs = np.exp(np.asarray(out["log_probs"], np.float32))
+            scores = np.asarray(out["log_probs"], np.float32)
         else:
             raise GeosegError(f"{self.source}: model returned no 'logits' or 'log_probs'")
+        for name in ("logits", "log_probs", "normals", "features"):
+            value = out.get(name)
+            if value is None:
+                continue
+            value = np.asarray(value)  # log-probabilities may be -inf (a probability of 0)
+            bad = np.isnan(value) | (
+                value == np.inf if name == "log_probs" else ~np.isfinite(value)
+            )
+            if bad.any():
+                raise GeosegError(
+                    f"{self.source}: the model produced NaN or infinite {name} for this image "
+                    "(corrupt or diverged weights?); no result is returned"
+                )
+        probs = _softmax(scores) if "logits" in out else np.exp(scores)
         return SegmentationResult(
             probabilities=probs.astype(np.float32, copy=False),
             labels=probs.argmax(axis=1).astype(np.uint8),

@@ -41,6 +41,7 @@ class DemoContext:
             for the map to show the GPS error).
         seed: seed of the routes and GIS errors.
         force: redo steps whose outputs exist.
+        overwrite: write into sequence folders that hold files no render wrote.
         world: the built world (set by the first step that needs it).
         sequences: ``(rig, condition)`` -> sequence directory.
         outputs: label -> path of what the steps wrote, printed at the end.
@@ -55,6 +56,7 @@ class DemoContext:
     fps: float = 1.0
     seed: int = 0
     force: bool = False
+    overwrite: bool = False
     world: Any = None
     sequences: dict[tuple[str, str], Path] = field(default_factory=dict)
     outputs: dict[str, Path] = field(default_factory=dict)
@@ -85,6 +87,7 @@ def step_render(ctx: DemoContext) -> None:
                 seed=ctx.seed,
                 world=world,
                 overwrite=ctx.force,
+                allow_other_files=ctx.overwrite,
                 progress=True,
             )
     ctx.outputs["sequences"] = ctx.out / "sequences"
@@ -245,13 +248,31 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="override a world config key (repeatable)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an --out folder that holds files the demo did not write (they are "
+        "kept, unless a file of the same name is written)",
+    )
+
+
+def _earlier_demo(folder: Path) -> bool:
+    """True when ``folder`` is a demo output written before output markers existed."""
+    names = {p.name for p in folder.iterdir()}
+    return {"sequences", "contact_sheet.png", "map.png"} <= names and names <= {
+        "sequences",
+        "contact_sheet.png",
+        "map.png",
+        "segmentation.png",
+    }
 
 
 def run(args: argparse.Namespace) -> int:
     from geoseg.config import load_config
     from geoseg.errors import GeosegError
+    from geoseg.output_dir import prepare_output_dir
     from geoseg.synth.conditions import get_condition
-    from geoseg.synth.export import ensure_writable, parse_size
+    from geoseg.synth.export import parse_size
     from geoseg.synth.world import WorldConfig
 
     start = time.perf_counter()
@@ -261,11 +282,16 @@ def run(args: argparse.Namespace) -> int:
     if not args.fps > 0:
         raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
-    if not conditions:
-        raise GeosegError(f"--conditions: expected condition names, got {args.conditions!r}")
+    if len(conditions) < 2 or len(set(conditions)) != len(conditions):
+        raise GeosegError(
+            f"--conditions: expected two or more different comma-separated conditions (the "
+            f"demo compares the same routes under them), got {args.conditions!r}"
+        )
     for c in conditions:
         get_condition(c)
-    out = ensure_writable(args.out)
+    out = prepare_output_dir(
+        args.out, producer="demo", overwrite=args.overwrite, adopt=_earlier_demo
+    )
     source = args.config
     if source is None and DEFAULT_CONFIG.is_file():
         source = DEFAULT_CONFIG
@@ -280,6 +306,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps,
         seed=world_config.seed,
         force=args.force,
+        overwrite=args.overwrite,
     )
     for name, step in STEPS:
         t0 = time.perf_counter()

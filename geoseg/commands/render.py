@@ -42,12 +42,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="override a GIS error-model key, e.g. gps.bias_max_m=5 (repeatable)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="re-render even if up to date")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an --out folder that holds files no render wrote (they are kept, "
+        "unless a file of the same name is rendered)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
     from geoseg.config import load_config
     from geoseg.errors import GeosegError
-    from geoseg.synth.export import GisConfig, ensure_writable, parse_size, render_sequence
+    from geoseg.synth.export import GisConfig, parse_size, render_sequence
     from geoseg.synth.world import WorldConfig
 
     size = parse_size(args.size)
@@ -55,7 +61,6 @@ def run(args: argparse.Namespace) -> int:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
     if not args.fps > 0:
         raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
-    ensure_writable(args.out)  # before any work
     source = args.config
     if source is None and DEFAULT_CONFIG.is_file():
         source = DEFAULT_CONFIG
@@ -74,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps,
         gis=gis,
         overwrite=args.force,
+        allow_other_files=args.overwrite,
     )
     if before is not None and meta.stat().st_mtime_ns == before:
         print(f"{out} already holds this render (same request); nothing redone (--force redoes it)")

@@ -168,7 +168,16 @@ def test_cli_infer_end_to_end(joint_files, tmp_path, capsys) -> None:
     b = cv2.imread(str(tmp_path / "ckpt_out" / "frame_labels.png"))
     assert (a == b).all(-1).mean() >= 0.99
     assert (
-        main(["infer", str(tmp_path / "nope.png"), "--model", str(ckpt), "--out", str(tmp_path)])
+        main(
+            [
+                "infer",
+                str(tmp_path / "nope.png"),
+                "--model",
+                str(ckpt),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
         == 2
     )
     assert "nope.png" in capsys.readouterr().err
