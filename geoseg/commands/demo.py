@@ -230,7 +230,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help=f"world config YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"world config YAML (default: {DEFAULT_CONFIG} of the working directory, else of "
+        "the geoseg source tree, else built-in defaults)",
     )
     parser.add_argument("--frames", type=int, default=10, help="frames per sequence (default 10)")
     parser.add_argument("--fps", type=float, default=1.0, help="frame rate (default 1)")
@@ -268,7 +269,7 @@ def _earlier_demo(folder: Path) -> bool:
 
 
 def run(args: argparse.Namespace) -> int:
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
     from geoseg.output_dir import prepare_output_dir
     from geoseg.synth.conditions import get_condition
@@ -293,8 +294,10 @@ def run(args: argparse.Namespace) -> int:
         args.out, producer="demo", overwrite=args.overwrite, adopt=_earlier_demo
     )
     source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    if source is None:
+        source = default_config_file(DEFAULT_CONFIG.name)
+        if source is None:
+            logger.warning("no %s found: using the built-in world defaults", DEFAULT_CONFIG)
     overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
     world_config = load_config(WorldConfig, source, overrides=overrides)
     ctx = DemoContext(

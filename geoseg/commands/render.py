@@ -14,7 +14,10 @@ the ``README.txt`` written next to the files.
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = Path("configs/world_default.yaml")
 
@@ -24,7 +27,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help=f"world config YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"world config YAML (default: {DEFAULT_CONFIG} of the working directory, else of "
+        "the geoseg source tree, else built-in defaults)",
     )
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--frames", type=int, default=30, help="number of frames (default 30)")
@@ -51,7 +55,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
     from geoseg.synth.export import GisConfig, parse_size, render_sequence
     from geoseg.synth.world import WorldConfig
@@ -62,8 +66,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.fps > 0:
         raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
     source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    if source is None:
+        source = default_config_file(DEFAULT_CONFIG.name)
+        if source is None:
+            logger.warning("no %s found: using the built-in world defaults", DEFAULT_CONFIG)
     overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
     world_config = load_config(WorldConfig, source, overrides=overrides)
     gis = load_config(GisConfig, None, overrides=args.gis_overrides)

@@ -52,6 +52,10 @@ def get_builder(name: str) -> Callable[..., nn.Module]:
     return getattr(module, attr)
 
 
+# integer options that may be 0 (every other integer option counts something: >= 1)
+_NON_NEGATIVE = ("correlation_radius", "table_seed")
+
+
 def get_model(name: str, **cfg) -> nn.Module:
     """Build the model registered under ``name`` with keyword configuration ``cfg``.
 
@@ -72,4 +76,17 @@ def get_model(name: str, **cfg) -> nn.Module:
             raise ConfigError(
                 f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}"
             )
-    return builder(**cfg)
+    for key, value in cfg.items():  # the builders' annotated option types, strictly
+        kind = str(params[key].annotation) if key in params else ""
+        if kind in ("int", "<class 'int'>") and (
+            isinstance(value, bool) or not isinstance(value, int)
+        ):
+            raise ConfigError(f"model {name!r}: {key}: expected an integer, got {value!r}")
+        if kind in ("bool", "<class 'bool'>") and not isinstance(value, bool):
+            raise ConfigError(f"model {name!r}: {key}: expected true/false, got {value!r}")
+    try:
+        return builder(**cfg)
+    except (TypeError, ValueError, RuntimeError) as err:
+        if isinstance(err, GeosegError):
+            raise
+        raise ConfigError(f"model {name!r}: options {cfg} rejected ({err})") from None
