@@ -47,6 +47,31 @@ def default_config_file(name: str) -> Path | None:
     return None
 
 
+def check_range(
+    key: str,
+    value: float | int | None,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> None:
+    """Raise :class:`ConfigError` unless ``value`` (None passes) lies in the interval
+    ``[low, high]`` (an end ``None`` is unbounded; ``*_open`` excludes that end)."""
+    if value is None:
+        return
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value < high if high_open else value <= high
+    if not ok:
+        left = "-inf" if low is None else f"{low:g}"
+        right = "inf" if high is None else f"{high:g}"
+        interval = f"{'(' if low_open or low is None else '['}{left}, {right}{')' if high_open or high is None else ']'}"
+        raise ConfigError(f"{key}: expected a number in {interval}, got {value!r}")
+
+
 def load_config(
     cls: type[T],
     source: str | Path | Mapping[str, Any] | None = None,

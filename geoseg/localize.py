@@ -770,7 +770,7 @@ def fuse_gps_distance(
     # no 1 / 0 when a variance underflows, no inf / inf when one overflows
     with np.errstate(over="ignore", invalid="ignore"):
         v_head = np.square(relative_sigma * d)
-        v_gps = float(gps_sigma_m) ** 2
+        v_gps = np.square(float(gps_sigma_m))
         total = v_head + v_gps
         safe = np.where((total > 0) & np.isfinite(total), total, 1.0)
         w_g = np.where(total > 0, v_head / safe, 0.5)  # the GPS reading's weight

@@ -274,11 +274,11 @@ class RouteFilter:
                 # small sigma is (sigma -> 0: the posterior goes to the nearest base image)
                 rel = r2 - r2.min(axis=1, keepdims=True)
                 with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-                    gps_term = np.where(rel > 0, rel / (2.0 * float(gps_sigma_m) ** 2), 0.0)
+                    gps_term = np.where(rel > 0, rel / (2.0 * np.square(float(gps_sigma_m))), 0.0)
                 log_l = log_l - np.minimum(np.nan_to_num(gps_term, nan=_LOG_FLOOR), _LOG_FLOOR)
             if radius_m is not None:
                 check_positive("radius_m", radius_m)
-                outside = r2 > float(radius_m) ** 2
+                outside = r2 > np.square(float(radius_m))
                 all_out = outside.all(axis=1)
                 empty = int(all_out.sum())
                 if empty:

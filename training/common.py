@@ -56,13 +56,25 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
         model: the registry name that trainer trains.
 
     Raises:
-        ConfigError: a non-positive crop, or another model.
+        ConfigError: a non-positive crop, another model, model options its builder does not
+            take (checked now, not after the data are prepared), bad ``data.synth`` keys.
     """
+    from geoseg.models.registry import check_model_config
+
     crop = getattr(cfg, "train_crop", None)
     if crop is not None and min(crop) < 1:
         raise ConfigError(f"train_crop: expected positive (h, w), got {crop}")
     if cfg.model != model:
         raise ConfigError(f"model: the {trainer} trainer trains {model!r}, got {cfg.model!r}")
+    try:
+        check_model_config(model, dict(cfg.model_config))
+    except ConfigError as err:
+        raise ConfigError(f"model_config: {err}") from None
+    if cfg.data.source == "synth":
+        from geoseg.data.synthetic import synthetic_config
+
+        for split in ("train", "val"):
+            synthetic_config(cfg.data.synth, split=split)
 
 
 # ----------------------------------------------------------------------------- data
@@ -241,7 +253,7 @@ def resolve_weights_file(path: str | os.PathLike) -> Path:
 
 
 def load_state(
-    path: str | os.PathLike, *, expected_model: str | None = None
+    path: str | os.PathLike, *, expected_model: str | None = None, option: str | None = None
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Weights and metadata from a geoseg model checkpoint (``model.pt``) or a training
     checkpoint (``best.pt``/``last.pt``), or a run directory holding one.
@@ -249,6 +261,8 @@ def load_state(
     Args:
         path: file or run directory (:func:`resolve_weights_file`).
         expected_model: registry name the checkpoint must hold (e.g. ``"enet"``).
+        option: the config key that named ``path`` (e.g. ``"trunk_checkpoint"``), prefixed to
+            error messages.
 
     Returns:
         ``(state_dict, checkpoint)``.
@@ -256,6 +270,11 @@ def load_state(
     Raises:
         GeosegError: unreadable file, not a geoseg checkpoint, or another architecture.
     """
+    if option is not None:
+        try:
+            return load_state(path, expected_model=expected_model)
+        except GeosegError as err:
+            raise GeosegError(f"{option}: {err}") from None
     file = resolve_weights_file(path)
     ckpt = read_torch_file(file)
     if "state_dict" in ckpt:

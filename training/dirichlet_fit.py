@@ -47,8 +47,8 @@ import torch
 from torch.utils.data import Subset
 from tqdm.auto import tqdm
 
-from geoseg.classes import BUILDING, IGNORE_INDEX
-from geoseg.config import to_dict
+from geoseg.classes import BUILDING, IGNORE_INDEX, NUM_CLASSES
+from geoseg.config import check_range, to_dict
 from geoseg.dirichlet import DirichletFilter, MaxProbabilityFilter
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
@@ -133,6 +133,12 @@ class DirichletConfig:
             raise ConfigError(f"window: expected an odd int >= 1, got {self.window}")
         if not self.temperature > 0:
             raise ConfigError(f"temperature: expected > 0, got {self.temperature}")
+        if self.seed < 0:
+            raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        if self.band_rows is not None and self.band_rows < 1:
+            raise ConfigError(f"band_rows: expected >= 1 or null, got {self.band_rows}")
+        check_range("lam", self.lam, 0.0)
+        check_range("eps", self.eps, 0.0, 1.0 / NUM_CLASSES, low_open=True, high_open=True)
         if not 0.0 <= self.false_rejection_rate < 1.0:
             raise ConfigError(
                 f"false_rejection_rate: expected a number in [0, 1), got {self.false_rejection_rate}"
@@ -204,7 +210,9 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
             "naive_checkpoint: the dirichlet stage needs the trained naive CNN; set it to a naive "
             "run directory or model file (e.g. --set naive_checkpoint=runs/naive)"
         )
-    state, ckpt = common.load_state(cfg.naive_checkpoint, expected_model="naive_cnn")
+    state, ckpt = common.load_state(
+        cfg.naive_checkpoint, expected_model="naive_cnn", option="naive_checkpoint"
+    )
     model_config = dict(ckpt.get("model_config") or {})
     model = get_model("naive_cnn", **model_config)
     model.load_state_dict(state)

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from geoseg.config import check_range
 from geoseg.data.synthetic import TRAIN_CONDITIONS, VAL_SEEDS
 from geoseg.data.traversals import RouteFeatures, TrunkFeatureExtractor, route_features, route_specs
 from geoseg.errors import ConfigError, GeosegError
@@ -115,6 +116,11 @@ class RoutesConfig:
                 f"routes.conditions_per_route: expected 1..{len(self.conditions)}, got "
                 f"{self.conditions_per_route}"
             )
+        check_range("routes.hfov_deg", self.hfov_deg, 0.0, 180.0, low_open=True, high_open=True)
+        for key in ("length_m", "val_length_m", "spacing_m"):
+            check_range(f"routes.{key}", getattr(self, key), 0.0, None, low_open=True)
+        check_range("routes.offset_m", self.offset_m, 0.0)
+        check_range("routes.yaw_jitter_deg", self.yaw_jitter_deg, 0.0, 180.0)
         if self.cache_dir is not None:
             self.cache_dir = Path(self.cache_dir)
         self.specs("train")  # validate the world keys and lengths now
@@ -191,7 +197,7 @@ def load_trunk(
             "trunk_checkpoint: the heads sit on a trained ENet trunk; set it to a seg run "
             "directory or model file (e.g. --set trunk_checkpoint=runs/seg)"
         )
-    state, ckpt = common.load_state(path)
+    state, ckpt = common.load_state(path, option="trunk_checkpoint")
     name = ckpt.get("model_name")
     if name not in ("enet", "joint"):
         raise GeosegError(f"{path}: holds a {name!r} model; the trunk comes from enet or joint")

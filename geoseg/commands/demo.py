@@ -273,15 +273,14 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.errors import GeosegError
     from geoseg.output_dir import prepare_output_dir
     from geoseg.synth.conditions import get_condition
-    from geoseg.synth.export import parse_size
+    from geoseg.synth.export import check_fps, parse_size
     from geoseg.synth.world import WorldConfig
 
     start = time.perf_counter()
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
-    if not args.fps > 0:
-        raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
+    check_fps(args.fps, "--fps")
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
     if len(conditions) < 2 or len(set(conditions)) != len(conditions):
         raise GeosegError(

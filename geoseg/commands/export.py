@@ -9,6 +9,8 @@ from pathlib import Path
 
 logger = logging.getLogger(__name__)
 
+MAX_SIDE = 8192  # the largest image side of the exported graphs (geoseg.export)
+
 
 def configure(parser: argparse.ArgumentParser) -> None:
     source = parser.add_mutually_exclusive_group(required=True)
@@ -56,8 +58,10 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.models.registry import get_model
     from geoseg.output_dir import prepare_output_file
 
-    if args.height < 1 or args.width < 1:
-        raise GeosegError(f"--height/--width: expected >= 1, got {args.height}x{args.width}")
+    if not (1 <= args.height <= MAX_SIDE and 1 <= args.width <= MAX_SIDE):
+        raise GeosegError(
+            f"--height/--width: expected 1..{MAX_SIDE} pixels, got {args.height}x{args.width}"
+        )
     if args.checkpoint is not None and (args.config is not None or args.seed is not None):
         raise GeosegError("--config/--seed: only with --model (a checkpoint has its own)")
     if args.seed is not None and not 0 <= args.seed < 2**63:

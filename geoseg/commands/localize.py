@@ -86,7 +86,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--distance-rel-sigma",
         type=float,
-        default=0.3,
+        default=None,
         help="relative error of the head's predicted distance, for --gps-sigma (default 0.3)",
     )
     parser.add_argument(
@@ -346,11 +346,19 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.radius is not None:
         check_positive("--radius", args.radius)
+    if args.distance_rel_sigma is not None:
+        if args.gps_sigma is None or args.sequence is not None:
+            raise GeosegError(
+                "--distance-rel-sigma: only with --gps-sigma, to fuse a distance head's "
+                "distances with the GPS (not with --sequence)"
+            )
+        check_positive("--distance-rel-sigma", args.distance_rel_sigma)
+    else:
+        args.distance_rel_sigma = 0.3
     if args.gps_sigma is not None:
         if args.gps is None:
             raise GeosegError("--gps-sigma: needs --gps (the query positions)")
         check_positive("--gps-sigma", args.gps_sigma)
-        check_positive("--distance-rel-sigma", args.distance_rel_sigma)
     appearance_weight = args.appearance_weight
     if appearance_weight is None:
         appearance_weight = 0.5 if args.reloc_head is not None else 0.0
@@ -463,7 +471,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         ranked, dists = index.query(
             np.stack(q_emb),
-            k=args.k,
+            k=min(args.k, len(base)),  # no more matches than base images
             gps=None if gps is None else np.asarray(gps),
             radius_m=args.radius,
         )

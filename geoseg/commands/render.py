@@ -57,14 +57,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
-    from geoseg.synth.export import GisConfig, parse_size, render_sequence
+    from geoseg.synth.export import GisConfig, check_fps, parse_size, render_sequence
     from geoseg.synth.world import WorldConfig
 
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
-    if not args.fps > 0:
-        raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
+    check_fps(args.fps, "--fps")
     source = args.config
     if source is None:
         source = default_config_file(DEFAULT_CONFIG.name)

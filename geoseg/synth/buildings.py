@@ -94,6 +94,10 @@ class BuildingErrorConfig:
             raise ConfigError(f"extra_count: expected >= 0, got {self.extra_count}")
         if self.storey_height_m <= 0 or self.min_height_m <= 0:
             raise ConfigError("storey_height_m and min_height_m: expected > 0")
+        if self.storey_count_error < 0:
+            raise ConfigError(f"storey_count_error: expected >= 0, got {self.storey_count_error}")
+        if not self.street_clearance_m >= 0:
+            raise ConfigError(f"street_clearance_m: expected >= 0, got {self.street_clearance_m}")
 
 
 @dataclass(frozen=True)

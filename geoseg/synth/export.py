@@ -65,6 +65,19 @@ logger = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
 PRODUCER = "render"
+# Smallest rendered image side (the networks need one layer-21 cell: geoseg.infer.MIN_IMAGE_SIDE).
+MIN_IMAGE_SIDE = 8
+# Frame rates a rig can have, Hz, and the longest drive a sequence may ask for, metres.
+FPS_RANGE = (0.01, 1000.0)
+MAX_DRIVE_M = 1e6
+
+
+def check_fps(fps: float, name: str = "fps") -> float:
+    """``fps`` as a float, or GeosegError unless it lies in :data:`FPS_RANGE`."""
+    lo, hi = FPS_RANGE
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not lo <= fps <= hi:
+        raise GeosegError(f"{name}: expected a frame rate in [{lo:g}, {hi:g}] Hz, got {fps!r}")
+    return float(fps)
 
 
 @dataclass
@@ -162,8 +175,14 @@ def drive_frames(
 
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
+    check_fps(fps)
     cruise = speed_mps or RIG_DEFAULTS.get(rig, {"speed": 11.0})["speed"]
     length = max(10.0, 1.2 * cruise * frames / fps + 5.0)
+    if length > MAX_DRIVE_M:
+        raise GeosegError(
+            f"frames, fps: {frames} frames at {fps:g} fps is a drive of {length / 1000:.3g} km, "
+            f"longer than {MAX_DRIVE_M / 1000:g} km; use fewer frames or a higher frame rate"
+        )
     for _ in range(6):
         traj = drive(
             world,
@@ -260,6 +279,7 @@ def render_sequence(
         raise GeosegError(f"rig: expected 'car' or 'tram', got {rig!r}")
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
+    check_fps(fps)
     legacy = _legacy_render_files(Path(out_dir))
     out_dir = prepare_output_dir(
         out_dir,
@@ -580,6 +600,8 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ConfigError(f"size: expected WxH like 320x240, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise ConfigError(f"size: expected positive W and H, got {text!r}")
+    if w < MIN_IMAGE_SIDE or h < MIN_IMAGE_SIDE:
+        raise ConfigError(
+            f"size: expected W and H >= {MIN_IMAGE_SIDE} (what the networks can use), got {text!r}"
+        )
     return w, h
