@@ -89,16 +89,20 @@ def _png(path: Path, hw=(48, 64), seed: int = 0) -> Path:
 
 
 @pytest.fixture(scope="module")
-def env(tmp_path_factory) -> Env:
+def env(tmp_path_factory, enet_files) -> Env:
+    import shutil
+
+    from geoseg.infer import load_model_checkpoint
+
     root = tmp_path_factory.mktemp("bad_inputs")
     inputs = root / "inputs"
     inputs.mkdir()
     world = inputs / "world_tiny.yaml"
     world.write_text("seed: 4\npreset: light\nblocks_x: 1\nblocks_y: 1\n")
+    pt = Path(shutil.copyfile(enet_files[0], inputs / "enet.pt"))
+    onnx_path = Path(shutil.copyfile(enet_files[1], inputs / "enet.onnx"))
+    enet, _ = load_model_checkpoint(pt)
     torch.manual_seed(0)
-    enet = get_model("enet", num_classes=8).eval()
-    pt = save_model_checkpoint(enet, inputs / "enet.pt", model_name="enet", model_config={})
-    onnx_path = export_onnx(enet, inputs / "enet.onnx", metadata={"model_name": "enet"})
     reloc = get_model("reloc").eval()
     reloc_onnx = export_onnx(reloc, inputs / "reloc.onnx", metadata={"model_name": "reloc"})
     base = inputs / "base"

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,11 +46,13 @@ import torch
 from torch.utils.data import Subset
 from tqdm.auto import tqdm
 
+from geoseg.atomic import atomic_write
 from geoseg.classes import BUILDING, IGNORE_INDEX, NUM_CLASSES
 from geoseg.config import check_range, to_dict
 from geoseg.dirichlet import DirichletFilter, MaxProbabilityFilter
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
+from geoseg.output_dir import prepare_output_dir, record_outputs
 from training import common
 from training import distributed as dd
 from training.config import DataConfig
@@ -202,6 +203,15 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     """
     out = Path(cfg.out_dir)
     outputs = [out / FILTER_FILE, out / BASELINE_FILE, out / METRICS_FILE]
+    if dd.is_main_process():  # refuse a folder of other files before any work
+        prepare_output_dir(
+            out,
+            producer="train",
+            overwrite=cfg.overwrite,
+            option="out_dir",
+            adopt=lambda folder: all(p.is_file() for p in outputs),
+        )
+        record_outputs(out, [p.name for p in outputs])
     if all(p.is_file() for p in outputs) and not cfg.overwrite:
         logger.info("%s: already fitted (overwrite=true redoes it)", out)
         return out
@@ -321,12 +331,9 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         "config": cfg.as_dict(),
     }
     if dd.is_main_process():
-        out.mkdir(parents=True, exist_ok=True)
         dirichlet.save(out / FILTER_FILE)
         baseline.save(out / BASELINE_FILE)
-        tmp = out / f".{METRICS_FILE}.tmp"
-        tmp.write_text(json.dumps(_finite(metrics), indent=1, default=str))
-        os.replace(tmp, out / METRICS_FILE)
+        atomic_write(out / METRICS_FILE, json.dumps(_finite(metrics), indent=1, default=str))
     logger.info(
         "Dirichlet removes %.1f %% of building false positives (+%.1f %% false rejections); "
         "max-probability at the same rate removes %.1f %% (+%.1f %%): %s wins",

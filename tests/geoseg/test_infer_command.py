@@ -5,22 +5,15 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-import torch
 
 from geoseg.cli import main
 from geoseg.commands.infer import output_stems
 from geoseg.errors import GeosegError
-from geoseg.export import export_onnx
-from geoseg.models import get_model
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
-    torch.manual_seed(0)
-    net = get_model("enet", num_classes=8).eval()
-    return export_onnx(
-        net, tmp_path_factory.mktemp("m") / "enet.onnx", metadata={"model_name": "enet"}
-    )
+def model(enet_files):
+    return enet_files[1]
 
 
 def _image(path, value: int, size=(24, 32)):

@@ -19,10 +19,9 @@ import torch
 from geoseg.cli import main
 from geoseg.dirichlet import DirichletFilter, load_filter
 from geoseg.errors import GeosegError
-from geoseg.export import OnnxModel, export_onnx, verify_onnx_file
-from geoseg.infer import Segmenter, load_model_checkpoint, save_model_checkpoint
+from geoseg.export import OnnxModel, verify_onnx_file
+from geoseg.infer import Segmenter, load_model_checkpoint
 from geoseg.integrity import content_sha256, read_torch_file, seal
-from geoseg.models import get_model
 from geoseg.pretrained import WEIGHTS_DIR
 from training.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
 
@@ -37,12 +36,10 @@ def flip_bytes(path: Path, n: int = 64, seed: int = 0, lo: float = 0.3, hi: floa
 
 
 @pytest.fixture(scope="module")
-def files(tmp_path_factory):
+def files(enet_files, tmp_path_factory):
     root = tmp_path_factory.mktemp("weights")
-    torch.manual_seed(0)
-    model = get_model("enet", num_classes=8).eval()
-    pt = save_model_checkpoint(model, root / "model.pt", model_name="enet", model_config={})
-    onnx_path = export_onnx(model, root / "model.onnx", metadata={"model_name": "enet"})
+    pt, onnx_path = enet_files
+    model, _ = load_model_checkpoint(pt)
     opt = torch.optim.Adam(model.parameters())
     last = save_checkpoint(build_checkpoint(model, optimizer=opt, epoch=1), root / "last.pt")
     return root, pt, onnx_path, last
@@ -61,16 +58,16 @@ def test_intact_files_verify(files) -> None:
     assert load_checkpoint(last)["epoch"] == 1
 
 
-@pytest.mark.parametrize("kind", ["model.pt", "last.pt", "model.onnx"])
+@pytest.mark.parametrize("kind", ["model", "checkpoint", "onnx"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_flipped_bytes_are_refused_naming_the_file(files, tmp_path, kind, seed) -> None:
-    src = {"model.pt": files[1], "last.pt": files[3], "model.onnx": files[2]}[kind]
+    src = {"model": files[1], "checkpoint": files[3], "onnx": files[2]}[kind]
     bad = _copy(src, tmp_path)
     flip_bytes(bad, seed=seed)
-    with pytest.raises(GeosegError, match=rf"{kind}.*(corrupt|not a valid|truncated)"):
-        if kind == "model.pt":
+    with pytest.raises(GeosegError, match=rf"{bad.name}.*(corrupt|not a valid|truncated)"):
+        if kind == "model":
             load_model_checkpoint(bad)
-        elif kind == "last.pt":
+        elif kind == "checkpoint":
             load_checkpoint(bad)
         else:
             OnnxModel(bad, providers=["CPUExecutionProvider"])
@@ -83,7 +80,7 @@ def test_commands_refuse_corrupt_weights_and_write_nothing(files, tmp_path, caps
     flip_bytes(bad_onnx)
     out = tmp_path / "exported.onnx"
     assert main(["export", "--checkpoint", str(bad_pt), "--out", str(out)]) == 2
-    assert "model.pt" in capsys.readouterr().err and not out.exists()
+    assert bad_pt.name in capsys.readouterr().err and not out.exists()
     image = tmp_path / "in.png"
     import cv2
 
@@ -165,5 +162,5 @@ def test_seal_ignores_its_own_key_and_sees_every_change() -> None:
 def test_segmenter_checks_onnx_too(files, tmp_path) -> None:
     bad = _copy(files[2], tmp_path)
     flip_bytes(bad, seed=5)
-    with pytest.raises(GeosegError, match="model.onnx"):
+    with pytest.raises(GeosegError, match=rf"{bad.name}.*corrupt"):
         Segmenter.from_onnx(bad)
