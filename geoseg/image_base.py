@@ -348,23 +348,25 @@ class ImageBase:
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "embedding"
         return self.root / CACHE_DIR / f"embeddings_{safe}.npz"
 
-    def _read_cache(self, path: Path, fingerprints: np.ndarray) -> np.ndarray | None:
+    def _read_cache(self, path: Path, fingerprints: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """``(embeddings or None, whether the file may be (over)written)``: a missing or stale
+        cache is rewritten; a file that is not a readable cache is someone else's and kept."""
         if not path.is_file():
-            return None
+            return None, True
         try:
             with np.load(path, allow_pickle=False) as z:
                 images = [str(s) for s in z["images"]]
                 fp = z["fingerprints"]
                 emb = z["embeddings"]
-        except Exception as err:  # a corrupt cache is recomputed, never fatal
-            logger.warning("%s: unreadable embedding cache (%s); recomputing", path, err)
-            return None
+        except Exception as err:  # never fatal: recomputed, and the file is left alone
+            logger.warning("%s: not a readable embedding cache (%s); recomputing", path, err)
+            return None, False
         if images != self.images or fp.shape != fingerprints.shape or (fp != fingerprints).any():
             logger.info("%s: stale embedding cache (images changed); recomputing", path)
-            return None
+            return None, True
         if emb.ndim != 2 or emb.shape[0] != len(self) or not np.isfinite(emb).all():
-            return None
-        return emb
+            return None, True
+        return emb, True
 
     def _write_cache(self, path: Path, emb: np.ndarray, fingerprints: np.ndarray) -> None:
         try:
@@ -404,10 +406,11 @@ class ImageBase:
         fingerprints = self._fingerprints()
         cpath = self.cache_path(str(name)) if (cache and name) else None
         if cpath is not None:
-            emb = self._read_cache(cpath, fingerprints)
+            emb, writable = self._read_cache(cpath, fingerprints)
             if emb is not None:
                 logger.info("embeddings of %d base images read from %s", len(self), cpath)
                 return emb
+            cpath = cpath if writable else None
         from tqdm import tqdm
 
         chunks: list[np.ndarray] = []

@@ -105,6 +105,11 @@ class RoutesConfig:
 
         if not self.train_seeds or not self.val_seeds:
             raise ConfigError("routes.train_seeds / routes.val_seeds: expected at least one city")
+        for key in ("train_seeds", "val_seeds"):
+            if any(seed < 0 for seed in getattr(self, key)):
+                raise ConfigError(f"routes.{key}: expected seeds >= 0, got {getattr(self, key)}")
+        if self.draw_seed < 0:
+            raise ConfigError(f"routes.draw_seed: expected >= 0, got {self.draw_seed}")
         held = sorted(set(self.train_seeds + self.val_seeds) & set(EVAL_SEEDS))
         if held:
             raise ConfigError(f"routes: {held} are held-out evaluation cities")

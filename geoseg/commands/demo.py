@@ -95,18 +95,18 @@ def step_render(ctx: DemoContext) -> None:
 
 def step_contact_sheet(ctx: DemoContext) -> None:
     """One row per sequence: a few RGB frames and the label map of the middle one."""
-    import cv2
     import numpy as np
 
+    from geoseg.image_base import read_rgb
     from geoseg.synth.maps import contact_sheet
 
     rows, labels = [], []
     n_show = min(4, ctx.frames)
     picks = np.unique(np.linspace(0, ctx.frames - 1, n_show).round().astype(int))
     for (rig, condition), seq in ctx.sequences.items():
-        row = [cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1] for i in picks]
+        row = [read_rgb(seq / "rgb" / f"{i:06d}.png") for i in picks]
         mid = picks[len(picks) // 2]
-        row.append(cv2.imread(str(seq / "labels_color" / f"{mid:06d}.png"))[..., ::-1])
+        row.append(read_rgb(seq / "labels_color" / f"{mid:06d}.png"))
         rows.append(row)
         labels.append(f"{rig} / {condition}")
     path = contact_sheet(
@@ -161,6 +161,7 @@ def step_segment(ctx: DemoContext) -> None:
 
     from geoseg.classes import CLASS_NAMES, NUM_CLASSES, SKY, colorize
     from geoseg.errors import GeosegError
+    from geoseg.image_base import read_rgb
     from geoseg.infer import normals_to_rgb
     from geoseg.pretrained import pretrained_segmenter
     from geoseg.synth.maps import contact_sheet
@@ -176,8 +177,10 @@ def step_segment(ctx: DemoContext) -> None:
     for (rig, condition), seq in ctx.sequences.items():
         mid = ctx.frames // 2
         for i in range(ctx.frames):
-            rgb = cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1].copy()
+            rgb = read_rgb(seq / "rgb" / f"{i:06d}.png")
             truth = cv2.imread(str(seq / "labels" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            if truth is None or truth.shape != rgb.shape[:2]:
+                raise GeosegError(f"{seq / 'labels' / f'{i:06d}.png'}: missing or unreadable")
             result = segmenter(rgb)
             pred = result.labels[0].astype(np.int64)
             cm += confusion_matrix(torch.from_numpy(pred), torch.from_numpy(truth.astype(np.int64)))

@@ -182,7 +182,10 @@ def _read_query_gps(path: Path, queries: list[Path]) -> list[tuple[float, float]
             ) from None
         if not all(math.isfinite(v) for v in xy):
             raise GeosegError(f"--gps: {path} row {i + 2}: x, y are not finite")
-        table[(row.get("image") or "").strip()] = xy
+        name = (row.get("image") or "").strip()
+        if name in table:
+            raise GeosegError(f"--gps: {path} row {i + 2}: image {name!r} is listed twice")
+        table[name] = xy
     out = []
     for q in queries:
         for key in (str(q), q.as_posix(), q.name):
