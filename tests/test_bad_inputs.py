@@ -305,6 +305,7 @@ CASES: list[Case] = [
     Case("render", "size-0x0", _render("--size", "0x0"), "size"),
     Case("render", "size-1x1", _render("--size", "1x1"), "size"),
     Case("render", "size-text", _render("--size", "big"), "size"),
+    Case("render", "size-huge", _render("--size", "100000x100000"), "size"),
     Case("render", "size-half", _render("--size", "32x"), "size"),
     Case("render", "condition-unknown", _render("--condition", "monsoon"), "monsoon"),
     Case("render", "rig-unknown", _render("--rig", "bus")),
@@ -897,7 +898,7 @@ NON_NUMERIC = {
         "--overwrite",
     },
     "demo": {"--out", "--config", "--size", "--conditions", "--set", "--force", "--overwrite"},
-    "train": {"--config", "--resume", "--device", "--out", "--set"},
+    "train": {"--config", "--resume", "--overwrite", "--device", "--out", "--set"},
     "export": {"--checkpoint", "--model", "--out", "--overwrite", "--config", "--static"},
     "infer": {"--model", "--out", "--device", "--overwrite"},
     "localize": {
@@ -1212,6 +1213,11 @@ def _api_cases():
             "render_sequence-fps-nan",
             lambda e: render_sequence(WorldConfig(), e.out("api_r"), fps=math.nan),
             "fps",
+        ),
+        (
+            "render_sequence-size-0",
+            lambda e: render_sequence(WorldConfig(), e.out("api_r"), image_size=(0, 0)),
+            "size",
         ),
         (
             "render_sequence-user-folder",

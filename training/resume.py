@@ -58,6 +58,11 @@ FIXED_ON_RESUME = (
     "data.val_split",
     "data.synth",
     "data.augment",
+    # trainer sections: the weights a run starts from, the routes the heads train on
+    "enet_checkpoint",
+    "trunk_checkpoint",
+    "naive_checkpoint",
+    "routes",
 )
 
 
@@ -109,14 +114,14 @@ def start_run(
         if earlier and not overwrite:
             raise GeosegError(
                 f"resume: {last} does not exist but {run_dir} holds an earlier run's "
-                f"{', '.join(earlier)}; starting over would overwrite them: pass overwrite "
-                "(--set overwrite=true) to start afresh, or choose another output folder"
+                f"{', '.join(earlier)}; starting over would overwrite them: pass --overwrite "
+                "(overwrite=true) to start afresh, or choose another output folder"
             )
         logger.warning("resume requested but %s does not exist: starting a new run", last)
     elif earlier and not overwrite:
         raise GeosegError(
-            f"{run_dir} holds an earlier run ({', '.join(earlier)}): pass resume "
-            "(--resume) to continue it, or overwrite (--set overwrite=true) to start afresh, "
+            f"{run_dir} holds an earlier run ({', '.join(earlier)}): pass --resume "
+            "(resume=true) to continue it, or --overwrite (overwrite=true) to start afresh, "
             "or choose another output folder"
         )
     if earlier:

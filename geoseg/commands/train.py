@@ -46,6 +46,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--resume", action="store_true", help="continue from <out>/last.pt")
     parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start afresh over an earlier run in --out (its checkpoints and results are "
+        "replaced), or write into a folder that holds other files (they are kept)",
+    )
+    parser.add_argument(
         "--device", default=None, help="auto (CUDA when present), cpu, cuda or cuda:N"
     )
     parser.add_argument("--out", type=Path, default=None, help="run directory (out_dir)")
@@ -61,6 +67,8 @@ def _command_line(args: argparse.Namespace, config: Path | None) -> str:
         parts += ["--config", str(config)]
     if args.resume:
         parts.append("--resume")
+    if args.overwrite:
+        parts.append("--overwrite")
     if args.device:
         parts += ["--device", args.device]
     if args.out is not None:
@@ -100,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
             )
         else:
             overrides.append("resume=true")
+    if args.overwrite:
+        if "overwrite" not in fields:
+            raise GeosegError(f"train {args.trainer}: --overwrite is not an option of this trainer")
+        overrides.append("overwrite=true")
     if args.device is not None:
         overrides.append(f"device={args.device}")
     if args.out is not None:

@@ -67,6 +67,7 @@ FORMAT_VERSION = 1
 PRODUCER = "render"
 # Smallest rendered image side (the networks need one layer-21 cell: geoseg.infer.MIN_IMAGE_SIDE).
 MIN_IMAGE_SIDE = 8
+MAX_IMAGE_SIDE = 8192
 # Frame rates a rig can have, Hz, and the longest drive a sequence may ask for, metres.
 FPS_RANGE = (0.01, 1000.0)
 MAX_DRIVE_M = 1e6
@@ -280,6 +281,11 @@ def render_sequence(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
     check_fps(fps)
+    if len(image_size) != 2 or not all(
+        isinstance(v, int | np.integer) and not isinstance(v, bool) for v in image_size
+    ):
+        raise GeosegError(f"image_size: expected (W, H) integers, got {image_size!r}")
+    parse_size(f"{image_size[0]}x{image_size[1]}")  # the same bounds as --size
     legacy = _legacy_render_files(Path(out_dir))
     out_dir = prepare_output_dir(
         out_dir,
@@ -600,8 +606,9 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ConfigError(f"size: expected WxH like 320x240, got {text!r}") from None
-    if w < MIN_IMAGE_SIDE or h < MIN_IMAGE_SIDE:
+    if not (MIN_IMAGE_SIDE <= w <= MAX_IMAGE_SIDE and MIN_IMAGE_SIDE <= h <= MAX_IMAGE_SIDE):
         raise ConfigError(
-            f"size: expected W and H >= {MIN_IMAGE_SIDE} (what the networks can use), got {text!r}"
+            f"size: expected W and H in [{MIN_IMAGE_SIDE}, {MAX_IMAGE_SIDE}] pixels (what the "
+            f"networks can use), got {text!r}"
         )
     return w, h
