@@ -191,13 +191,37 @@ class Segmenter:
         cls, path: str | os.PathLike, *, device: str | torch.device = "cpu"
     ) -> Segmenter:
         """Load a torch checkpoint (see :func:`load_model_checkpoint`) onto ``device``."""
+        device = torch.device(device)
+        model, ckpt = load_model_checkpoint(path, map_location=device)
+        return cls.from_module(
+            model,
+            device=device,
+            normalization=ckpt.get("normalization"),
+            model_name=str(ckpt["model_name"]),
+            source=path,
+        )
+
+    @classmethod
+    def from_module(
+        cls,
+        model: nn.Module,
+        *,
+        device: str | torch.device = "cpu",
+        normalization: Mapping[str, Any] | None = None,
+        model_name: str = "model",
+        source: str | os.PathLike | None = None,
+    ) -> Segmenter:
+        """A Segmenter over a torch segmentation network (ENet, joint, naive CNN) on ``device``.
+
+        A failure inside torch (an allocator giving up on a large image, mostly) is a
+        :class:`GeosegError` naming the batch's size and the way out.
+        """
         from geoseg.models.naive_cnn import NaiveCNN
 
         device = torch.device(device)
-        model, ckpt = load_model_checkpoint(path, map_location=device)
         model.to(device).eval()
         if not isinstance(model, NaiveCNN) and not _is_image_model(model):
-            raise GeosegError(f"{path}: model {ckpt['model_name']!r} is not a segmentation network")
+            raise GeosegError(f"{source}: model {model_name!r} is not a segmentation network")
 
         def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
             try:
@@ -212,16 +236,11 @@ class Segmenter:
                 b, _, h, w = batch.shape
                 first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
                 raise GeosegError(
-                    f"{path}: the torch model failed on a batch of {b} image(s) of {w}x{h} "
+                    f"{source}: the torch model failed on a batch of {b} image(s) of {w}x{h} "
                     f"pixels on {device} ({first}); downscale the images or use the ONNX model"
                 ) from None
 
-        return cls(
-            backend,
-            normalization=ckpt.get("normalization"),
-            model_name=str(ckpt["model_name"]),
-            source=path,
-        )
+        return cls(backend, normalization=normalization, model_name=model_name, source=source)
 
     @classmethod
     def from_onnx(
