@@ -1,6 +1,6 @@
 """The chapter-3 fusion experiment (thesis §3.7, Tables 3.1-3.3, fig. 3.7) as a benchmark.
 
-Runs :func:`slam_bridge.pipeline.run_experiment` on ``configs/slam_ch3.yaml``: by default its
+Runs :func:`slam_bridge.experiments.fusion_ch3.run_experiment` on ``configs/slam_ch3.yaml``: by default its
 short run (``quick_length_m`` metres, ``quick_sigmas`` and the bias setting), with ``--full``
 the whole grid (n = 0, DPC, MPC x sigma_b in {0, 0.75, 1.5} m + a locally constant bias) on the
 640 m sequence. Prints the Markdown tables (ours beside the thesis's) and writes the flat
@@ -32,7 +32,7 @@ import numpy as np
 
 from geoseg.config import load_config
 from slam_bridge.errors import SlamError
-from slam_bridge.pipeline import ExperimentConfig, run_experiment
+from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,9 +30,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "geoseg.commands.localize",
         "relocalise query images against a georeferenced image base",
     ),
+    "slam": ("geoseg.commands.slam", "run the SLAM on a folder of images (slam run)"),
     "slam-eval": (
         "geoseg.commands.slam_eval",
-        "run a localisation experiment (chapter 3 / chapter 4)",
+        "run a localisation experiment (fusion: the chapter-3 experiment)",
     ),
     "bench": ("geoseg.commands.bench", "run a benchmark script from bench/"),
 }

@@ -31,7 +31,7 @@
   keyframes whose window is full (``l`` free cameras: the regime the thesis's ratio describes;
   the start-up keyframes have small windows for every method). ``<method>_time_ratio_all``
   uses every keyframe.
-* **Memory** (fig. 3.7): the Hessian memory of :func:`slam_bridge.pipeline.hessian_bytes`; the
+* **Memory** (fig. 3.7): the Hessian memory of :func:`slam_bridge.slam.windows.hessian_bytes`; the
   ratio is the mean ``n = 0`` memory over the mean hybrid memory (keyframes where the hybrid's
   pose-graph window is full).
 """
@@ -64,6 +64,7 @@ __all__ = [
     "inlier_mask",
     "inlier_loss",
     "inlier_churn",
+    "loop_records",
     "RunSummary",
     "summarize_run",
     "build_summary",
@@ -286,7 +287,7 @@ class RunSummary:
         keyframes: keyframes processed.
         gps_fused: keyframes fused with a GPS fix.
         fallbacks: hybrid keyframes run as ``n = 0`` after failing the window consistency check
-            (:attr:`slam_bridge.pipeline.PipelineConfig.consistency_share`); they count in the
+            (:attr:`slam_bridge.slam.windows.WindowConfig.consistency_share`); they count in the
             time and memory figures.
         inlier_points: ``(P,)`` bool, which points make ``inliers`` (for the churn against
             ``n = 0``; left out of the JSON), or None.
@@ -327,30 +328,38 @@ class RunSummary:
         )
 
 
-def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
-    """Evaluate a :class:`slam_bridge.pipeline.PipelineResult` against its sequence.
+def loop_records(result) -> list:
+    """The records of the keyframes the loop tracked and optimised (not the start-up's)."""
+    return [r for r in result.records if r.tracking in ("tracked", "weak")]
+
+
+def summarize_run(
+    result, R_wc_true: np.ndarray, t_wc_true: np.ndarray, setting: str, *, skip: int = 0
+) -> RunSummary:
+    """Evaluate a :class:`slam_bridge.slam.loop.SlamResult` against the true poses.
 
     Args:
         result: the run.
-        data: its :class:`slam_bridge.pipeline.SequenceData`.
+        R_wc_true: ``(C', 3, 3)`` true keyframe rotations (``C' >= C``, the run's keyframes).
+        t_wc_true: ``(C', 3)`` true optical centres.
         setting: GPS setting name.
-        skip: leading keyframes left out of the error statistics (the anchors are exact).
+        skip: leading keyframes left out of the error statistics (the start poses are exact).
 
     Returns:
         A :class:`RunSummary`.
     """
-    C = result.t_wc.shape[0]
+    m = result.map
+    C = m.num_keyframes
     sl = slice(skip, C)
-    e_T = translation_errors(result.t_wc[sl], data.t_wc_true[:C][sl])
-    e_R = rotation_errors(result.R_wc[sl], data.R_wc_true[:C][sl])
-    obs = data.observations
-    args = (data.K, result.R_wc, result.t_wc, result.X_w, obs.keyframe, obs.point, obs.uv)
-    kw = dict(used=result.active, triangulated=result.triangulated)
+    e_T = translation_errors(m.t_wc[sl], t_wc_true[:C][sl])
+    e_R = rotation_errors(m.R_wc[sl], R_wc_true[:C][sl])
+    args = (m.K, m.R_wc, m.t_wc, m.X_w, m.obs_keyframe, m.obs_point, m.obs_uv)
+    kw = dict(used=m.obs_active, triangulated=m.triangulated)
     in_mask = inlier_mask(*args, retriangulate=True, **kw)
     n_raw = count_inliers(*args, **kw)
-    truth = (data.R_wc_true[:C], data.t_wc_true[:C])
-    n_truth = count_inliers(data.K, *truth, *args[3:], retriangulate=True, **kw)
-    recs = result.records
+    truth = (R_wc_true[:C], t_wc_true[:C])
+    n_truth = count_inliers(m.K, *truth, *args[3:], retriangulate=True, **kw)
+    recs = loop_records(result)
     it = sum(r.fusion_iterations for r in recs)
     fs = sum(r.fusion_seconds_per_iteration * r.fusion_iterations for r in recs)
     mem = np.array([r.hessian_bytes for r in recs], dtype=float)
@@ -361,15 +370,13 @@ def summarize_run(result, data, setting: str, *, skip: int = 0) -> RunSummary:
         setting=setting,
         rotation=error_stats(e_R),
         translation=error_stats(e_T),
-        horizontal=error_stats(
-            np.linalg.norm(result.t_wc[sl, :2] - data.t_wc_true[:C][sl, :2], axis=1)
-        ),
-        vertical=error_stats(np.abs(result.t_wc[sl, 2] - data.t_wc_true[:C][sl, 2])),
+        horizontal=error_stats(np.linalg.norm(m.t_wc[sl, :2] - t_wc_true[:C][sl, :2], axis=1)),
+        vertical=error_stats(np.abs(m.t_wc[sl, 2] - t_wc_true[:C][sl, 2])),
         inliers=int(in_mask.sum()),
         inliers_raw=n_raw,
         inliers_truth=n_truth,
-        points=int(result.triangulated.sum()),
-        rejected_observations=int((~result.active[obs.keyframe < C]).sum()),
+        points=int(m.triangulated.sum()),
+        rejected_observations=int((~m.obs_active).sum()),
         fusion_iterations=int(it),
         fusion_seconds=float(fs),
         seconds_per_iteration=float(fs / it) if it else float("nan"),

@@ -7,7 +7,7 @@ Poses follow :mod:`slam_bridge.camera` (``R_wc``, ``t_wc``, OpenCV camera frame)
   in one batched ``eigh``), then optional Gauss-Newton refinement of the reprojection error with
   the cameras fixed (also vectorised). Each point is checked for cheirality (in front of every
   view) and parallax (the largest angle between its first view's ray and any other view's ray).
-* :func:`two_view_init`: essential matrix (``cv2.findEssentialMat``, RANSAC) and
+* :func:`two_view_init`: essential matrix (``cv2.findEssentialMat``, MAGSAC++ or RANSAC) and
   ``cv2.recoverPose``; camera 1 is the world frame, the baseline has unit length.
 * :func:`pnp`: ``cv2.solvePnPRansac`` then ``cv2.solvePnPRefineLM`` on the inliers.
 """
@@ -104,7 +104,7 @@ def triangulate(
 
     Args:
         K: ``(3, 3)`` shared or ``(C, 3, 3)`` per-camera calibration.
-        R_wc: ``(C, 3, 3)`` camera-to-world rotations.
+        R_wc: ``(C, 3, 3)`` camera-to-world rotations (finite for the cameras observed).
         t_wc: ``(C, 3)`` optical centres.
         obs_cameras: ``(M,)`` camera index of each observation.
         obs_points: ``(M,)`` point index of each observation (``0..P-1``).
@@ -129,10 +129,11 @@ def triangulate(
     check_shape("obs_points", pts, (M,))
     check_shape("uv", uv, (M, 2))
     check_finite("uv", uv)
-    check_finite("R_wc", R_wc)
-    check_finite("t_wc", t_wc)
     if M and (cams.min() < 0 or cams.max() >= R_wc.shape[0]):
         raise SlamError("obs_cameras: index out of range")
+    used = np.unique(cams)  # cameras no observation refers to may be unset (NaN)
+    check_finite("R_wc", R_wc[used])
+    check_finite("t_wc", t_wc[used])
     if M and pts.min() < 0:
         raise SlamError("obs_points: negative index")
     P = int(num_points if num_points is not None else (pts.max() + 1 if M else 0))
@@ -143,8 +144,9 @@ def triangulate(
     h = np.concatenate([uv, np.ones((M, 1))], axis=1)
     xn = (Kinv @ h[:, :, None])[:, :, 0] if Kinv.ndim == 3 else h @ Kinv.T
     xn = xn[:, :2] / xn[:, 2:]
-    # world -> camera projection matrices, in a frame centred on the mean optical centre
-    centre = t_wc.mean(axis=0) if t_wc.shape[0] else np.zeros(3)
+    # world -> camera projection matrices, in a frame centred on the observing cameras' mean
+    # optical centre (conditioning that does not depend on cameras no point is seen from)
+    centre = t_wc[cams].mean(axis=0) if M else np.zeros(3)
     Rt = np.swapaxes(R_wc[cams], 1, 2)  # R_cw (M, 3, 3)
     tc = -(Rt @ (t_wc[cams] - centre)[:, :, None])[:, :, 0]
     Pm = np.concatenate([Rt, tc[:, :, None]], axis=2)  # (M, 3, 4)
@@ -217,6 +219,7 @@ def two_view_init(
     threshold_px: float = 1.0,
     confidence: float = 0.999,
     seed: int = 0,
+    method: str = "magsac",
 ) -> TwoViewResult:
     """Essential-matrix initialisation of a monocular map.
 
@@ -227,6 +230,8 @@ def two_view_init(
         threshold_px: RANSAC inlier threshold.
         confidence: RANSAC confidence.
         seed: OpenCV RNG seed (determinism).
+        method: ``"magsac"`` (``cv2.USAC_MAGSAC``, MAGSAC++: on image tracks its relative
+            rotations were several times closer to the truth than plain RANSAC's) or ``"ransac"``.
 
     Returns:
         A :class:`TwoViewResult`.
@@ -240,10 +245,14 @@ def two_view_init(
     check_finite("uv2", uv2)
     if uv1.shape[0] < 5:
         raise SlamError(f"two_view_init: needs >= 5 correspondences, got {uv1.shape[0]}")
+    estimators = {"magsac": cv2.USAC_MAGSAC, "ransac": cv2.RANSAC}
+    if method not in estimators:
+        raise SlamError(f"method: expected one of {sorted(estimators)}, got {method!r}")
     cv2.setRNGSeed(seed)
-    E, mask = cv2.findEssentialMat(uv1, uv2, K, cv2.RANSAC, confidence, threshold_px)
-    if E is None or E.shape != (3, 3):
+    E, mask = cv2.findEssentialMat(uv1, uv2, K, estimators[method], confidence, threshold_px)
+    if E is None or E.shape[0] < 3 or E.shape[1] != 3:
         raise SlamError("two_view_init: no essential matrix found (degenerate motion?)")
+    E = E[:3]  # several stacked solutions: the first, best-supported one
     n_good, R, t, mask2 = cv2.recoverPose(E, uv1, uv2, K, mask=mask.copy())
     if n_good < 5:
         raise SlamError(f"two_view_init: only {n_good} points pass the cheirality test")

@@ -104,7 +104,7 @@ class HybridWindowConfig:
             reprojection cost (measured on the 640 m run, sigma_b = 0, DPC, the window as the
             SLAM's k-BA: 0.93 m mean translation error without, 0.18 m with). The pose-graph
             cameras' other points still leave the problem; the Hessian gains the camera/point
-            blocks of those rows (counted by :func:`slam_bridge.pipeline.hessian_bytes`).
+            blocks of those rows (counted by :func:`slam_bridge.slam.windows.hessian_bytes`).
         pose_graph_row_sigma: pixel sigma of those rows, as a second reprojection family named
             ``reprojection_pose_graph`` (None: they join the BA window's family with
             ``reprojection_sigma``). A caller that keeps only a share ``s`` of them weighs each

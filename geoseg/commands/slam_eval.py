@@ -4,9 +4,9 @@ Example (the chapter-3 experiment, thesis §3.7)::
 
     geoseg slam-eval fusion --config configs/slam_ch3.yaml --out out/fusion_ch3
     geoseg slam-eval fusion --config configs/slam_ch3.yaml --full
-    geoseg slam-eval fusion --set pipeline.n=20 --set quick_length_m=100
+    geoseg slam-eval fusion --set slam.window.n=20 --set quick_length_m=100
 
-``fusion`` runs :func:`slam_bridge.pipeline.run_experiment`: by default the short run of the
+``fusion`` runs :func:`slam_bridge.experiments.fusion_ch3.run_experiment`: by default the short run of the
 config (``quick_length_m``, ``quick_sigmas``, ``quick_bias``), with ``--full`` the whole grid
 (every method and GPS setting on the full sequence). It writes ``fusion_ch3.md`` (Tables
 3.1-3.3 beside the thesis's figures), ``fusion_ch3.json``, ``trajectory.png`` and ``memory.png``
@@ -34,7 +34,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/fusion_ch3"), help="output directory")
     parser.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-        help="override a config key, e.g. pipeline.n=20 (repeatable)",
+        help="override a config key, e.g. slam.window.n=20 (repeatable)",
     )  # fmt: skip
     parser.add_argument("--full", action="store_true", help="the whole grid on the full sequence")
     parser.add_argument("--force", action="store_true", help="recompute even if up to date")
@@ -42,7 +42,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from geoseg.config import load_config
-    from slam_bridge.pipeline import ExperimentConfig, run_experiment
+    from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
 
     source = args.config
     if source is None and DEFAULT_CONFIG.is_file():

@@ -18,7 +18,8 @@ Layout of ``out_dir`` (copied into the ``README.txt`` written there)::
                              normal_valid (H, W) bool, instance (H, W) int32 (-1 on sky)
     poses.csv                per frame: timestamp, camera pose (t_wc, quaternion, R row-major),
                              vehicle position, heading and speed
-    camera.json              K (3x3), image size, rig, fps, condition
+    camera.json              K (3x3), image size, rig, fps, condition, camera height, GPS antenna
+                             (the vehicle reference point the GPS log measures) in the camera frame
     gis/buildings_model.ply  the erroneous GIS building model (extruded footprints, trimesh)
     gis/facades.csv          one plane per facade: n . X = d (+ true facade correspondence)
     gis/buildings_model.json buildings, status (present/missing/extra), correspondence
@@ -439,6 +440,9 @@ def write_sequence_products(
         "condition": condition,
         "fps": float(1.0 / np.median(np.diff(traj.timestamps))) if len(traj) > 1 else None,
         "convention": "OpenCV camera (x right, y down, z forward); X_w = R_wc X_c + t_wc",
+        # the rig: where the GPS (vehicle reference point on the road) lies in the camera frame
+        "camera_height_m": float((traj.R_wc[0].T @ (traj.vehicle_xyz[0] - traj.t_wc[0]))[1]),
+        "gps_antenna_c": (traj.R_wc[0].T @ (traj.vehicle_xyz[0] - traj.t_wc[0])).round(6).tolist(),
     }
     atomic_write(out_dir / "camera.json", json.dumps(camera, indent=1), fsync=False)
     gis_dir = out_dir / "gis"

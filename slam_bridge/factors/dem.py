@@ -100,6 +100,13 @@ class DemSegments:
         rows = np.arange(xy.shape[0])
         return k, s[rows, k], sc[rows, k]
 
+    def distance_at(self, xy: np.ndarray) -> np.ndarray:
+        """Horizontal distance ``(N,)`` from ``xy (N, 2)`` to the nearest segment."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        k, _, sc = self._nearest(xy)
+        foot = self.xy_start[k] + sc[:, None] * self._d[k]
+        return np.linalg.norm(xy - foot, axis=1)
+
     def altitude_at(self, xy: np.ndarray) -> np.ndarray:
         """Road altitude ``(N,)`` under ``xy (N, 2)``."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)

@@ -102,9 +102,9 @@ def test_pair_families_compiled_and_numpy_paths_agree(
     """MPC (compressed rows on the NumPy path when least squares), DPC, GPS and the baseline
     lengths: the compiled shortcuts give the generic path's normal equations, with a fixed
     camera in the pairs."""
+    from slam_bridge.factors.baseline_length import BaselineLengthFactor
     from slam_bridge.factors.gps import GPSFactor
     from slam_bridge.factors.pose_graph_dpc import DPCFactor
-    from slam_bridge.pipeline import BaselineLengthFactor
 
     scene = make_street(8, points_per_camera=15, noise_px=1.0, seed=4)
     state, _ = ba_problem(scene, n_fixed=1)  # perturbed poses: non-zero residuals

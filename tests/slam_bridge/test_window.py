@@ -73,7 +73,7 @@ def test_pose_graph_rows_keep_the_junction_and_their_own_sigma(scene) -> None:
     """``pose_graph_rows``: the pose-graph cameras keep their rows of the BA window's points
     (and only those); with ``pose_graph_row_sigma`` they form a second reprojection family
     whose whitened residuals are divided by that sigma, and the Hessian memory counts them."""
-    from slam_bridge.pipeline import hessian_bytes
+    from slam_bridge.slam.windows import hessian_bytes
 
     plain = hybrid_window(np.arange(12), scene.obs_cameras, scene.obs_points, l=8, n=3)
     rows = hybrid_window(

@@ -9,7 +9,7 @@ import yaml
 
 from geoseg.cli import main
 from geoseg.config import load_config
-from slam_bridge.pipeline import ExperimentConfig
+from slam_bridge.experiments.fusion_ch3 import ExperimentConfig
 
 TINY = {
     "world": {
@@ -23,7 +23,7 @@ TINY = {
         "terrain": {"skirt": 60.0, "mesh_spacing": 6.0},
     },
     "sequence": {"length_m": 120.0, "fps": 10.0, "seed": 1, "image_size": [640, 480]},
-    "pipeline": {"l": 8, "n": 4, "ba_iterations": 8, "fusion_iterations": 8},
+    "slam": {"window": {"l": 8, "n": 4, "ba_iterations": 8}, "fusion": {"iterations": 8}},
     "methods": ["ba", "dpc", "mpc"],
     "quick_length_m": 40.0,
     "quick_sigmas": [0.0],
@@ -62,7 +62,7 @@ def test_fusion_command_writes_tables_json_plots(tiny_yaml, tmp_path, capsys):
 
 def test_default_config_loads_and_quick_is_short():
     cfg = load_config(ExperimentConfig, "configs/slam_ch3.yaml")
-    assert cfg.pipeline.l == 40 and cfg.pipeline.n == 30
+    assert cfg.slam.window.l == 40 and cfg.slam.window.n == 30
     assert cfg.settings() == ["sigma=0", "sigma=0.75", "sigma=1.5", "bias"]
     quick = cfg.quick()
     assert quick.sequence.length_m < cfg.sequence.length_m
@@ -83,7 +83,7 @@ def test_bench_other_drives_mean_and_worst(tiny_yaml, tmp_path, capsys):
     import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[2] / "bench" / "fusion_ch3.py"
+    path = Path(__file__).resolve().parents[3] / "bench" / "fusion_ch3.py"
     spec = importlib.util.spec_from_file_location("fusion_ch3_bench", path)
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
@@ -115,3 +115,28 @@ def test_bench_other_drives_mean_and_worst(tiny_yaml, tmp_path, capsys):
     assert one["mean"]["ba_sigma0_t_mean"] == pytest.approx(per_drive[0]["ba_sigma0_t_mean"])
     with pytest.raises(SlamError, match="every run failed"):
         bench.other_drives(cfg, [2], tmp_path / "none")
+
+
+def test_chapter3_experiment_on_image_tracks(tmp_path):
+    """The same experiment with the visual front end on rendered frames instead of simulated
+    tracks: the frames are rendered once, the runs stay near the truth with an exact GPS."""
+    from slam_bridge.experiments.fusion_ch3 import run_experiment
+
+    cfg = load_config(
+        ExperimentConfig,
+        {
+            **TINY,
+            "sequence": {**TINY["sequence"], "length_m": 50.0, "image_size": [320, 240]},
+            "tracks": "images",
+            "methods": ["ba", "dpc"],
+            "gps_sigmas": [0.0],
+            "gps_bias": False,
+        },
+    )
+    out = run_experiment(cfg, tmp_path / "images")
+    res = json.loads((out / "fusion_ch3.json").read_text())
+    assert res["tracks"] == "images" and res["keyframes"] >= 15
+    assert len(list((out / "frames").glob("*.png"))) > res["keyframes"]
+    for m in ("ba", "dpc"):
+        assert res[f"{m}_sigma0_t_mean"] < 0.5, m
+        assert res[f"{m}_sigma0_r_mean"] < 0.02, m

@@ -8,7 +8,8 @@ import pytest
 from geoseg.synth import build_world, drive
 from geoseg.synth.world import TerrainConfig, WorldConfig
 from slam_bridge.errors import SlamError
-from slam_bridge.landmarks import (
+from slam_bridge.experiments.fusion_ch3 import SequenceConfig  # noqa: F401  (import check of the stage module)
+from slam_bridge.experiments.landmarks import (
     LandmarkConfig,
     Landmarks,
     SceneCaster,
@@ -16,7 +17,6 @@ from slam_bridge.landmarks import (
     simulate_observations,
     visible_observations,
 )
-from slam_bridge.pipeline import SequenceConfig  # noqa: F401  (import check of the stage module)
 
 
 def _tiny_world():

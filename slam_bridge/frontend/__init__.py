@@ -1,0 +1,1 @@
+"""Observation sources of the SLAM loop: simulated landmark tracks and image tracks."""

@@ -1,0 +1,367 @@
+"""The SLAM on a folder of images, as a user runs it (``geoseg slam run``).
+
+Inputs (:func:`load_inputs`): a folder of images with its ``camera.json`` (K, image size; the
+layout ``geoseg render`` writes is one such folder, see :mod:`slam_bridge.frontend.frames`),
+and optionally a GPS log, a wheel-odometry log and a road DEM (:mod:`slam_bridge.sensor_logs`).
+``camera.json`` may also give the rig: ``camera_height_m`` and ``gps_antenna_c`` (the GPS
+antenna in the camera frame, metres; :class:`slam_bridge.slam.initialization.VehicleRig`).
+
+The run (:func:`run_image_slam`): the visual front end
+(:class:`slam_bridge.frontend.image_tracks.ImageTracks`) turns the images into keyframe tracks,
+the start-up (:class:`slam_bridge.slam.initialization.TwoViewStart`) initialises and
+georeferences the map without ground truth, and the loop (:func:`slam_bridge.slam.loop.
+run_slam`) fuses the GPS at every keyframe. Outputs in ``out_dir`` (a stage: the folder is
+refused if it holds other files, and ``summary.json`` is written last, so a folder without it
+is an unfinished run):
+
+* ``trajectory.csv``: per keyframe its frame, timestamp, world pose (``tx, ty, tz``, the
+  quaternion ``qw, qx, qy, qz`` and ``R_wc`` row-major), WGS84 position when a georeference is
+  known, tracking state and segment;
+* ``map_points.ply``: the triangulated map points (trimesh point cloud);
+* ``keyframes.csv``: the per-keyframe log (tracking state, inliers, observations, new points,
+  window sizes, k-BA and fusion times, constraints fused);
+* ``trajectory.png``: a top-down plot of the trajectory over the GPS fixes (and the ground
+  truth when the folder has a ``poses.csv``);
+* ``summary.json``: the figures (keyframes, tracking failures, frames per second, and the
+  errors against the ground truth when there is one: evaluation only, never used by the run).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from geoseg.errors import check_finite
+from slam_bridge.errors import SlamError
+from slam_bridge.frontend.base import KeyframeObservations
+from slam_bridge.frontend.frames import ImageFolder
+from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
+from slam_bridge.sensor_logs import read_columns, read_dem_csv, read_gps_csv, read_odometry_csv
+from slam_bridge.slam.config import SlamConfig
+from slam_bridge.slam.fusion import DemConstraints, GpsConstraints
+from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
+from slam_bridge.slam.loop import SlamResult, run_slam
+from slam_bridge.slam.windows import METHODS
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ImageSlamConfig", "SlamInputs", "load_inputs", "run_image_slam", "evaluate_run"]
+
+PRODUCER = "slam run"
+
+
+@dataclass
+class ImageSlamConfig:
+    """Settings of an image-SLAM run (``configs/slam_images.yaml``).
+
+    Attributes:
+        method: ``ba`` (plain k-BA window), ``dpc`` or ``mpc`` (hybrid windows, chapter 3).
+        slam: the keyframe loop.
+        init: the start-up.
+        frontend: the visual front end.
+        gps_tolerance_s: a fix within this time of a keyframe is its fix.
+        gps_interpolate_gap_s: otherwise the two fixes around it are interpolated when at most
+            this far apart (None: not).
+    """
+
+    method: str = "ba"
+    slam: SlamConfig = field(default_factory=SlamConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+    frontend: ImageTracksConfig = field(default_factory=ImageTracksConfig)
+    gps_tolerance_s: float = 0.02
+    gps_interpolate_gap_s: float | None = 1.5
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise SlamError(f"method: expected one of {sorted(METHODS)}, got {self.method!r}")
+
+
+@dataclass
+class SlamInputs:
+    """What a run reads (:func:`load_inputs`).
+
+    Attributes:
+        frames: the images.
+        rig: camera height and GPS antenna offset.
+        gps_timestamps: ``(F,)`` GPS fix times, or None.
+        gps_xy: ``(F, 2)`` fixes in the world frame (NaN: dropout), or None.
+        odometry: distance driven between two times, or None.
+        dem: the road DEM, or None.
+        georef: the world frame's WGS84 origin, or None (no WGS84 output).
+        truth: ``(timestamps (T,), R_wc (T, 3, 3), t_wc (T, 3))`` from ``poses.csv`` when the
+            folder has one (evaluation only), or None.
+    """
+
+    frames: ImageFolder
+    rig: VehicleRig
+    gps_timestamps: np.ndarray | None = None
+    gps_xy: np.ndarray | None = None
+    odometry: OdometryDistance | None = None
+    dem: object = None
+    georef: object = None
+    truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+
+def load_inputs(
+    frames_dir: str | Path,
+    *,
+    camera: str | Path | None = None,
+    timestamps: str | Path | None = None,
+    gps: str | Path | None = None,
+    odometry: str | Path | None = None,
+    dem: str | Path | None = None,
+    georeference: str | Path | None = None,
+) -> SlamInputs:
+    """Read and check everything a run needs, before any work.
+
+    Args:
+        frames_dir: the image folder.
+        camera: its ``camera.json`` (default: in the folder).
+        timestamps: a timestamps CSV (default: see :class:`ImageFolder`).
+        gps: GPS log CSV.
+        odometry: wheel-odometry CSV.
+        dem: road DEM CSV.
+        georeference: JSON with the world origin's WGS84 position (``origin_lat_deg``,
+            ``origin_lon_deg``, ``origin_alt_m``; default: ``frames_dir/gis/georeference.json``
+            when present; a GPS log in WGS84 without it puts the origin at its first fix).
+
+    Raises:
+        SlamError: any unreadable or inconsistent input, naming the file and the problem
+            (logs that do not overlap the images' time span included).
+    """
+    from geoseg.synth.georef import Georeference
+
+    frames = ImageFolder(frames_dir, camera=camera, timestamps=timestamps)
+    cam_path = Path(camera) if camera is not None else Path(frames_dir) / "camera.json"
+    rig = _read_rig(cam_path)
+    span = (float(frames.timestamps[0]), float(frames.timestamps[-1]))
+    geo_path = (
+        Path(georeference) if georeference else Path(frames_dir) / "gis" / "georeference.json"
+    )
+    georef = _read_georef(geo_path) if (georeference or geo_path.is_file()) else None
+    inputs = SlamInputs(frames, rig, georef=georef)
+    if gps is not None:
+        log = read_gps_csv(gps)
+        _check_overlap(log.path, log.timestamps, span)
+        xy = log.xy
+        if xy is None:  # WGS84: into the world frame of the georeference (or one at the fix)
+            valid = np.isfinite(log.lat_lon[:, 0])
+            if georef is None:
+                first = log.lat_lon[valid][0]
+                georef = inputs.georef = Georeference(float(first[0]), float(first[1]), 0.0)
+            xy = np.full((log.timestamps.size, 2), np.nan)
+            lat, lon = log.lat_lon[valid, 0], log.lat_lon[valid, 1]
+            xyz = georef.wgs84_to_world(lat, lon, np.full(lat.size, georef.origin_alt_m))
+            xy[valid] = xyz[:, :2]
+        inputs.gps_timestamps, inputs.gps_xy = log.timestamps, xy
+    if odometry is not None:
+        t, v = read_odometry_csv(odometry)
+        _check_overlap(Path(odometry), t, span)
+        inputs.odometry = OdometryDistance(t, v)
+    if dem is not None:
+        inputs.dem = read_dem_csv(dem)
+    poses = Path(frames_dir) / "poses.csv"
+    if poses.is_file():
+        inputs.truth = _read_truth(poses)
+    return inputs
+
+
+def run_image_slam(
+    inputs: SlamInputs,
+    out_dir: str | Path,
+    config: ImageSlamConfig | None = None,
+    *,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """Run the SLAM over ``inputs`` and write its outputs (module docstring).
+
+    Returns:
+        ``out_dir``.
+
+    Raises:
+        SlamError: the SLAM could not start (too few frames or tracks), a non-finite estimate.
+        GeosegError: ``out_dir`` holds other files (without ``overwrite``) or is not writable.
+    """
+    from geoseg.output_dir import prepare_output_dir
+
+    cfg = config or ImageSlamConfig()
+    out = prepare_output_dir(out_dir, producer=PRODUCER, overwrite=overwrite)
+    (out / "summary.json").unlink(missing_ok=True)  # unfinished until written again
+    t0 = time.perf_counter()
+    result, tracks = run_on_images(inputs, cfg, progress)
+    seconds = time.perf_counter() - t0
+    frame_of = np.searchsorted(inputs.frames.timestamps, result.map.timestamps)
+    summary = {
+        "method": cfg.method,
+        "frames": len(inputs.frames),
+        "frames_processed": int(frame_of[-1]) + 1,
+        "keyframes": result.map.num_keyframes,
+        "segments": int(result.map.segment.max()) + 1,
+        "tracking_failures": result.tracking_failures,
+        "georeferenced": bool(result.georeferenced),
+        "map_points": int(result.map.triangulated.sum()),
+        "gps_fused_keyframes": sum(r.gps_used for r in result.records),
+        "seconds": seconds,
+        "frames_per_second": (int(frame_of[-1]) + 1) / seconds,
+        "frontend_seconds": float(tracks.timings.get("total", 0.0)),
+    }
+    if inputs.truth is not None:
+        summary.update(evaluate_run(result, inputs))
+    from slam_bridge import slam_outputs as so
+
+    so.write_trajectory_csv(out / "trajectory.csv", result, frame_of, inputs.georef)
+    so.write_keyframe_log(out / "keyframes.csv", result, frame_of)
+    so.write_map_points(out / "map_points.ply", result.map)
+    so.plot_run(out / "trajectory.png", result, inputs, title=f"{cfg.method}: {out.name}")
+    so.write_summary(out / "summary.json", summary)
+    return out
+
+
+def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
+    """Errors of the keyframes against the ground truth (``poses.csv``) and of the GPS fixes.
+
+    Returns:
+        ``translation_error_m`` (mean horizontal error, no alignment), ``translation_error_3d_m``,
+        ``rotation_error_deg`` (mean), ``gps_error_m`` (mean horizontal error of the fixes the
+        keyframes were given, against the true antenna positions) and their ratio
+        ``translation_error_over_gps``; over the keyframes placed in the world frame only
+        (``keyframes_in_world``).
+    """
+    from slam_bridge.evaluate import rotation_errors
+
+    t_true, R_true, T_true = inputs.truth
+    m = result.map
+    idx = np.clip(np.searchsorted(t_true, m.timestamps), 0, t_true.size - 1)
+    if np.any(np.abs(t_true[idx] - m.timestamps) > 1e-6):
+        raise SlamError("poses.csv: its timestamps do not match the images'")
+    out: dict[str, float] = {}
+    keep = result.in_world
+    if not keep.any():  # a map in its first camera's frame: nothing to compare
+        return out
+    out["keyframes_in_world"] = int(keep.sum())
+    e_h = np.linalg.norm(m.t_wc[keep, :2] - T_true[idx][keep, :2], axis=1)
+    e_3 = np.linalg.norm(m.t_wc[keep] - T_true[idx][keep], axis=1)
+    e_r = np.degrees(rotation_errors(m.R_wc[keep], R_true[idx][keep]))
+    out.update(
+        translation_error_m=float(e_h.mean()),
+        translation_error_3d_m=float(e_3.mean()),
+        rotation_error_deg=float(e_r.mean()),
+    )
+    if inputs.gps_xy is not None:
+        gps = GpsConstraints(inputs.gps_timestamps, inputs.gps_xy, tolerance_s=0.5)
+        antenna = np.asarray(inputs.rig.antenna_c, dtype=np.float64)
+        errs = []
+        for j in np.flatnonzero(keep):
+            fix = gps.fix_at(float(m.timestamps[j]))
+            if fix is not None:
+                true_antenna = T_true[idx[j]] + R_true[idx[j]] @ antenna
+                errs.append(np.linalg.norm(fix - true_antenna[:2]))
+        if errs:
+            out["gps_error_m"] = float(np.mean(errs))
+            out["translation_error_over_gps"] = out["translation_error_m"] / out["gps_error_m"]
+    return out
+
+
+# --------------------------------------------------------------------------------- internals
+class _Progress:
+    """The front end seen by the loop, with a progress bar over the frames."""
+
+    def __init__(self, tracks: ImageTracks, enabled: bool) -> None:
+        from tqdm import tqdm
+
+        self.tracks = tracks
+        self.K, self.image_size = tracks.K, tracks.image_size
+        self.bar = tqdm(total=len(tracks.frames), unit="frame", desc="slam", disable=not enabled)
+
+    def next_keyframe(self, slam_map) -> KeyframeObservations | None:
+        obs = self.tracks.next_keyframe(slam_map)
+        self.bar.n = len(self.tracks.frames) if obs is None else obs.frame_index + 1
+        self.bar.refresh()
+        return obs
+
+
+def run_on_images(inputs: SlamInputs, cfg: ImageSlamConfig, progress: bool = True):
+    gps = None
+    if inputs.gps_xy is not None:
+        gps = GpsConstraints(
+            inputs.gps_timestamps,
+            inputs.gps_xy,
+            tolerance_s=cfg.gps_tolerance_s,
+            interpolate_gap_s=cfg.gps_interpolate_gap_s,
+            antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
+        )
+    tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
+    start = TwoViewStart(
+        cfg.init,
+        inputs.rig,
+        mapping=cfg.slam.mapping,
+        outlier_gate_px=cfg.slam.tracking.outlier_gate_px,
+        gps=gps,
+        odometry=inputs.odometry,
+        dem=inputs.dem,
+    )
+    providers = [gps] if gps else []
+    if inputs.dem is not None:
+        providers.append(DemConstraints(inputs.dem, inputs.rig.camera_height_m))
+    source = _Progress(tracks, progress)
+    try:
+        result = run_slam(source, cfg.method, start, providers, cfg.slam)
+    finally:
+        source.bar.close()
+    return result, tracks
+
+
+def _read_rig(path: Path) -> VehicleRig:
+    try:
+        camera = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return VehicleRig()  # the frame reader has already reported a bad camera.json
+    kw = {}
+    if "camera_height_m" in camera:
+        kw["camera_height_m"] = float(camera["camera_height_m"])
+    if "gps_antenna_c" in camera:
+        kw["antenna_c"] = tuple(float(v) for v in camera["gps_antenna_c"])
+    try:
+        return VehicleRig(**kw)
+    except (ValueError, TypeError) as err:
+        raise SlamError(f"{path}: camera_height_m / gps_antenna_c: {err}") from None
+
+
+def _read_georef(path: Path):
+    from geoseg.synth.georef import Georeference
+
+    try:
+        data = json.loads(path.read_text())
+        return Georeference(
+            float(data["origin_lat_deg"]),
+            float(data["origin_lon_deg"]),
+            float(data.get("origin_alt_m", 0.0)),
+        )
+    except (OSError, ValueError, KeyError, TypeError) as err:
+        raise SlamError(
+            f"{path}: not a georeference (origin_lat_deg, origin_lon_deg): {err}"
+        ) from None
+
+
+def _check_overlap(path: Path, t: np.ndarray, span: tuple[float, float]) -> None:
+    if t[-1] < span[0] or t[0] > span[1]:
+        raise SlamError(
+            f"{path}: its times {t[0]:.3f}-{t[-1]:.3f} s do not overlap the images' "
+            f"{span[0]:.3f}-{span[1]:.3f} s (same clock expected)"
+        )
+
+
+def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    names = ["timestamp", "tx", "ty", "tz"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
+    cols = read_columns(path, names)
+    for n in names:
+        check_finite(f"{path}: {n}", cols[n])
+    R = np.stack([cols[f"r{i}{j}"] for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
+    t = np.column_stack([cols["tx"], cols["ty"], cols["tz"]])
+    return cols["timestamp"], R, t

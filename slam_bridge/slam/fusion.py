@@ -1,0 +1,258 @@
+"""Barrier fusion of the k-BA's optimum with a list of constraint providers (thesis eq. 2.3).
+
+After the k-BA, ``X* = argmin zeta`` (:mod:`slam_bridge.slam.windows`), the newest keyframe's
+window is fused with the constraints ``C_i`` the providers give for it:
+``argmin gamma / (t - zeta(X)) + sum C_i(X)``, ``t = t_ratio zeta(X*)``, from ``X*``
+(:func:`slam_bridge.solvers.barrier.solve_barrier`; the barrier's rank-one term is handled by
+Sherman-Morrison, so a provider must add no dense term, appendix B). A provider is anything
+with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
+keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
+constraints plug in the same way (:class:`DemConstraints`: terrain elevation). A keyframe for which no provider has a constraint keeps
+``X*`` (a GPS dropout, for instance).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from geoseg.errors import check_finite, check_positive, check_shape
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.base import Factor
+from slam_bridge.factors.dem import DEMFactor
+from slam_bridge.factors.gps import GPSFactor
+from slam_bridge.slam.map import Map
+from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "ConstraintProvider",
+    "GpsConstraints",
+    "DemConstraints",
+    "FusionConfig",
+    "FusionOutcome",
+    "fuse",
+]
+
+
+class ConstraintProvider(Protocol):
+    """A source of constraint families for the fusion of keyframe ``k`` (module docstring)."""
+
+    name: str
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """The constraint families on ``problem``'s state (a
+        :class:`slam_bridge.window.HybridProblem` at ``X*``) for keyframe ``k``."""
+        ...
+
+
+class GpsConstraints:
+    """GPS fixes on the horizontal position of the newest camera (eq. 3.1, eq. B.7).
+
+    Keyframe ``k`` is fused with the fix whose timestamp is within ``tolerance_s`` of its own,
+    else (with ``interpolate_gap_s``) with the linear interpolation of the two valid fixes around
+    it when they are at most that far apart (a 1 Hz receiver and keyframes every few tenths of a
+    second); otherwise it is a dropout: no GPS constraint for that keyframe. A fix
+    measures the antenna, ``antenna_c`` from the optical centre in the camera frame: the camera
+    is constrained to ``fix - (R_wc antenna_c)_xy`` with ``R_wc`` the camera's rotation at
+    ``X*`` (held during the fusion, which turns the camera by milliradians: millimetres for a
+    lever arm of a metre).
+
+    Args:
+        timestamps: ``(F,)`` fix times, seconds, increasing.
+        xy: ``(F, 2)`` fixes in the world frame, metres (NaN rows: dropouts).
+        weight: weight of the GPS term.
+        tolerance_s: how far from a keyframe's time a fix may be.
+        interpolate_gap_s: the longest interval between two fixes interpolated (None: none).
+        antenna_c: ``(3,)`` the antenna in the camera frame, metres (None: at the camera).
+    """
+
+    name = "gps"
+
+    def __init__(
+        self,
+        timestamps: np.ndarray,
+        xy: np.ndarray,
+        *,
+        weight: float = 1.0,
+        tolerance_s: float = 1e-3,
+        interpolate_gap_s: float | None = None,
+        antenna_c: np.ndarray | None = None,
+    ) -> None:
+        self.timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        self.xy = np.asarray(xy, dtype=np.float64)
+        check_shape("xy", self.xy, (self.timestamps.size, 2))
+        check_finite("timestamps", self.timestamps)
+        if np.any(np.isinf(self.xy)):
+            raise SlamError("xy: GPS fixes must be finite or NaN (dropout)")
+        if np.any(np.diff(self.timestamps) <= 0):
+            raise SlamError("timestamps: GPS fix times must increase")
+        check_positive("weight", weight)
+        check_positive("tolerance_s", tolerance_s)
+        self.weight = float(weight)
+        self.tolerance_s = float(tolerance_s)
+        if interpolate_gap_s is not None:
+            check_positive("interpolate_gap_s", interpolate_gap_s)
+        self.interpolate_gap_s = interpolate_gap_s
+        self.antenna_c = None
+        if antenna_c is not None:
+            self.antenna_c = np.asarray(antenna_c, dtype=np.float64)
+            check_shape("antenna_c", self.antenna_c, (3,))
+            check_finite("antenna_c", self.antenna_c)
+
+    def fix_at(self, timestamp: float) -> np.ndarray | None:
+        """The ``(2,)`` fix for ``timestamp``, or None (dropout, none near)."""
+        t, n = self.timestamps, self.timestamps.size
+        if n == 0:
+            return None
+        hi = int(np.searchsorted(t, timestamp))  # t[hi - 1] < timestamp <= t[hi]
+        near = [i for i in (hi - 1, hi) if 0 <= i < n]
+        i = min(near, key=lambda j: abs(t[j] - timestamp))
+        if abs(t[i] - timestamp) <= self.tolerance_s:
+            fix = self.xy[i]
+            return fix.copy() if np.all(np.isfinite(fix)) else None
+        if self.interpolate_gap_s is None or not 0 < hi < n:
+            return None
+        a, b = hi - 1, hi
+        if t[b] - t[a] > self.interpolate_gap_s or not np.all(np.isfinite(self.xy[[a, b]])):
+            return None
+        w = (timestamp - t[a]) / (t[b] - t[a])
+        return (1 - w) * self.xy[a] + w * self.xy[b]
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One :class:`GPSFactor` on the newest free camera, or none (dropout)."""
+        fix = self.fix_at(float(slam_map.timestamps[k]))
+        if fix is None:
+            return []
+        if self.antenna_c is not None:
+            st = problem.state
+            fix = fix - (st.R_wc[st.free_cameras[-1]] @ self.antenna_c)[:2]
+        return [GPSFactor.most_recent(problem.state, fix, weight=self.weight)]
+
+
+class DemConstraints:
+    """Terrain elevation of the newest camera: its altitude is the road's under it plus the
+    camera height (appendix B.3.2, :class:`slam_bridge.factors.dem.DEMFactor`).
+
+    A camera farther than ``max_distance_m`` from every DEM segment (off the modelled roads) is
+    not constrained (logged): the nearest segment's altitude would be a guess.
+
+    Args:
+        terrain: the road DEM (:class:`slam_bridge.factors.dem.DemSegments`).
+        camera_height_m: camera height above the road.
+        weight: weight of the elevation term (1 / sigma^2, metres).
+        max_distance_m: farthest horizontal distance to a segment.
+    """
+
+    name = "dem"
+
+    def __init__(
+        self, terrain, camera_height_m: float, *, weight: float = 1.0, max_distance_m: float = 15.0
+    ) -> None:
+        check_positive("camera_height_m", camera_height_m)
+        check_positive("weight", weight)
+        check_positive("max_distance_m", max_distance_m)
+        self.terrain = terrain
+        self.camera_height_m = float(camera_height_m)
+        self.weight = float(weight)
+        self.max_distance_m = float(max_distance_m)
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One :class:`DEMFactor` on the newest free camera, or none off the DEM's roads."""
+        st = problem.state
+        cam = st.free_cameras[-1]
+        distance = float(self.terrain.distance_at(st.t_wc[cam, :2])[0])
+        if distance > self.max_distance_m:
+            logger.debug("keyframe %d: %.0f m from the DEM's roads, no elevation term", k, distance)
+            return []
+        return [
+            DEMFactor(np.array([cam]), self.terrain, self.camera_height_m, np.array([self.weight]))
+        ]
+
+
+@dataclass
+class FusionConfig:
+    """Barrier fusion settings (:class:`slam_bridge.solvers.barrier.BarrierConfig`).
+
+    Attributes:
+        iterations: barrier iterations.
+        backtracks: halvings of a step that crosses the barrier before its damping is raised
+            (0 = the thesis's Levenberg-Marquardt alone).
+        gamma_rel: relative barrier weight.
+        t_ratio: ``t = t_ratio zeta(X*)``.
+    """
+
+    iterations: int = 10
+    backtracks: int = 3
+    gamma_rel: float = 0.01
+    t_ratio: float = 1.05
+
+    def barrier(self) -> BarrierConfig:
+        """The solver's config."""
+        return BarrierConfig(
+            t_ratio=self.t_ratio,
+            gamma_rel=self.gamma_rel,
+            max_iterations=self.iterations,
+            max_backtracks=self.backtracks,
+        )
+
+    def __post_init__(self) -> None:
+        self.barrier()  # bad values: SlamError now, not at the first fusion
+
+
+@dataclass
+class FusionOutcome:
+    """One keyframe's fusion.
+
+    Attributes:
+        state: the fused state (``X*`` when nothing was fused).
+        constraints: names of the providers whose constraints were fused.
+        seconds: wall time of the barrier solve.
+        iterations: barrier iterations.
+        seconds_per_iteration: mean time of an iteration (assembly + solves).
+        zeta_star: ``zeta(X*)``.
+        zeta: ``zeta`` after the fusion.
+    """
+
+    state: object
+    constraints: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    iterations: int = 0
+    seconds_per_iteration: float = 0.0
+    zeta_star: float = 0.0
+    zeta: float = 0.0
+
+
+def fuse(
+    slam_map: Map, problem, k: int, providers: list[ConstraintProvider], cfg: FusionConfig
+) -> FusionOutcome:
+    """Fuse ``problem`` (at ``X*``) with the providers' constraints for keyframe ``k``.
+
+    Returns:
+        A :class:`FusionOutcome`; ``X*`` itself when no provider has a constraint.
+    """
+    factors, names = [], []
+    for p in providers:
+        got = p.factors(slam_map, problem, k)
+        if got:
+            factors += got
+            names.append(p.name)
+    if not factors:
+        logger.debug("keyframe %d: no constraint to fuse", k)
+        return FusionOutcome(problem.state)
+    t0 = time.perf_counter()
+    fused = solve_barrier(problem.vision, factors, problem.state, cfg.barrier())
+    return FusionOutcome(
+        state=fused.state,
+        constraints=names,
+        seconds=time.perf_counter() - t0,
+        iterations=int(fused.iterations),
+        seconds_per_iteration=float(fused.seconds_per_iteration),
+        zeta_star=float(fused.zeta_star),
+        zeta=float(fused.zeta),
+    )

@@ -1,0 +1,420 @@
+"""Start-up of the image SLAM without ground truth: two views, metric scale, georeferencing.
+
+:class:`TwoViewStart` is the :class:`slam_bridge.slam.loop.StartUp` of a camera that knows only
+its images, an optional wheel odometry, an optional GPS and an optional DEM:
+
+1. **Two views.** The first keyframe ``a`` is the reference; each next keyframe ``b`` is tried
+   in turn: the essential matrix of their common tracks (MAGSAC++, ``cv2.findEssentialMat``) and
+   ``cv2.recoverPose`` give the relative pose up to scale
+   (:func:`slam_bridge.geometry.two_view_init`); it is accepted when at least
+   ``min_matches`` tracks are inliers and at least ``min_points`` of them triangulate with
+   enough parallax. Tracks the essential matrix rejects lose those observations; keyframes
+   between ``a`` and ``b`` take interpolated poses and no observation. After ``max_tries``
+   failures the newest keyframe becomes the reference.
+2. **Metric scale**: the distance driven between ``a`` and ``b`` by the wheel odometry. Without
+   odometry the baseline is 1 and the scale comes from the GPS (step 3), the GPS displacement
+   over tens of metres (one baseline of ~2 m between two noisy fixes would not do).
+3. **Georeferencing** (:meth:`TwoViewStart.georeference`, after each keyframe until it holds):
+   once the segment has GPS fixes at ``min_fixes`` keyframes spread over ``min_distance_m``,
+   a similarity ``X_w = s R X_local + T`` maps the keyframes' optical centres onto the fixes
+   (x, y from the GPS; z from the DEM under the fix plus the camera height, or the camera
+   height alone without a DEM) and the cameras' up axis (their ``-y``, level with the road for a
+   vehicle camera) onto the world's ``+z`` (:func:`fit_similarity`: this pins the roll about a
+   straight start, which positions alone leave free). The GPS antenna's offset from the camera
+   (``antenna_c``) is taken into account. With odometry the scale stays the odometry's.
+   The whole map moves into the world frame; from then on the fusion's constraint providers
+   keep it there.
+
+After a lost tracking (:meth:`TwoViewStart.restart`) a new segment starts at the lost keyframe,
+placed where the previous segment's motion predicts it (*re-anchored*: no jump, and the GPS
+fusion then pulls it onto the fixes), with the scale of the odometry or of the previous
+segment's speed, and is initialised by two views again.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from geoseg.errors import check_finite, check_positive, check_shape
+from slam_bridge.errors import SlamError
+from slam_bridge.frontend.base import ObservationSource
+from slam_bridge.geometry import two_view_init
+from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.slam.fusion import GpsConstraints
+from slam_bridge.slam.loop import StartResult
+from slam_bridge.slam.map import Map
+from slam_bridge.slam.mapping import MappingConfig, triangulate_new
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "VehicleRig",
+    "InitConfig",
+    "OdometryDistance",
+    "TwoViewStart",
+    "fit_similarity",
+]
+
+
+@dataclass
+class VehicleRig:
+    """Where the camera sits on the vehicle.
+
+    Attributes:
+        camera_height_m: height of the optical centre above the road.
+        antenna_c: ``(3,)`` the GPS antenna (the point the fixes measure) in the camera frame
+            (OpenCV: x right, y down, z forward), metres. A car camera 1.5 m above a road-level
+            reference point 1 m behind it: ``(0, 1.5, -1)``.
+    """
+
+    camera_height_m: float = 1.5
+    antenna_c: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        check_positive("camera_height_m", self.camera_height_m)
+        a = np.asarray(self.antenna_c, dtype=np.float64)
+        check_shape("antenna_c", a, (3,))
+        check_finite("antenna_c", a)
+
+
+@dataclass
+class InitConfig:
+    """Start-up settings (module docstring).
+
+    Attributes:
+        min_matches: essential-matrix inliers a two-view start needs.
+        min_points: points it must triangulate.
+        max_tries: second views tried against one reference keyframe.
+        threshold_px: RANSAC threshold of the essential matrix.
+        min_fixes: keyframes with a GPS fix needed to georeference.
+        min_distance_m: spread of those fixes (largest distance from the first), metres.
+        up_weight: weight of the up-axis pair against the positions in the similarity fit:
+            small, so that it only pins what the positions leave free (the roll about a straight
+            start); the cameras' -y axes lean with the road's slope.
+        refit_distance_m: the similarity is fitted again at every keyframe, to all the
+            segment's fixes, until its fixes spread over this distance: the map keeps the
+            orientation it is given (the fusion moves the newest camera only, within the
+            barrier's slack), and a fit's heading error falls with the distance it spans (GPS
+            noise / distance).
+    """
+
+    min_matches: int = 40
+    min_points: int = 25
+    max_tries: int = 6
+    threshold_px: float = 1.0
+    min_fixes: int = 8
+    min_distance_m: float = 25.0
+    up_weight: float = 0.05
+    refit_distance_m: float = 200.0
+
+    def __post_init__(self) -> None:
+        if self.min_matches < 8 or self.min_points < 8:
+            raise SlamError("min_matches, min_points: expected >= 8")
+        if self.max_tries < 1:
+            raise SlamError(f"max_tries: expected >= 1, got {self.max_tries}")
+        if self.min_fixes < 3:
+            raise SlamError(f"min_fixes: expected >= 3, got {self.min_fixes}")
+        check_positive("threshold_px", self.threshold_px)
+        check_positive("min_distance_m", self.min_distance_m)
+        check_positive("up_weight", self.up_weight, strict=False)
+
+
+class OdometryDistance:
+    """Distance driven between two times, integrated from wheel-odometry speeds.
+
+    Args:
+        timestamps: ``(N,)`` seconds, increasing.
+        speed_mps: ``(N,)`` speeds (trapezoidal integration; constant beyond the ends).
+    """
+
+    def __init__(self, timestamps: np.ndarray, speed_mps: np.ndarray) -> None:
+        t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        v = np.asarray(speed_mps, dtype=np.float64).reshape(-1)
+        check_shape("speed_mps", v, (t.size,))
+        check_finite("timestamps", t)
+        check_finite("speed_mps", v)
+        if t.size < 2 or np.any(np.diff(t) <= 0):
+            raise SlamError("odometry: expected at least two samples with increasing times")
+        self.t = t
+        self.v = v
+        self.s = np.concatenate([[0.0], np.cumsum(np.diff(t) * 0.5 * (v[1:] + v[:-1]))])
+
+    def _arc(self, time_s: float) -> float:
+        if time_s <= self.t[0]:
+            return float(self.v[0] * (time_s - self.t[0]))
+        if time_s >= self.t[-1]:
+            return float(self.s[-1] + self.v[-1] * (time_s - self.t[-1]))
+        return float(np.interp(time_s, self.t, self.s))
+
+    def __call__(self, t0: float, t1: float) -> float:
+        """Metres driven from ``t0`` to ``t1``."""
+        return self._arc(t1) - self._arc(t0)
+
+
+def fit_similarity(
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    up_src: np.ndarray | None = None,
+    up_weight: float = 1.0,
+    fix_scale: bool = False,
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + T`` (Umeyama), optionally with a direction.
+
+    Args:
+        src: ``(N, 3)`` points in the source frame.
+        dst: ``(N, 3)`` the same points in the target frame.
+        up_src: ``(3,)`` a direction in the source frame that must map onto the target's
+            ``+z`` (weighted into the rotation's cross-covariance).
+        up_weight: its weight, relative to the spread of the points.
+        fix_scale: keep ``s = 1``.
+
+    Returns:
+        ``(s, R (3, 3), T (3,))``.
+
+    Raises:
+        SlamError: fewer than 2 points, or a degenerate configuration.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    check_shape("src", src, (None, 3))
+    check_shape("dst", dst, (src.shape[0], 3))
+    if src.shape[0] < 2:
+        raise SlamError("fit_similarity: needs at least 2 points")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    H = b.T @ a  # sum_i b_i a_i^T
+    if up_src is not None:
+        u = np.asarray(up_src, dtype=np.float64)
+        u = u / np.linalg.norm(u)
+        spread = float(np.sum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)))
+        H = H + up_weight * max(spread, 1e-12) * np.outer([0.0, 0.0, 1.0], u)
+    U, S, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    R = U @ D @ Vt
+    var = float(np.sum(a * a))
+    if fix_scale:
+        s = 1.0
+    else:
+        if var < 1e-12:
+            raise SlamError("fit_similarity: the source points coincide")
+        s = float(np.sum(b * (a @ R.T)) / var)
+        if not s > 0:
+            raise SlamError(f"fit_similarity: non-positive scale {s}")
+    T = mu_d - s * R @ mu_s
+    return s, R, T
+
+
+class TwoViewStart:
+    """Start-up from images (module docstring).
+
+    Args:
+        config: start-up settings.
+        rig: camera height and GPS antenna offset.
+        mapping: the loop's mapping settings (triangulation parallax).
+        outlier_gate_px: the loop's triangulation gate.
+        gps: the GPS fixes (None: the map stays in the first camera's frame).
+        odometry: distance driven between two times (None: scale from the GPS).
+        dem: terrain model with ``altitude_at(xy (N, 2)) -> (N,)`` (None: z from the camera
+            height alone).
+    """
+
+    def __init__(
+        self,
+        config: InitConfig | None = None,
+        rig: VehicleRig | None = None,
+        *,
+        mapping: MappingConfig | None = None,
+        outlier_gate_px: float = 20.0,
+        gps: GpsConstraints | None = None,
+        odometry: OdometryDistance | None = None,
+        dem=None,
+    ) -> None:
+        self.config = config or InitConfig()
+        self.rig = rig or VehicleRig()
+        self.mapping = mapping or MappingConfig()
+        self.outlier_gate_px = float(outlier_gate_px)
+        self.gps, self.odometry, self.dem = gps, odometry, dem
+        self.georeferenced = False
+        self._motion = None  # (keyframe, rad/s, m/s) of the segment before a restart
+        self._spread = 0.0  # spread of the fixes of the last georeferencing, metres
+
+    # ------------------------------------------------------------------------- StartUp
+    def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
+        obs = source.next_keyframe(slam_map)
+        if obs is None:
+            return None
+        a = slam_map.add_keyframe(obs.timestamp, obs.point_ids, obs.uv)
+        slam_map.set_pose(a, np.eye(3), np.zeros(3))
+        return self._two_views(slam_map, source, a, speed=None)
+
+    def restart(self, slam_map: Map, source: ObservationSource, k: int) -> StartResult | None:
+        m = slam_map
+        self._motion = None
+        self._spread = 0.0  # the new segment is fitted to its own fixes
+        if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:  # the last motion, per second
+            dt = m.timestamps[k - 1] - m.timestamps[k - 2]
+            omega = so3_log(m.R_wc[k - 1] @ m.R_wc[k - 2].T) / dt
+            velocity = (m.t_wc[k - 1] - m.t_wc[k - 2]) / dt
+            self._motion = (k - 1, omega, velocity)
+            m.set_pose(k, *self._predict(m, k))
+        elif k >= 1:
+            m.set_pose(k, m.R_wc[k - 1], m.t_wc[k - 1])
+        logger.info("keyframe %d: new segment re-anchored at the motion model's prediction", k)
+        speed = None if self._motion is None else float(np.linalg.norm(self._motion[2]))
+        return self._two_views(m, source, k, speed=speed)
+
+    def _predict(self, m: Map, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keyframe ``k``'s pose by the last segment's motion (constant velocity)."""
+        j, omega, velocity = self._motion
+        dt = m.timestamps[k] - m.timestamps[j]
+        return so3_exp(dt * omega) @ m.R_wc[j], m.t_wc[j] + dt * velocity
+
+    def georeference(self, slam_map: Map, k: int) -> bool:
+        if self.gps is None:
+            return False
+        m, cfg = slam_map, self.config
+        seg = np.flatnonzero(m.segment[: k + 1] == m.segment[k])
+        if self.georeferenced and self._spread >= cfg.refit_distance_m:
+            return False
+        fixes = [self.gps.fix_at(float(m.timestamps[j])) for j in seg]
+        have = np.array([f is not None for f in fixes])
+        if have.sum() < cfg.min_fixes:
+            return False
+        kf = seg[have]
+        xy = np.array([f for f in fixes if f is not None])
+        spread = float(np.max(np.linalg.norm(xy - xy[0], axis=1)))
+        if spread < cfg.min_distance_m:
+            return False
+        z = np.full(kf.size, self.rig.camera_height_m)
+        if self.dem is not None:
+            z = z + np.asarray(self.dem.altitude_at(xy), dtype=np.float64)
+        up_local = -np.mean(m.R_wc[kf][:, :, 1], axis=0)  # the cameras' -y axes
+        antenna = np.asarray(self.rig.antenna_c, dtype=np.float64)
+        fix_scale = self.odometry is not None
+        s, R, T = 1.0, np.eye(3), np.zeros(3)
+        for _ in range(2):  # the antenna offset depends on the rotation being fitted
+            offset = np.einsum("ij,kjl,l->ki", R, m.R_wc[kf], antenna)[:, :2]
+            target = np.column_stack([xy - offset, z])
+            s, R, T = fit_similarity(
+                m.t_wc[kf], target, up_src=up_local, up_weight=cfg.up_weight, fix_scale=fix_scale
+            )
+        self._transform(m, seg, s, R, T)
+        resid = np.linalg.norm((m.t_wc[kf, :2] + offset) - xy, axis=1)
+        logger.log(
+            logging.DEBUG if self.georeferenced else logging.INFO,
+            "keyframe %d: georeferenced on %d fixes over %.0f m: scale %.3f, horizontal residual "
+            "%.2f m rms",
+            k,
+            kf.size, float(np.max(np.linalg.norm(xy - xy[0], axis=1))), s,
+            float(np.sqrt(np.mean(resid**2))),
+        )  # fmt: skip
+        self.georeferenced = True
+        self._spread = spread
+        return True
+
+    # ------------------------------------------------------------------------- internals
+    def _two_views(
+        self, m: Map, source: ObservationSource, a: int, speed: float | None
+    ) -> StartResult | None:
+        cfg = self.config
+        tries = 0
+        while True:
+            obs = source.next_keyframe(m)
+            if obs is None:
+                return None
+            b = m.add_keyframe(obs.timestamp, obs.point_ids, obs.uv)
+            for j in range(a + 1, b):  # keyframes skipped by the start keep no observation
+                m.obs_active[m.keyframe_observations(j)] = False
+            if self._try_pair(m, a, b, speed):
+                self._fill_between(m, a, b)
+                return StartResult(np.array([a, b]), georeferenced=self.georeferenced)
+            tries += 1
+            few = m.obs_active[m.keyframe_observations(a)].sum() < cfg.min_matches
+            if few or tries >= cfg.max_tries:  # the reference has too few usable tracks
+                logger.warning(
+                    "keyframes %d-%d: no two-view start; keyframe %d is the new reference", a, b, b
+                )
+                m.obs_active[m.keyframe_observations(a)] = False
+                for j in range(a, b):  # never placed
+                    m.set_pose(j, np.full((3, 3), np.nan), np.full(3, np.nan))
+                    m.mark_online(j)
+                if self._motion is not None:
+                    m.set_pose(b, *self._predict(m, b))
+                else:
+                    m.set_pose(b, np.eye(3), np.zeros(3))
+                m.start_segment(b)
+                a, tries = b, 0
+
+    def _try_pair(self, m: Map, a: int, b: int, speed: float | None) -> bool:
+        cfg = self.config
+        oa, ob = m.keyframe_observations(a), m.keyframe_observations(b)
+        oa = oa[m.obs_active[oa]]
+        ob = ob[m.obs_active[ob]]
+        common, ia, ib = np.intersect1d(m.obs_point[oa], m.obs_point[ob], return_indices=True)
+        if common.size < cfg.min_matches:
+            logger.debug("two views %d-%d: %d common tracks", a, b, common.size)
+            return False
+        ia, ib = oa[ia], ob[ib]
+        try:
+            tv = two_view_init(
+                m.K, m.obs_uv[ia], m.obs_uv[ib], threshold_px=cfg.threshold_px, seed=b
+            )
+        except SlamError as exc:
+            logger.debug("two views %d-%d: %s", a, b, exc)
+            return False
+        if tv.inliers.sum() < cfg.min_matches:
+            logger.debug("two views %d-%d: %d inliers", a, b, int(tv.inliers.sum()))
+            return False
+        baseline = self._baseline(m, a, b, speed)
+        R_a, t_a = m.R_wc[a].copy(), m.t_wc[a].copy()
+        active = m.obs_active.copy()
+        m.obs_active[ia[~tv.inliers]] = False
+        m.obs_active[ib[~tv.inliers]] = False
+        m.set_pose(b, R_a @ tv.R_wc, t_a + baseline * (R_a @ tv.t_wc))
+        n = triangulate_new(m, b, self.mapping, self.outlier_gate_px, int(m.starts[a]))
+        if n < cfg.min_points:
+            logger.debug("two views %d-%d: %d points triangulated", a, b, n)
+            m.obs_active[:] = active
+            m.triangulated[:] = False
+            return False
+        logger.info(
+            "two-view start on keyframes %d-%d: %d inliers of %d tracks, %d points, baseline %.2f",
+            a, b, int(tv.inliers.sum()), common.size, n, baseline,
+        )  # fmt: skip
+        return True
+
+    def _baseline(self, m: Map, a: int, b: int, speed: float | None) -> float:
+        """Length of the a-b baseline in map units."""
+        dt = float(m.timestamps[b] - m.timestamps[a])
+        if self.odometry is not None:
+            d = self.odometry(float(m.timestamps[a]), float(m.timestamps[b]))
+            if d > 1e-3:
+                return d
+        if speed is not None and speed * dt > 1e-6:
+            return speed * dt
+        return 1.0
+
+    def _fill_between(self, m: Map, a: int, b: int) -> None:
+        """Keyframes strictly between ``a`` and ``b`` (skipped by the start, no observation)
+        take poses interpolated in time."""
+        for j in range(a + 1, b):
+            w = (m.timestamps[j] - m.timestamps[a]) / (m.timestamps[b] - m.timestamps[a])
+            R = so3_exp(w * so3_log(m.R_wc[b] @ m.R_wc[a].T)) @ m.R_wc[a]
+            m.set_pose(j, R, (1 - w) * m.t_wc[a] + w * m.t_wc[b])
+            m.mark_online(j)
+        m.mark_online(a)
+        m.mark_online(b)
+
+    @staticmethod
+    def _transform(m: Map, keyframes: np.ndarray, s: float, R: np.ndarray, T: np.ndarray) -> None:
+        """Move the keyframes (current and online poses) and the triangulated points by
+        ``X -> s R X + T``."""
+        for Rw, tw in ((m.R_wc, m.t_wc), (m.R_wc_online, m.t_wc_online)):
+            Rw[keyframes] = R @ Rw[keyframes]
+            tw[keyframes] = s * tw[keyframes] @ R.T + T
+        tri = m.triangulated
+        m.X_w[tri] = s * m.X_w[tri] @ R.T + T

@@ -1,0 +1,157 @@
+"""Tracking: the pose of a new keyframe from its observations of mapped points.
+
+The pose is the better of two candidates, each refined by OpenCV's Levenberg-Marquardt on its
+inliers (reprojection error below ``pnp_threshold_px``): PnP with RANSAC
+(:func:`slam_bridge.geometry.pnp`) and the constant-velocity prediction from the two previous
+keyframes (which survives a RANSAC failure when the motion is smooth). With fewer than
+``min_tracked`` inliers the tracking is *weak*: the pose is kept and the k-BA decides, and no
+observation is gated at it; with fewer than 6 (or fewer than ``min_tracked`` observations of
+mapped points at all) it is *lost* (:class:`TrackingLost`), which the loop reports and recovers
+from. With a good pose, the observations erring more than ``outlier_gate_px`` are gross
+outliers and are deactivated.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from geoseg.errors import check_positive
+from slam_bridge.camera import project
+from slam_bridge.errors import SlamError
+from slam_bridge.geometry import pnp
+from slam_bridge.slam.map import Map
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["TrackingConfig", "TrackingLost", "Tracked", "track_keyframe", "reprojection_errors"]
+
+
+class TrackingLost(SlamError):
+    """Too few observations of mapped points, or too few PnP inliers, to place a keyframe."""
+
+
+@dataclass
+class TrackingConfig:
+    """Tracking settings (module docstring).
+
+    Attributes:
+        pnp_threshold_px: PnP RANSAC and inlier threshold.
+        outlier_gate_px: an observation erring more than this at the tracked pose is a gross
+            outlier (deactivated). Moderate errors (a point triangulated with little parallax)
+            are left to the k-BA.
+        min_tracked: fewer PnP inliers make a weak tracking; fewer than 6 a lost one.
+    """
+
+    pnp_threshold_px: float = 8.0
+    outlier_gate_px: float = 20.0
+    min_tracked: int = 12
+
+    def __post_init__(self) -> None:
+        check_positive("pnp_threshold_px", self.pnp_threshold_px)
+        check_positive("outlier_gate_px", self.outlier_gate_px)
+        if self.min_tracked < 6:
+            raise SlamError(f"min_tracked: expected >= 6, got {self.min_tracked}")
+
+
+@dataclass
+class Tracked:
+    """A tracked keyframe.
+
+    Attributes:
+        R_wc: ``(3, 3)``.
+        t_wc: ``(3,)``.
+        inliers: PnP inliers.
+        weak: fewer than ``min_tracked`` inliers.
+        gated: observations deactivated as gross outliers.
+    """
+
+    R_wc: np.ndarray
+    t_wc: np.ndarray
+    inliers: int
+    weak: bool
+    gated: int
+
+
+def reprojection_errors(K, R_wc, t_wc, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """``(N,)`` pixel errors of ``X_w`` projected against ``uv`` (1e9 behind the camera)."""
+    uv_hat, _, front = project(K, R_wc, t_wc, X_w)
+    return np.where(front, np.linalg.norm(np.nan_to_num(uv_hat - uv, nan=1e9), axis=1), 1e9)
+
+
+def track_keyframe(slam_map: Map, k: int, cfg: TrackingConfig) -> Tracked:
+    """Pose of keyframe ``k`` (module docstring); deactivates its gross outliers in the map.
+
+    Keyframes ``k - 1`` and ``k - 2`` must have poses (the motion model).
+
+    Raises:
+        TrackingLost: too few observations of mapped points or too few PnP inliers.
+    """
+    m = slam_map
+    sl = m.keyframe_observations(k)
+    trk = sl[m.obs_active[sl] & m.triangulated[m.obs_point[sl]]]
+    if trk.size < cfg.min_tracked:
+        raise TrackingLost(
+            f"tracking lost at keyframe {k}: {trk.size} observations of mapped points, "
+            f"fewer than {cfg.min_tracked}"
+        )
+    X, uv = m.X_w[m.obs_point[trk]], m.obs_uv[trk]
+    R_k, t_k, n_in = _best_pose(m.K, X, uv, m.R_wc, m.t_wc, k, cfg.pnp_threshold_px)
+    if n_in < 6:
+        raise TrackingLost(
+            f"tracking lost at keyframe {k}: {n_in} PnP inliers among {trk.size} "
+            f"observations of mapped points (at least 6 needed)"
+        )
+    weak = n_in < cfg.min_tracked
+    gated = 0
+    if weak:  # keep the pose, let the k-BA decide, gate nothing
+        logger.warning("keyframe %d: weak tracking (%d PnP inliers)", k, n_in)
+    else:
+        bad = trk[reprojection_errors(m.K, R_k, t_k, X, uv) > cfg.outlier_gate_px]
+        m.obs_active[bad] = False
+        gated = int(bad.size)
+    return Tracked(R_k, t_k, int(n_in), weak, gated)
+
+
+def _best_pose(
+    K: np.ndarray,
+    X_w: np.ndarray,
+    uv: np.ndarray,
+    R_wc: np.ndarray,
+    t_wc: np.ndarray,
+    k: int,
+    threshold_px: float,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The PnP and constant-velocity candidates, each refined on its inliers; the one with
+    more inliers wins.
+
+    Returns:
+        ``R_wc (3, 3)``, ``t_wc (3,)``, number of inliers.
+    """
+    dR = R_wc[k - 1] @ R_wc[k - 2].T
+    cands = [(dR @ R_wc[k - 1], t_wc[k - 1] + dR @ (t_wc[k - 1] - t_wc[k - 2]))]
+    try:
+        res = pnp(K, X_w, uv, threshold_px=threshold_px, seed=k)
+        cands.append((res.R_wc, res.t_wc))
+    except SlamError as exc:
+        logger.debug("keyframe %d: PnP RANSAC failed (%s); motion model", k, exc)
+    best = None
+    for R, t in cands:
+        for _ in range(2):  # score, then refine on the inliers (OpenCV LM)
+            inl = reprojection_errors(K, R, t, X_w, uv) < threshold_px
+            if inl.sum() < 6:
+                break
+            rvec = cv2.Rodrigues(np.ascontiguousarray(R.T))[0].reshape(3, 1)
+            tvec = np.ascontiguousarray(-(R.T @ t)).reshape(3, 1)
+            rvec, tvec = cv2.solvePnPRefineLM(
+                np.ascontiguousarray(X_w[inl]), np.ascontiguousarray(uv[inl]), K, None, rvec, tvec
+            )
+            R_cw, _ = cv2.Rodrigues(rvec)
+            R, t = R_cw.T, -(R_cw.T @ tvec.reshape(3))
+        n_in = int(np.sum(reprojection_errors(K, R, t, X_w, uv) < threshold_px))
+        if best is None or n_in > best[2]:
+            best = (R, t, n_in)
+    return best

@@ -1,0 +1,135 @@
+"""The image SLAM's start-up without ground truth, on simulated tracks of the tiny drive."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from geoseg.errors import GeosegError
+from slam_bridge.errors import SlamError
+from slam_bridge.experiments.fusion_ch3 import gps_for_setting
+from slam_bridge.frontend.simulated import SimulatedTracks
+from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.slam.fusion import GpsConstraints
+from slam_bridge.slam.initialization import (
+    InitConfig,
+    OdometryDistance,
+    TwoViewStart,
+    VehicleRig,
+    fit_similarity,
+)
+from slam_bridge.slam.loop import run_slam
+from slam_bridge.slam.map import Map
+
+
+def test_fit_similarity_recovers_a_known_transform():
+    rng = np.random.default_rng(0)
+    R = so3_exp(np.array([0.3, -0.2, 1.1]))
+    s, T = 2.5, np.array([10.0, -4.0, 2.0])
+    src = rng.normal(size=(30, 3)) * 5
+    dst = s * src @ R.T + T + rng.normal(scale=1e-3, size=(30, 3))
+    s_hat, R_hat, T_hat = fit_similarity(src, dst)
+    assert s_hat == pytest.approx(s, rel=1e-3)
+    assert np.degrees(np.linalg.norm(so3_log(R_hat.T @ R))) < 0.05
+    np.testing.assert_allclose(T_hat, T, atol=0.02)
+    assert fit_similarity(src, dst, fix_scale=True)[0] == 1.0
+
+
+def test_fit_similarity_up_axis_fixes_the_roll_of_collinear_points():
+    """Points along a line leave the rotation about it free; the up-axis pair pins it."""
+    R = so3_exp(np.array([0.0, 0.0, 0.7])) @ so3_exp(np.array([0.4, 0.0, 0.0]))
+    src = np.column_stack([np.linspace(0, 30, 16), np.zeros(16), np.zeros(16)])
+    dst = src @ R.T
+    up_src = R.T @ np.array([0.0, 0.0, 1.0])  # the source's direction of the target's +z
+    _, R_hat, _ = fit_similarity(src, dst, up_src=up_src, fix_scale=True)
+    assert np.degrees(np.linalg.norm(so3_log(R_hat.T @ R))) < 1e-6
+    with pytest.raises(SlamError, match="at least 2"):
+        fit_similarity(src[:1], dst[:1])
+    with pytest.raises(SlamError, match="coincide"):
+        fit_similarity(np.zeros((4, 3)), dst[:4])
+
+
+def test_odometry_distance_and_settings():
+    odo = OdometryDistance(np.array([0.0, 1.0, 2.0]), np.array([2.0, 2.0, 4.0]))
+    assert odo(0.0, 1.0) == pytest.approx(2.0)
+    assert odo(1.0, 2.0) == pytest.approx(3.0)  # trapezoid
+    assert odo(2.0, 3.0) == pytest.approx(4.0)  # constant beyond the end
+    with pytest.raises(SlamError, match="increasing"):
+        OdometryDistance(np.array([0.0, 0.0]), np.array([1.0, 1.0]))
+    with pytest.raises(GeosegError, match="speed_mps"):
+        OdometryDistance(np.array([0.0, 1.0]), np.array([1.0, np.nan]))
+    with pytest.raises(GeosegError, match="camera_height_m"):
+        VehicleRig(camera_height_m=0.0)
+    with pytest.raises(SlamError, match="min_fixes"):
+        InitConfig(min_fixes=1)
+
+
+def _odometry(seq):
+    traj = seq.trajectory
+    return OdometryDistance(traj.timestamps, traj.speed)
+
+
+def test_two_view_start_recovers_the_relative_pose_and_the_scale(noisy):
+    cfg, seq = noisy
+    start = TwoViewStart(odometry=_odometry(seq), mapping=cfg.slam.mapping)
+    m = Map(seq.K, seq.image_size)
+    got = start.start(m, seq.source())
+    a, b = got.fixed_keyframes
+    assert not got.georeferenced and m.triangulated.sum() >= 40
+    R_true = seq.R_wc_true[a].T @ seq.R_wc_true[b]
+    t_true = seq.R_wc_true[a].T @ (seq.t_wc_true[b] - seq.t_wc_true[a])
+    R_est = m.R_wc[a].T @ m.R_wc[b]
+    t_est = m.R_wc[a].T @ (m.t_wc[b] - m.t_wc[a])
+    assert np.degrees(np.linalg.norm(so3_log(R_est.T @ R_true))) < 0.5
+    cos = t_est @ t_true / (np.linalg.norm(t_est) * np.linalg.norm(t_true))
+    assert np.degrees(np.arccos(min(cos, 1.0))) < 5.0
+    # the odometry's arc length over a ~2 m chord: within a few percent of the true baseline
+    assert np.linalg.norm(t_est) == pytest.approx(np.linalg.norm(t_true), rel=0.05)
+
+
+@pytest.mark.parametrize("with_odometry", [True, False])
+def test_georeferenced_run_without_ground_truth_beats_the_gps(noisy, with_odometry):
+    """Simulated tracks, no pose given: two views, scale (odometry, or the GPS fit), then the
+    similarity to the GPS fixes; the fused trajectory is closer to the truth than the fixes."""
+    cfg, seq = noisy
+    gps_xy = gps_for_setting(cfg, seq, "sigma=0.75")
+    gps = GpsConstraints(seq.timestamps, gps_xy)
+    start = TwoViewStart(
+        InitConfig(min_distance_m=20.0),
+        gps=gps,
+        odometry=_odometry(seq) if with_odometry else None,
+        mapping=cfg.slam.mapping,
+    )
+    res = run_slam(seq.source(), "ba", start, [gps], cfg.slam)
+    assert res.georeferenced and res.tracking_failures == 0
+    assert res.map.num_keyframes == seq.num_keyframes
+    e = np.linalg.norm(res.t_wc[:, :2] - seq.t_wc_true[:, :2], axis=1)
+    e_gps = np.linalg.norm(gps_xy - seq.t_wc_true[:, :2], axis=1)
+    assert e.mean() < 0.6 * e_gps.mean()
+
+
+def test_lost_tracking_restarts_a_segment(noisy):
+    """Keyframe 20 sees nothing: the run reports it, re-anchors a new segment at the motion
+    model's prediction, initialises it by two views and goes on with the GPS."""
+    cfg, seq = noisy
+    o = seq.observations
+    keep = o.keyframe != 20
+    source = SimulatedTracks(
+        seq.K, seq.image_size, seq.timestamps, o.keyframe[keep], o.point[keep], o.uv[keep]
+    )
+    gps_xy = gps_for_setting(cfg, seq, "sigma=0.75")
+    gps = GpsConstraints(seq.timestamps, gps_xy)
+    start = TwoViewStart(
+        InitConfig(min_distance_m=20.0), gps=gps, odometry=_odometry(seq), mapping=cfg.slam.mapping
+    )
+    res = run_slam(source, "ba", start, [gps], cfg.slam)
+    states = [r.tracking for r in res.records]
+    assert res.tracking_failures == 1 and states[20] == "lost"
+    # keyframe 20 (no track left) cannot be a two-view reference: the next one starts it
+    seg = res.map.segment
+    assert seg[19] == 0 and seg[20] > 0 and np.all(seg[21:] == seg[21])
+    assert res.map.num_keyframes == seq.num_keyframes
+    assert np.flatnonzero(~res.placed).tolist() == [20]  # left without a pose
+    assert res.in_world[21:].all()  # re-anchored in the world frame
+    e = np.linalg.norm(res.t_wc[:, :2] - seq.t_wc_true[:, :2], axis=1)
+    assert e[21:].mean() < 2.0

@@ -1,0 +1,38 @@
+"""The baseline-length family: Jacobian against central differences, cost."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.baseline_length import BaselineLengthFactor
+from slam_bridge.problem import BAState
+
+
+def test_baseline_length_factor_jacobian():
+    rng = np.random.default_rng(0)
+    R = np.repeat(np.eye(3)[None], 3, axis=0)
+    t = rng.normal(size=(3, 3))
+    st = BAState(R, t, np.zeros((0, 3)))
+    f = BaselineLengthFactor(np.array([[0, 1], [1, 2]]), np.array([1.0, 2.0]), 0.1)
+    blk = f.evaluate(st)
+    eps = 1e-6
+    for cam in range(3):
+        for k in range(6):
+            d = np.zeros((3, 6))
+            d[cam, k] = eps
+            rp = f.evaluate(st.retract(d, np.zeros((0, 3)))).residuals
+            rm = f.evaluate(st.retract(-d, np.zeros((0, 3)))).residuals
+            num = (rp - rm)[:, 0] / (2 * eps)
+            ana = np.zeros(2)
+            for row in range(2):
+                for slot in range(2):
+                    if blk.cameras[row, slot] == cam:
+                        ana[row] += blk.J_cameras[row, slot, 0, k]
+            np.testing.assert_allclose(ana, num, atol=1e-6)
+    assert f.cost(st) == pytest.approx(float(np.sum(blk.residuals**2)))
+    with pytest.raises(SlamError, match="sigma"):
+        BaselineLengthFactor(np.array([[0, 1]]), np.array([1.0]), 0.0)
+    with pytest.raises(SlamError, match="lengths"):
+        BaselineLengthFactor(np.array([[0, 1]]), np.array([1.0, 2.0]), 0.1)

@@ -1,0 +1,161 @@
+"""``geoseg slam run`` on a tiny rendered drive: outputs, no ground truth in the loop, bad input."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from geoseg.cli import main
+from geoseg.synth.export import render_sequence
+from geoseg.synth.world import TerrainConfig, WorldConfig
+from slam_bridge.errors import SlamError
+from slam_bridge.image_slam import load_inputs
+from slam_bridge.sensor_logs import read_columns
+
+TINY_WORLD = dict(
+    seed=5,
+    preset="light",
+    blocks_x=2,
+    blocks_y=2,
+    block_size=70.0,
+    node_jitter=4.0,
+    removed_street_share=0.0,
+    terrain=TerrainConfig(skirt=60.0, mesh_spacing=6.0),
+)
+
+
+def write_gps(folder, sigma: float = 0.75, seed: int = 3):
+    """A frame-rate GPS log of the render's vehicle positions plus N(0, sigma^2) per axis."""
+    poses = read_columns(folder / "poses.csv", ["timestamp", "vehicle_x", "vehicle_y"])
+    rng = np.random.default_rng(seed)
+    xy = np.column_stack([poses["vehicle_x"], poses["vehicle_y"]])
+    xy = xy + rng.normal(scale=sigma, size=xy.shape)
+    path = folder / "gps_test.csv"
+    np.savetxt(
+        path, np.column_stack([poses["timestamp"], xy]), delimiter=",", header="timestamp,x,y",
+        comments="", fmt="%.6f",
+    )  # fmt: skip
+    return path
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("drive") / "render"
+    render_sequence(
+        WorldConfig(**TINY_WORLD), folder, frames=70, image_size=(320, 240), seed=1, progress=False
+    )
+    return folder, write_gps(folder)
+
+
+def slam_args(folder, gps, out, *extra):
+    return [
+        "slam", "run", str(folder), "--out", str(out), "--gps", str(gps), "--no-progress",
+        "--odometry", str(folder / "gis" / "odometry.csv"), "--dem", str(folder / "gis" / "dem.csv"),
+        *extra,
+    ]  # fmt: skip
+
+
+def read_trajectory(path):
+    rows = list(csv.DictReader(open(path)))
+    cols = ["tx", "ty", "tz"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
+    return rows, np.array([[float(r[c]) if r[c] else np.nan for c in cols] for r in rows])
+
+
+def test_slam_run_writes_a_georeferenced_trajectory(drive, tmp_path, capsys):
+    folder, gps = drive
+    out = tmp_path / "run"
+    assert main(slam_args(folder, gps, out)) == 0
+    printed = capsys.readouterr().out
+    assert "keyframes" in printed and "against poses.csv" in printed
+    for name in ("trajectory.csv", "map_points.ply", "keyframes.csv", "trajectory.png"):
+        assert (out / name).is_file(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["georeferenced"] and s["tracking_failures"] == 0 and s["keyframes"] >= 15
+    # a ~50 m drive: the fused keyframes sit within about the GPS noise of the truth
+    assert s["translation_error_m"] < 1.5 and s["rotation_error_deg"] < 3.0
+    rows, poses = read_trajectory(out / "trajectory.csv")
+    assert len(rows) == s["keyframes"]
+    world = np.array([r["in_world"] == "1" for r in rows])
+    assert world.sum() == s["keyframes_in_world"] >= 0.6 * len(rows)
+    assert all(r["lat_deg"] and r["lon_deg"] for r, w in zip(rows, world) if w)  # WGS84 too
+    # keyframes a failed start could not place have empty poses, the others rotations
+    placed = np.isfinite(poses).all(axis=1)
+    assert placed[world].all()
+    R = poses[placed, 3:].reshape(-1, 3, 3)
+    np.testing.assert_allclose(
+        R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-6
+    )
+    log = list(csv.DictReader(open(out / "keyframes.csv")))
+    assert [r["tracking"] for r in log[:2]] == ["start", "start"]
+    assert any("gps" in r["constraints"] for r in log)
+    # a second run into the same folder is allowed (its own outputs); a foreign folder is not
+    assert main(slam_args(folder, gps, out)) == 0
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    assert main(slam_args(folder, gps, foreign)) == 2
+    assert "did not write" in capsys.readouterr().err
+    assert (foreign / "notes.txt").read_text() == "mine" and not (foreign / "summary.json").exists()
+
+
+def test_scrambled_ground_truth_changes_only_the_evaluation(drive, tmp_path):
+    """No ground truth reaches the loop: scrambling poses.csv changes the reported errors and
+    nothing else."""
+    folder, gps = drive
+    scrambled = tmp_path / "scrambled"
+    shutil.copytree(folder, scrambled)
+    lines = (scrambled / "poses.csv").read_text().splitlines()
+    header = lines[0].split(",")
+    rng = np.random.default_rng(0)
+    out_lines = [lines[0]]
+    for line in lines[1:]:
+        v = line.split(",")
+        for c in ("tx", "ty", "tz", "vehicle_x", "vehicle_y"):
+            i = header.index(c)
+            v[i] = f"{float(v[i]) + rng.normal(scale=5.0):.6f}"
+        out_lines.append(",".join(v))
+    (scrambled / "poses.csv").write_text("\n".join(out_lines) + "\n")
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert main(slam_args(folder, gps, a)) == 0
+    assert main(slam_args(scrambled, gps, b)) == 0
+    _, pa = read_trajectory(a / "trajectory.csv")
+    _, pb = read_trajectory(b / "trajectory.csv")
+    np.testing.assert_array_equal(pa, pb)
+    sa = json.loads((a / "summary.json").read_text())
+    sb = json.loads((b / "summary.json").read_text())
+    assert sb["translation_error_m"] > 2 * sa["translation_error_m"]
+
+
+def test_bad_inputs_are_clear_errors(drive, tmp_path, capsys):
+    folder, gps = drive
+
+    def fails(args, match):
+        assert main(args) == 2
+        err = capsys.readouterr().err
+        assert match in err, err
+
+    bad = tmp_path / "gps_no_xy.csv"
+    bad.write_text("timestamp,lat\n0.0,1.0\n")
+    fails(slam_args(folder, bad, tmp_path / "o1"), "x, y")
+    bad.write_text("timestamp,x,y\n0.0,1.0,nan\n0.1,1.0,2.0\n")
+    fails(slam_args(folder, bad, tmp_path / "o2"), "row 2, column 'y'")
+    bad.write_text("timestamp,x,y\n0.5,1.0,1.0\n0.1,1.0,2.0\n")
+    fails(slam_args(folder, bad, tmp_path / "o3"), "increasing")
+    bad.write_text("timestamp,x,y\n1000.0,1.0,1.0\n1001.0,1.0,2.0\n")
+    fails(slam_args(folder, bad, tmp_path / "o4"), "do not overlap")
+    odo = tmp_path / "odo.csv"
+    odo.write_text("timestamp,speed\n0.0,1.0\n")
+    fails(slam_args(folder, gps, tmp_path / "o5", "--odometry", str(odo)), "speed_mps")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    fails(slam_args(empty, gps, tmp_path / "o6"), str(empty))
+    for o in ("o1", "o2", "o3", "o4", "o5", "o6"):  # nothing that looks like a finished run
+        assert not (tmp_path / o / "summary.json").exists()
+    with pytest.raises(SlamError, match="not a georeference"):
+        geo = tmp_path / "geo.json"
+        geo.write_text("{}")
+        load_inputs(folder, georeference=geo)
