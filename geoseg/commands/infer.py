@@ -116,6 +116,8 @@ def run(args: argparse.Namespace) -> int:
     out = prepare_output_dir(
         args.out, producer=PRODUCER, overwrite=args.overwrite, adopt=_earlier_infer
     )
+    # recorded once, up front (the normals file only exists for a model predicting normals)
+    record_outputs(out, [stem + suffix for stem in stems.values() for suffix in SUFFIXES])
 
     failed: list[str] = []
     for image_path, stem in stems.items():
@@ -138,7 +140,6 @@ def run(args: argparse.Namespace) -> int:
         if result.normals is not None:
             images["normals"] = normals_to_rgb(result.normals[0])
         names = {kind: f"{stem}_{kind}.png" for kind in images}
-        record_outputs(out, names.values())
         for kind, picture in images.items():
             (out / names[kind]).parent.mkdir(parents=True, exist_ok=True)
             atomic_imwrite(out / names[kind], cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
