@@ -80,7 +80,7 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", *, fsync: bool = Tr
 
     Args:
         path: the file to write (its folder must exist).
-        mode: ``"wb"`` or ``"w"`` (text, UTF-8).
+        mode: ``"wb"`` or ``"w"`` (text, UTF-8, line endings written as given).
         fsync: flush the data (and the folder entry) to disk before returning.
 
     Yields:
@@ -100,8 +100,8 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", *, fsync: bool = Tr
     except OSError as err:
         raise write_error(path, err) from err
     try:
-        encoding = "utf-8" if mode == "w" else None
-        with os.fdopen(fd, mode, encoding=encoding) as handle:
+        text = {"encoding": "utf-8", "newline": ""} if mode == "w" else {}  # "\n" as written
+        with os.fdopen(fd, mode, **text) as handle:
             yield handle
             handle.flush()
             if fsync:

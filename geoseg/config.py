@@ -158,8 +158,10 @@ def to_dict(config: Any) -> dict[str, Any]:
 
 
 def save_config(config: Any, path: str | Path) -> None:
-    """Write a config dataclass as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    """Write a config dataclass as YAML (atomically)."""
+    from geoseg.atomic import atomic_write
+
+    atomic_write(path, yaml.safe_dump(to_dict(config), sort_keys=False))
 
 
 def _coerce(hint: Any, value: Any, key: str) -> Any:

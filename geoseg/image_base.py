@@ -148,7 +148,7 @@ def write_poses_csv(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = list(POSE_COLUMNS) + (["lat", "lon"] if ll is not None else [])
-    with path.open("w", newline="") as f:
+    with atomic_output(path, "w") as f:
         writer = csv.writer(f)
         writer.writerow(header)
         for i, name in enumerate(images):
