@@ -187,34 +187,21 @@ class Case:
     expect: str = "error"  # "error", or "ok" for a legal extreme that must succeed
 
 
-def render_argv(*extra: str) -> Argv:
+def _world_argv(command: str, extra: tuple[str, ...]) -> Argv:
+    """``geoseg render|demo`` on the tiny world, one 32x24 frame, plus ``extra``."""
     return lambda e: [
-        "render",
-        "--config",
-        str(e.world),
-        "--out",
-        str(e.out("render")),
-        "--frames",
-        "1",
-        "--size",
-        "32x24",
+        *(command, "--config", str(e.world), "--out", str(e.out(command))),
+        *("--frames", "1", "--size", "32x24"),
         *[x.format(e=e) for x in extra],
     ]
+
+
+def render_argv(*extra: str) -> Argv:
+    return _world_argv("render", extra)
 
 
 def demo_argv(*extra: str) -> Argv:
-    return lambda e: [
-        "demo",
-        "--config",
-        str(e.world),
-        "--out",
-        str(e.out("demo")),
-        "--frames",
-        "1",
-        "--size",
-        "32x24",
-        *[x.format(e=e) for x in extra],
-    ]
+    return _world_argv("demo", extra)
 
 
 TINY_TRAIN = [
