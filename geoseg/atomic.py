@@ -23,7 +23,7 @@ import re
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 from geoseg.errors import GeosegError, OutputError
 
@@ -42,6 +42,7 @@ _CAUSES = {
     errno.EISDIR: ("a folder is in the way", "remove it or choose another name"),
     errno.ENOTDIR: ("a file is in the way of a folder", "remove it or choose another path"),
     errno.ENOENT: ("the folder does not exist", "create it or choose another path"),
+    errno.EIO: ("the write failed", "check the disk (full, or a file size limit?)"),
 }
 
 
@@ -79,7 +80,7 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", *, fsync: bool = Tr
 
     Args:
         path: the file to write (its folder must exist).
-        mode: ``"wb"`` or ``"w"`` (text, UTF-8).
+        mode: ``"wb"`` or ``"w"`` (text, UTF-8, line endings written as given).
         fsync: flush the data (and the folder entry) to disk before returning.
 
     Yields:
@@ -99,8 +100,8 @@ def atomic_output(path: str | os.PathLike, mode: str = "wb", *, fsync: bool = Tr
     except OSError as err:
         raise write_error(path, err) from err
     try:
-        encoding = "utf-8" if mode == "w" else None
-        with os.fdopen(fd, mode, encoding=encoding) as handle:
+        text = {"encoding": "utf-8", "newline": ""} if mode == "w" else {}  # "\n" as written
+        with os.fdopen(fd, mode, **text) as handle:
             yield handle
             handle.flush()
             if fsync:
@@ -126,6 +127,42 @@ def atomic_write(path: str | os.PathLike, data: bytes | str, *, fsync: bool = Tr
     with atomic_output(path, "w" if isinstance(data, str) else "wb", fsync=fsync) as handle:
         handle.write(data)
     return Path(path)
+
+
+def atomic_savefig(fig: Any, path: str | os.PathLike, **kwargs: Any) -> Path:
+    """``fig.savefig`` (a matplotlib figure) to ``path`` atomically, in the format of its
+    suffix (PNG by default); ``kwargs`` go to ``savefig`` (e.g. ``dpi``).
+
+    Raises:
+        OutputError: see :func:`atomic_output`.
+    """
+    path = Path(path)
+    kwargs.setdefault("format", path.suffix.lstrip(".").lower() or "png")
+    with atomic_output(path, fsync=False) as handle:
+        fig.savefig(handle, **kwargs)
+    return path
+
+
+def atomic_imwrite(path: str | os.PathLike, image: Any, *, fsync: bool = False) -> Path:
+    """Encode an image with OpenCV in the format of ``path``'s suffix (``.png``, ``.jpg``...)
+    and write it atomically.
+
+    Args:
+        path: the image file.
+        image: `(H, W)` or `(H, W, 3)` uint8, OpenCV channel order (BGR).
+        fsync: flush to disk before returning (off by default: frames come in thousands).
+
+    Raises:
+        OutputError: see :func:`atomic_output`; GeosegError: OpenCV cannot encode the image.
+    """
+    import cv2
+    import numpy as np
+
+    path = Path(path)
+    ok, data = cv2.imencode(path.suffix or ".png", np.ascontiguousarray(image))
+    if not ok:
+        raise GeosegError(f"{path}: OpenCV cannot encode this image as {path.suffix or '.png'}")
+    return atomic_write(path, data.tobytes(), fsync=fsync)
 
 
 def clean_temp_files(folder: str | os.PathLike, *, recursive: bool = True) -> list[Path]:

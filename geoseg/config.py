@@ -18,6 +18,7 @@ Example::
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -29,6 +30,46 @@ import yaml
 from geoseg.errors import ConfigError
 
 T = TypeVar("T")
+
+# The repository's presets (configs/*.yaml next to the package in a source checkout).
+REPO_CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def default_config_file(name: str) -> Path | None:
+    """The preset ``configs/<name>`` of the working directory, else of the geoseg source tree.
+
+    Commands use it when no ``--config`` is given, so that running them from another folder
+    uses the same presets as from the repository root (None: no such preset anywhere).
+    """
+    for folder in (Path("configs"), REPO_CONFIGS):
+        if (folder / name).is_file():
+            return folder / name
+    return None
+
+
+def check_range(
+    key: str,
+    value: float | int | None,
+    low: float | None = None,
+    high: float | None = None,
+    *,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> None:
+    """Raise :class:`ConfigError` unless ``value`` (None passes) lies in the interval
+    ``[low, high]`` (an end ``None`` is unbounded; ``*_open`` excludes that end)."""
+    if value is None:
+        return
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value < high if high_open else value <= high
+    if not ok:
+        left = "-inf" if low is None else f"{low:g}"
+        right = "inf" if high is None else f"{high:g}"
+        interval = f"{'(' if low_open or low is None else '['}{left}, {right}{')' if high_open or high is None else ']'}"
+        raise ConfigError(f"{key}: expected a number in {interval}, got {value!r}")
 
 
 def load_config(
@@ -117,15 +158,17 @@ def to_dict(config: Any) -> dict[str, Any]:
 
 
 def save_config(config: Any, path: str | Path) -> None:
-    """Write a config dataclass as YAML."""
-    Path(path).write_text(yaml.safe_dump(to_dict(config), sort_keys=False))
+    """Write a config dataclass as YAML (atomically)."""
+    from geoseg.atomic import atomic_write
+
+    atomic_write(path, yaml.safe_dump(to_dict(config), sort_keys=False))
 
 
 def _coerce(hint: Any, value: Any, key: str) -> Any:
     origin = typing.get_origin(hint)
     args = typing.get_args(hint)
     if hint is Any:
-        return value
+        return _finite_plain(value, key)
     if dataclasses.is_dataclass(hint):
         return from_dict(hint, value if value is not None else {}, where=key)
     if origin in (typing.Union, types.UnionType):
@@ -155,17 +198,20 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
     if origin is dict:
         if not isinstance(value, Mapping):
             raise ConfigError(f"{key}: expected a mapping, got {type(value).__name__}")
-        return dict(value)
+        return {k: _finite_plain(v, f"{key}.{k}") for k, v in value.items()}
     if hint is float:
+        number = value
         if isinstance(value, str):
             # PyYAML reads "1e-3" (no dot) as a string: accept numeric strings for floats.
             try:
-                return float(value)
+                number = float(value)
             except ValueError:
                 pass
-        if isinstance(value, bool) or not isinstance(value, int | float):
+        if isinstance(number, bool) or not isinstance(number, int | float):
             raise ConfigError(f"{key}: expected a number, got {type(value).__name__} {value!r}")
-        return float(value)
+        if not math.isfinite(number):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        return float(number)
     if hint is int:
         if isinstance(value, bool) or not isinstance(value, int):
             raise ConfigError(f"{key}: expected an integer, got {type(value).__name__} {value!r}")
@@ -182,6 +228,20 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
         if not isinstance(value, str | Path):
             raise ConfigError(f"{key}: expected a path, got {type(value).__name__} {value!r}")
         return Path(value)
+    return value
+
+
+def _finite_plain(value: Any, key: str) -> Any:
+    """``value`` (free-form: a dict, list or scalar) after checking that it holds no NaN or
+    infinite number; the error names the nested key (``data.synth.frames``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+    if isinstance(value, Mapping):
+        for k, v in value.items():
+            _finite_plain(v, f"{key}.{k}")
+    elif isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            _finite_plain(v, f"{key}[{i}]")
     return value
 
 

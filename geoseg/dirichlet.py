@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -64,9 +65,10 @@ from scipy.ndimage import uniform_filter
 from scipy.optimize import minimize
 from scipy.special import digamma, gammaln, logsumexp
 
-from geoseg.atomic import atomic_output
+from geoseg.atomic import atomic_write
 from geoseg.classes import BUILDING, NUM_CLASSES
 from geoseg.errors import GeosegError, check_positive
+from geoseg.integrity import DIGEST_KEY, seal, verify_payload
 
 logger = logging.getLogger(__name__)
 
@@ -338,6 +340,12 @@ class _ScoreFilter:
             raise GeosegError(
                 "threshold: not set; call threshold_for_false_rejection() or pass threshold="
             )
+        if (
+            isinstance(thr, bool)
+            or not isinstance(thr, int | float | np.number)
+            or not np.isfinite(thr)
+        ):
+            raise GeosegError(f"threshold: expected a finite number, got {thr!r}")
         return float(thr)
 
     def filter(
@@ -436,11 +444,11 @@ class _ScoreFilter:
         }
 
     def save(self, path: str | os.PathLike) -> Path:
-        """Write the filter as JSON (atomically: temp file + rename). Returns the path."""
+        """Write the filter as JSON (atomically: temp file + rename), with the SHA-256 of its
+        content (key ``"sha256"``, checked by :func:`load_filter`). Returns the path."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        with atomic_output(path, "w") as handle:
-            json.dump(self.to_dict(), handle, indent=2)
+        atomic_write(path, json.dumps(seal(self.to_dict()), indent=2))
         return path
 
     @classmethod
@@ -615,10 +623,10 @@ class DirichletFilter(_ScoreFilter):
     @classmethod
     def _from_params(cls, params: dict[str, Any], common: dict[str, Any]) -> DirichletFilter:
         return cls(
-            lam=float(params.get("lam", 1.0)),
-            eps=float(params.get("eps", DEFAULT_EPS)),
-            temperature=float(params.get("temperature", 1.0)),
-            alpha=params.get("alpha"),
+            lam=_field(params, "lam", "number", default=1.0),
+            eps=_field(params, "eps", "number", default=DEFAULT_EPS),
+            temperature=_field(params, "temperature", "number", default=1.0),
+            alpha=_field(params, "alpha", "numbers", default=None, k=common["num_classes"]),
             **common,
         )
 
@@ -656,8 +664,55 @@ _KINDS: dict[str, type[_ScoreFilter]] = {
 }
 
 
+def _field(data: dict[str, Any], key: str, kind: str, *, default: Any = ..., k: int = 0) -> Any:
+    """One field of a filter file, type-checked: ``int`` (a JSON integer, not ``true`` nor
+    ``8.9`` nor ``"8"``), ``number`` (a finite JSON number), ``numbers`` (a list of finite
+    numbers; ``k > 0``: exactly ``k``), or None where ``default`` is None.
+
+    Raises:
+        GeosegError: naming the key, the expected type and what came.
+    """
+    if key not in data:
+        if default is ...:
+            raise GeosegError(f"{key}: missing")
+        return default
+    value = data[key]
+    if value is None and default is None:
+        return None
+
+    def number(v: Any) -> bool:
+        return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+    if kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise GeosegError(f"{key}: expected an integer, got {type(value).__name__} {value!r}")
+        return value
+    if kind == "number":
+        if not number(value):
+            raise GeosegError(
+                f"{key}: expected a finite number, got {type(value).__name__} {value!r}"
+            )
+        return float(value)
+    if not isinstance(value, list) or not all(number(v) for v in value):
+        shown = repr(value)[:80]
+        raise GeosegError(f"{key}: expected a list of finite numbers, got {shown}")
+    if k and len(value) != k:
+        raise GeosegError(f"{key}: expected {k} numbers, got {len(value)}")
+    return [float(v) for v in value]
+
+
+_COMMON_KEYS = {"format", "version", "kind", "num_classes", "building_class", "window"}
+_COMMON_KEYS |= {"threshold", "calibration", DIGEST_KEY}
+_PARAM_KEYS = {"dirichlet": {"alpha", "lam", "eps", "temperature"}, "max_probability": set()}
+
+
 def load_filter(path: str | os.PathLike) -> DirichletFilter | MaxProbabilityFilter:
-    """Read any filter written by ``save``; raises GeosegError naming the file and the problem."""
+    """Read any filter written by ``save``; raises GeosegError naming the file and the problem.
+
+    Every field is checked for its type and finiteness (a NaN threshold would reject every
+    pixel, a NaN calibration give NaN weights), then the file's SHA-256 (embedded, else the
+    model card's, :mod:`geoseg.integrity`).
+    """
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -667,27 +722,31 @@ def load_filter(path: str | os.PathLike) -> DirichletFilter | MaxProbabilityFilt
         raise GeosegError(f"{path}: not a readable JSON filter file ({exc})") from exc
     if not isinstance(data, dict) or data.get("format") != FORMAT_NAME:
         raise GeosegError(f"{path}: not a geoseg filter file (format != {FORMAT_NAME!r})")
-    if data.get("version") != FORMAT_VERSION:
+    if data.get("version") != FORMAT_VERSION or isinstance(data.get("version"), bool):
         raise GeosegError(
             f"{path}: unsupported filter format version {data.get('version')!r} "
             f"(this geoseg reads version {FORMAT_VERSION})"
         )
-    cls = _KINDS.get(data.get("kind"))
+    kind = data.get("kind")
+    cls = _KINDS.get(kind) if isinstance(kind, str) else None
     if cls is None:
         raise GeosegError(f"{path}: unknown filter kind {data.get('kind')!r}")
+    unknown = sorted(set(data) - _COMMON_KEYS - _PARAM_KEYS[kind])
+    if unknown:
+        raise GeosegError(f"{path}: unknown key(s) {unknown} for a {kind} filter")
     try:
         common = {
-            "num_classes": int(data["num_classes"]),
-            "building_class": int(data["building_class"]),
-            "window": int(data.get("window", 1)),
+            "num_classes": _field(data, "num_classes", "int"),
+            "building_class": _field(data, "building_class", "int"),
+            "window": _field(data, "window", "int", default=1),
         }
         obj = cls._from_params(data, common)
-        thr = data.get("threshold")
-        obj.threshold = None if thr is None else float(thr)
-        cal = data.get("calibration")
+        obj.threshold = _field(data, "threshold", "number", default=None)
+        cal = _field(data, "calibration", "numbers", default=None)
+        if cal is not None and (len(cal) < 2 or np.any(np.diff(cal) < 0)):
+            raise GeosegError("calibration: expected >= 2 non-decreasing quantiles")
         obj.calibration = None if cal is None else np.asarray(cal, dtype=np.float64)
     except GeosegError as exc:
         raise GeosegError(f"{path}: {exc}") from exc
-    except (KeyError, TypeError, ValueError) as exc:
-        raise GeosegError(f"{path}: malformed filter file ({exc!r})") from exc
+    verify_payload(data, path)
     return obj  # type: ignore[return-value]

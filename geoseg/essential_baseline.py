@@ -359,8 +359,23 @@ def estimate_relative_pose(
 
     Returns:
         :class:`RelativePoseEstimate` for ``(a, b)`` in the ``relative_pose_labels`` convention.
+
+    Raises:
+        GeosegError: the two images differ in size (one ``K`` cannot hold for both), or the
+            principal point lies outside them (``K`` is another size's).
     """
     K = _check_K(K)
+    (ha, wa), (hb, wb) = np.shape(image_a)[:2], np.shape(image_b)[:2]
+    if (ha, wa) != (hb, wb):
+        raise GeosegError(
+            f"image_a, image_b: {wa}x{ha} and {wb}x{hb} pixels; one K holds for one image size "
+            "(resize one of them, or use per-image intrinsics)"
+        )
+    if not (0.0 <= K[0, 2] <= wa and 0.0 <= K[1, 2] <= ha):
+        raise GeosegError(
+            f"K: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the {wa}x{ha} images "
+            "(intrinsics of another image size?)"
+        )
     uv_a, uv_b = detect_and_match(
         image_a,
         image_b,

@@ -3,7 +3,8 @@ call signature.
 
 :func:`export_onnx` writes a model with a dynamic batch and (when the model allows it) dynamic
 image size, and stores in the ONNX metadata the output names, the model name and configuration
-and the input normalisation (keys ``geoseg.*``). Models with ``(B, C, H, W)`` inputs pad
+and the input normalisation (keys ``geoseg.*``), and ``geoseg.sha256``, the SHA-256 of the rest
+of the file (:func:`onnx_content_sha256`), which :class:`OnnxModel` verifies before running it. Models with ``(B, C, H, W)`` inputs pad
 internally, so any ``H, W >= 1`` is accepted by the exported graph as by the torch model. The
 naive CNN is exported in its dense form (:class:`~geoseg.models.naive_cnn.NaiveDense`, whole
 images to per-pixel log-probabilities).
@@ -38,13 +39,55 @@ import numpy as np
 import torch
 from torch import nn
 
-from geoseg.atomic import atomic_output
+from geoseg.atomic import atomic_write
 from geoseg.errors import GeosegError
+from geoseg.integrity import corrupt_error, verify_file_against_card
 
 logger = logging.getLogger(__name__)
 
 META_PREFIX = "geoseg."
+DIGEST_PROP = "sha256"
 FEATURE_CHANNELS = 128
+
+
+def onnx_content_sha256(proto: Any) -> str:
+    """Hex SHA-256 of an ONNX ``ModelProto``'s deterministic serialisation, without its
+    ``geoseg.sha256`` metadata property."""
+    import hashlib
+
+    import onnx
+
+    copy = onnx.ModelProto()
+    copy.CopyFrom(proto)
+    kept = [p for p in copy.metadata_props if p.key != META_PREFIX + DIGEST_PROP]
+    del copy.metadata_props[:]
+    copy.metadata_props.extend(kept)
+    return hashlib.sha256(copy.SerializeToString(deterministic=True)).hexdigest()
+
+
+def verify_onnx_file(path: str | os.PathLike) -> None:
+    """Check an ONNX file against its ``geoseg.sha256`` (else the model card next to it).
+
+    Raises:
+        GeosegError: the file is not a readable ONNX model, or its content does not match the
+            recorded SHA-256 (the message names the file).
+    """
+    import onnx
+
+    try:
+        proto = onnx.load(str(path), load_external_data=False)
+    except Exception as err:  # protobuf's DecodeError and friends
+        raise GeosegError(
+            f"{path}: not a valid ONNX model, corrupt or truncated ({type(err).__name__}: "
+            f"{str(err)[:160]})"
+        ) from None
+    recorded = {p.key: p.value for p in proto.metadata_props}.get(META_PREFIX + DIGEST_PROP)
+    if recorded is None:
+        verify_file_against_card(path)
+        return
+    actual = onnx_content_sha256(proto)
+    if actual != recorded:
+        raise corrupt_error(path, recorded, actual, where="in its metadata (geoseg.sha256)")
 
 
 def _forward_arg_names(model: nn.Module, count: int) -> list[str]:
@@ -227,8 +270,10 @@ def export_onnx(
         entry = proto.metadata_props.add()
         entry.key = META_PREFIX + key
         entry.value = value if isinstance(value, str) else json.dumps(value)
-    with atomic_output(path) as handle:
-        handle.write(proto.SerializeToString())
+    entry = proto.metadata_props.add()
+    entry.key = META_PREFIX + DIGEST_PROP
+    entry.value = onnx_content_sha256(proto)
+    atomic_write(path, proto.SerializeToString())
     onnx.checker.check_model(str(path))
     logger.info("exported %s to %s", type(model).__name__, path)
     return path
@@ -245,6 +290,37 @@ def available_providers(device: str | None = None) -> list[str]:
     chosen = [p for p in wanted if p in have]
     if device == "cuda" and "CUDAExecutionProvider" not in chosen:
         raise GeosegError("device: CUDA requested but onnxruntime has no CUDAExecutionProvider")
+    return chosen
+
+
+def check_providers(providers: Sequence[str] | None) -> list[str]:
+    """``providers`` checked against onnxruntime's (default: :func:`available_providers`).
+
+    Raises:
+        GeosegError: an empty list, a name onnxruntime does not know, or one this installation
+            does not have (onnxruntime would silently fall back to the CPU).
+    """
+    import onnxruntime as ort
+
+    if providers is None:
+        return available_providers()
+    if isinstance(providers, str):
+        providers = [providers]
+    chosen = list(providers)
+    if not chosen:
+        raise GeosegError("providers: expected at least one onnxruntime execution provider")
+    known, have = set(ort.get_all_providers()), ort.get_available_providers()
+    for name in chosen:
+        if name not in known:
+            raise GeosegError(
+                f"providers: unknown onnxruntime execution provider {name!r}; available here: "
+                f"{have}"
+            )
+        if name not in have:
+            raise GeosegError(
+                f"providers: {name} is not available in this onnxruntime installation "
+                f"(available: {have})"
+            )
     return chosen
 
 
@@ -290,10 +366,15 @@ class OnnxModel:
         self.path = Path(path)
         if not self.path.is_file():
             raise GeosegError(f"{self.path}: no such ONNX file")
+        verify_onnx_file(self.path)
         if isinstance(fixed_dims, str) and fixed_dims != "auto":
             raise GeosegError(f"fixed_dims: expected a mapping, 'auto' or None, got {fixed_dims!r}")
         self._auto = fixed_dims == "auto"
-        self._providers = list(providers or available_providers())
+        self._providers = check_providers(providers)
+        if threads is not None and (
+            isinstance(threads, bool) or not isinstance(threads, int | np.integer) or threads < 1
+        ):
+            raise GeosegError(f"threads: expected None or an int >= 1, got {threads!r}")
         self._threads = threads
         self.session = self._new_session(None if self._auto else fixed_dims)
         raw = self.session.get_modelmeta().custom_metadata_map
@@ -333,11 +414,18 @@ class OnnxModel:
                 raise GeosegError(f"fixed_dims[{name!r}]: expected a positive int, got {size!r}")
             options.add_free_dimension_override_by_name(name, int(size))
         try:
-            return ort.InferenceSession(
+            session = ort.InferenceSession(
                 str(self.path), sess_options=options, providers=self._providers
             )
         except Exception as err:
             raise GeosegError(f"{self.path}: not a valid ONNX model ({err})") from None
+        used = session.get_providers()
+        if self._providers[0] not in used:  # onnxruntime fell back silently
+            raise GeosegError(
+                f"{self.path}: onnxruntime could not use {self._providers[0]} (the session runs "
+                f"on {used}); fix its installation or ask for another provider"
+            )
+        return session
 
     def _session_for(self, shapes: tuple[tuple[int, ...], ...]):
         """With ``fixed_dims="auto"``: the session fixed to these input shapes (built on first

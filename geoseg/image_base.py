@@ -5,7 +5,8 @@ Layout of a base directory::
     BASE_DIR/
       poses.csv          one row per image (below)
       camera.json        optional intrinsics: {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]} or
-                         {"fx": ..., "fy": ..., "cx": ..., "cy": ...}
+                         {"fx": ..., "fy": ..., "cx": ..., "cy": ...}, and the image size
+                         they hold for: "image_size": [W, H] (or "width", "height")
       <images>           PNG/JPEG/... files, anywhere under BASE_DIR (sub-folders allowed)
       cache/             written by ImageBase.embeddings: embeddings_<name>.npz
 
@@ -22,6 +23,11 @@ Layout of a base directory::
 :func:`load_image_base` validates everything up front (missing ``poses.csv``, missing columns,
 non-numeric values, non-rotations, rows without an image file, image files without a row, an
 empty base) and raises :class:`~geoseg.errors.GeosegError` naming the problem.
+
+Intrinsics hold for one image size: every base image must have the size ``camera.json`` gives
+(checked as images are loaded), and :func:`check_image_size` is the guard wherever an image
+meets a camera matrix (e.g. a query in ``geoseg localize``): a resized image with the original
+``K`` gives confidently wrong poses.
 
 Embeddings are injected: ``embed_fn(images) -> (B, D)`` maps a list of ``B`` RGB uint8
 ``(H, W, 3)`` images to their embeddings; an optional ``name`` attribute enables the on-disk
@@ -68,10 +74,12 @@ __all__ = [
     "POSES_FILE",
     "POSE_COLUMNS",
     "ThumbnailEmbedder",
+    "check_image_size",
     "layer21_features",
     "load_camera",
     "load_image_base",
     "raw_layer21_embedder",
+    "read_camera",
     "read_rgb",
     "write_poses_csv",
 ]
@@ -140,7 +148,7 @@ def write_poses_csv(
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     header = list(POSE_COLUMNS) + (["lat", "lon"] if ll is not None else [])
-    with path.open("w", newline="") as f:
+    with atomic_output(path, "w") as f:
         writer = csv.writer(f)
         writer.writerow(header)
         for i, name in enumerate(images):
@@ -158,11 +166,27 @@ def load_camera(path: str | os.PathLike) -> np.ndarray:
     Returns:
         ``(3, 3)`` float64 ``K``.
     """
+    return read_camera(path)[0]
+
+
+def read_camera(path: str | os.PathLike) -> tuple[np.ndarray, tuple[int, int] | None]:
+    """Read a ``camera.json``: intrinsics and the image size they hold for.
+
+    Returns:
+        ``(K (3, 3) float64, (W, H) or None)``: the size from ``"image_size": [W, H]`` or
+        ``"width"``/``"height"`` when given.
+
+    Raises:
+        GeosegError: unreadable file, bad intrinsics, a bad size, or a principal point outside
+            the image.
+    """
     path = Path(path)
     try:
         data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as err:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise GeosegError(f"{path}: unreadable camera file ({err})") from None
+    if not isinstance(data, dict):
+        raise GeosegError(f"{path}: expected a JSON object, got {type(data).__name__}")
     try:
         if "K" in data:
             K = np.asarray(data["K"], dtype=np.float64)
@@ -181,7 +205,48 @@ def load_camera(path: str | os.PathLike) -> np.ndarray:
         ) from None
     if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
         raise GeosegError(f"{path}: invalid intrinsics {K.tolist()}")
-    return K
+    raw = data.get("image_size")
+    if raw is None and ("width" in data or "height" in data):
+        raw = [data.get("width"), data.get("height")]
+    size = None
+    if raw is not None:
+        if (
+            not isinstance(raw, list | tuple)
+            or len(raw) != 2
+            or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in raw)
+        ):
+            raise GeosegError(f"{path}: image_size: expected [W, H] positive integers, got {raw!r}")
+        size = (int(raw[0]), int(raw[1]))
+        if not (0 <= K[0, 2] <= size[0] and 0 <= K[1, 2] <= size[1]):
+            raise GeosegError(
+                f"{path}: principal point ({K[0, 2]:g}, {K[1, 2]:g}) lies outside the "
+                f"{size[0]}x{size[1]} image the file declares"
+            )
+    return K, size
+
+
+def check_image_size(
+    name: str, image: np.ndarray, size: tuple[int, int] | None, source: str
+) -> None:
+    """Raise unless an `(H, W, ...)` ``image`` is ``size = (W, H)`` pixels (None: no check).
+
+    Args:
+        name: the image, for the message (e.g. ``"query q.png"``).
+        image: the image array.
+        size: the size the intrinsics hold for.
+        source: where that size comes from (e.g. ``"BASE/camera.json"``).
+
+    Raises:
+        GeosegError: naming both sizes and what to do.
+    """
+    if size is None:
+        return
+    h, w = np.asarray(image).shape[:2]
+    if (w, h) != tuple(size):
+        raise GeosegError(
+            f"{name}: {w}x{h} pixels, but the intrinsics ({source}) hold for {size[0]}x{size[1]} "
+            "images: resize it to that size (or crop it back), or give intrinsics for its size"
+        )
 
 
 def _fmt_names(names: Sequence[str], limit: int = 5) -> str:
@@ -235,6 +300,8 @@ class ImageBase:
         t_wc: ``(M, 3)`` float64 camera centres in the world frame (metres).
         latlon: ``(M, 2)`` float64 WGS84 degrees, or None.
         K: ``(3, 3)`` intrinsics from ``camera.json``, or None.
+        image_size: ``(W, H)`` the intrinsics hold for (``camera.json``), or None; every base
+            image is checked against it when loaded.
     """
 
     root: Path
@@ -244,6 +311,7 @@ class ImageBase:
     t_wc: np.ndarray
     latlon: np.ndarray | None = None
     K: np.ndarray | None = None
+    image_size: tuple[int, int] | None = None
 
     def __len__(self) -> int:
         return len(self.images)
@@ -258,8 +326,14 @@ class ImageBase:
         return self.root / self.images[i]
 
     def load_image(self, i: int) -> np.ndarray:
-        """Image ``i`` as RGB uint8 ``(H, W, 3)``."""
-        return read_rgb(self.path(i))
+        """Image ``i`` as RGB uint8 ``(H, W, 3)``.
+
+        Raises:
+            GeosegError: unreadable, or not of the size ``camera.json`` declares.
+        """
+        image = read_rgb(self.path(i))
+        check_image_size(f"base image {self.images[i]}", image, self.image_size, CAMERA_FILE)
+        return image
 
     def _fingerprints(self) -> np.ndarray:
         """``(M, 2)`` int64 (size in bytes, mtime in ns) of each image file."""
@@ -274,23 +348,25 @@ class ImageBase:
         safe = re.sub(r"[^A-Za-z0-9_.-]+", "_", name).strip("._") or "embedding"
         return self.root / CACHE_DIR / f"embeddings_{safe}.npz"
 
-    def _read_cache(self, path: Path, fingerprints: np.ndarray) -> np.ndarray | None:
+    def _read_cache(self, path: Path, fingerprints: np.ndarray) -> tuple[np.ndarray | None, bool]:
+        """``(embeddings or None, whether the file may be (over)written)``: a missing or stale
+        cache is rewritten; a file that is not a readable cache is someone else's and kept."""
         if not path.is_file():
-            return None
+            return None, True
         try:
             with np.load(path, allow_pickle=False) as z:
                 images = [str(s) for s in z["images"]]
                 fp = z["fingerprints"]
                 emb = z["embeddings"]
-        except Exception as err:  # a corrupt cache is recomputed, never fatal
-            logger.warning("%s: unreadable embedding cache (%s); recomputing", path, err)
-            return None
+        except Exception as err:  # never fatal: recomputed, and the file is left alone
+            logger.warning("%s: not a readable embedding cache (%s); recomputing", path, err)
+            return None, False
         if images != self.images or fp.shape != fingerprints.shape or (fp != fingerprints).any():
             logger.info("%s: stale embedding cache (images changed); recomputing", path)
-            return None
+            return None, True
         if emb.ndim != 2 or emb.shape[0] != len(self) or not np.isfinite(emb).all():
-            return None
-        return emb
+            return None, True
+        return emb, True
 
     def _write_cache(self, path: Path, emb: np.ndarray, fingerprints: np.ndarray) -> None:
         try:
@@ -330,10 +406,11 @@ class ImageBase:
         fingerprints = self._fingerprints()
         cpath = self.cache_path(str(name)) if (cache and name) else None
         if cpath is not None:
-            emb = self._read_cache(cpath, fingerprints)
+            emb, writable = self._read_cache(cpath, fingerprints)
             if emb is not None:
                 logger.info("embeddings of %d base images read from %s", len(self), cpath)
                 return emb
+            cpath = cpath if writable else None
         from tqdm import tqdm
 
         chunks: list[np.ndarray] = []
@@ -473,9 +550,11 @@ def load_image_base(root: str | os.PathLike, *, rotation_tol: float = _ROTATION_
             f"{root}: {len(orphans)} base image(s) without poses in {POSES_FILE}: "
             f"{_fmt_names(orphans)}"
         )
-    K = load_camera(root / CAMERA_FILE) if (root / CAMERA_FILE).is_file() else None
+    K, size = read_camera(root / CAMERA_FILE) if (root / CAMERA_FILE).is_file() else (None, None)
     logger.info("image base %s: %d georeferenced images", root, len(names))
-    return ImageBase(root=root, images=names, timestamps=ts, R_wc=R, t_wc=t, latlon=ll, K=K)
+    return ImageBase(
+        root=root, images=names, timestamps=ts, R_wc=R, t_wc=t, latlon=ll, K=K, image_size=size
+    )
 
 
 # ============================================================================ embedders

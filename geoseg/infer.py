@@ -11,7 +11,8 @@ Model checkpoints (:func:`save_model_checkpoint`) are dicts saved with ``torch.s
      "state_dict": {...}, "normalization": {"mean": [r, g, b], "std": [r, g, b]}, ...}
 
 Extra keys (optimizer, epoch, ... from a training checkpoint) are ignored. They are read with
-``torch.load(..., weights_only=True)`` only.
+``torch.load(..., weights_only=True)`` only, and carry a SHA-256 of their content (key
+``"sha256"``, :mod:`geoseg.integrity`) that every load verifies.
 """
 
 from __future__ import annotations
@@ -27,12 +28,14 @@ import numpy as np
 import torch
 from torch import nn
 
-from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError, check_shape
+from geoseg.integrity import read_torch_file, save_torch_file, seal
 
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_FORMAT = "geoseg-model"
+# Smallest image side the networks accept: one layer-21 cell (the trunk downsamples by 8).
+MIN_IMAGE_SIDE = 8
 # ImageNet statistics, applied to images scaled to [0, 1]; trainers store their own.
 DEFAULT_NORMALIZATION: dict[str, list[float]] = {
     "mean": [0.485, 0.456, 0.406],
@@ -88,8 +91,7 @@ def save_model_checkpoint(
         state_dict={k: v.detach().cpu() for k, v in model.state_dict().items()},
         normalization=_check_normalization("normalization", normalization or DEFAULT_NORMALIZATION),
     )
-    with atomic_output(path) as handle:
-        torch.save(payload, handle)
+    save_torch_file(seal(payload), path)
     return path
 
 
@@ -106,22 +108,14 @@ def load_model_checkpoint(
         ``(model in eval mode, checkpoint dict)``.
 
     Raises:
-        GeosegError: missing or corrupt file, missing keys, unknown model, or weights that do
-            not match the architecture (the message names the file).
+        GeosegError: missing or corrupt file (including a SHA-256 mismatch), CUDA asked for
+            but unavailable, missing keys, unknown model, or weights that do not match the
+            architecture (the message names the file).
     """
     from geoseg.models.registry import get_model
 
     path = Path(path)
-    if not path.is_file():
-        raise GeosegError(f"{path}: no such checkpoint file")
-    try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as err:
-        raise GeosegError(
-            f"{path}: not a readable torch checkpoint ({type(err).__name__}: {err})"
-        ) from None
-    if not isinstance(ckpt, dict):
-        raise GeosegError(f"{path}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    ckpt = read_torch_file(path, map_location=map_location)
     missing = [k for k in ("model_name", "state_dict") if k not in ckpt]
     if missing:
         raise GeosegError(f"{path}: not a geoseg model checkpoint (missing {missing})")
@@ -197,29 +191,56 @@ class Segmenter:
         cls, path: str | os.PathLike, *, device: str | torch.device = "cpu"
     ) -> Segmenter:
         """Load a torch checkpoint (see :func:`load_model_checkpoint`) onto ``device``."""
-        from geoseg.models.naive_cnn import NaiveCNN
-
         device = torch.device(device)
         model, ckpt = load_model_checkpoint(path, map_location=device)
-        model.to(device).eval()
-        if not isinstance(model, NaiveCNN) and not _is_image_model(model):
-            raise GeosegError(f"{path}: model {ckpt['model_name']!r} is not a segmentation network")
-
-        def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
-            x = torch.from_numpy(batch).to(device)
-            with torch.inference_mode():
-                if isinstance(model, NaiveCNN):
-                    out = {"log_probs": model.dense(x, band_rows=64)}
-                else:
-                    out = model(x)
-            return {k: v.float().cpu().numpy() for k, v in out.items()}
-
-        return cls(
-            backend,
+        return cls.from_module(
+            model,
+            device=device,
             normalization=ckpt.get("normalization"),
             model_name=str(ckpt["model_name"]),
             source=path,
         )
+
+    @classmethod
+    def from_module(
+        cls,
+        model: nn.Module,
+        *,
+        device: str | torch.device = "cpu",
+        normalization: Mapping[str, Any] | None = None,
+        model_name: str = "model",
+        source: str | os.PathLike | None = None,
+    ) -> Segmenter:
+        """A Segmenter over a torch segmentation network (ENet, joint, naive CNN) on ``device``.
+
+        A failure inside torch (an allocator giving up on a large image, mostly) is a
+        :class:`GeosegError` naming the batch's size and the way out.
+        """
+        from geoseg.models.naive_cnn import NaiveCNN
+
+        device = torch.device(device)
+        model.to(device).eval()
+        if not isinstance(model, NaiveCNN) and not _is_image_model(model):
+            raise GeosegError(f"{source}: model {model_name!r} is not a segmentation network")
+
+        def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
+            try:
+                x = torch.from_numpy(batch).to(device)
+                with torch.inference_mode():
+                    if isinstance(model, NaiveCNN):
+                        out = {"log_probs": model.dense(x, band_rows=64)}
+                    else:
+                        out = model(x)
+                return {k: v.float().cpu().numpy() for k, v in out.items()}
+            except (RuntimeError, MemoryError) as err:  # allocator failures, mostly
+                b, _, h, w = batch.shape
+                first = (str(err).strip().splitlines() or [type(err).__name__])[0][:200]
+                raise GeosegError(
+                    f"{source}: the torch model failed on a batch of {b} image(s) of {w}x{h} "
+                    f"pixels on {device} ({first}); downscale the images or use the ONNX model"
+                ) from None
+
+        return cls(backend, normalization=normalization, model_name=model_name, source=source)
 
     @classmethod
     def from_onnx(
@@ -285,8 +306,13 @@ class Segmenter:
         check_shape("images", images, (None, None, None, 3))
         if images.dtype != np.uint8:
             raise GeosegError(f"images: expected uint8 RGB images, got dtype {images.dtype}")
-        if min(images.shape[:3]) < 1:
-            raise GeosegError(f"images: empty batch or image, shape {images.shape}")
+        if images.shape[0] < 1:
+            raise GeosegError(f"images: empty batch, shape {images.shape}")
+        if min(images.shape[1:3]) < MIN_IMAGE_SIDE:
+            raise GeosegError(
+                f"images: {images.shape[2]}x{images.shape[1]} pixels is too small; the network "
+                f"needs at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
+            )
         x = images.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
         return np.ascontiguousarray((x - self._mean) / self._std)
 
@@ -301,11 +327,25 @@ class Segmenter:
         """
         out = self.backend(self.preprocess(images))
         if "logits" in out:
-            probs = _softmax(np.asarray(out["logits"], np.float32))
+            scores = np.asarray(out["logits"], np.float32)
         elif "log_probs" in out:
-            probs = np.exp(np.asarray(out["log_probs"], np.float32))
+            scores = np.asarray(out["log_probs"], np.float32)
         else:
             raise GeosegError(f"{self.source}: model returned no 'logits' or 'log_probs'")
+        for name in ("logits", "log_probs", "normals", "features"):
+            value = out.get(name)
+            if value is None:
+                continue
+            value = np.asarray(value)  # log-probabilities may be -inf (a probability of 0)
+            bad = np.isnan(value) | (
+                value == np.inf if name == "log_probs" else ~np.isfinite(value)
+            )
+            if bad.any():
+                raise GeosegError(
+                    f"{self.source}: the model produced NaN or infinite {name} for this image "
+                    "(corrupt or diverged weights?); no result is returned"
+                )
+        probs = _softmax(scores) if "logits" in out else np.exp(scores)
         return SegmentationResult(
             probabilities=probs.astype(np.float32, copy=False),
             labels=probs.argmax(axis=1).astype(np.uint8),

@@ -476,6 +476,8 @@ def intersect_rays(
         if not deg:
             inliers = inliers & (_angular_errors(p, o, d) < np.deg2rad(inlier_angle_deg))
     point, cond, lam_min, degenerate = _solve(o[inliers], d[inliers], min_eigenvalue)
+    if not degenerate and not np.isfinite(point).all():  # overflow: report it, never a NaN point
+        point, degenerate = np.full(3, np.nan), True
     if degenerate:
         logger.debug("degenerate ray set: lambda_min/n = %.3g, %d inliers", lam_min, inliers.sum())
         residuals = np.full(n, np.nan)
@@ -630,8 +632,14 @@ def locate_from_ranged_rays(
     check_positive("inlier_chi2", inlier_chi2)
     d = d / norms[:, None]
     sig_a = float(np.deg2rad(angle_sigma_deg))
-    info = _ranged_information(d, r, sig_a, range_sigma)
-    q = o + r[:, None] * d
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        info = _ranged_information(d, r, sig_a, range_sigma)
+        q = o + r[:, None] * d
+    if not (np.isfinite(info).all() and np.isfinite(q).all()):
+        raise GeosegError(
+            "origins, ranges: the ranged-ray fit is not finite (ranges or coordinates far "
+            f"outside metres-scale values: ranges {r.min():.3g}..{r.max():.3g} m)"
+        )
 
     def fit(mask: np.ndarray) -> np.ndarray:
         a = info[mask].sum(axis=0)
@@ -653,6 +661,11 @@ def locate_from_ranged_rays(
             inliers = new
     point = fit(inliers)
     w = np.linalg.eigvalsh(info[inliers].sum(axis=0))
+    if not (np.isfinite(point).all() and np.isfinite(w).all()):
+        raise GeosegError(
+            "origins, ranges: the ranged-ray fit is not finite (ranges or coordinates far "
+            "outside metres-scale values?)"
+        )
     return RayIntersection(
         point=point,
         residuals=_line_distances(point, o, d),
@@ -751,10 +764,17 @@ def fuse_gps_distance(
     check_shape("gps_m", g, d.shape)
     check_positive("relative_sigma", relative_sigma)
     check_positive("gps_sigma_m", gps_sigma_m)
-    if np.any(d <= 0) or np.isnan(d).any() or np.isnan(g).any():
+    if np.any(d <= 0) or np.isnan(d).any() or np.isnan(g).any() or (g < 0).any():
         raise GeosegError("predicted_m, gps_m: expected positive distances, no NaN")
-    w_head = 1.0 / np.square(relative_sigma * d)
-    w_gps = 1.0 / gps_sigma_m**2
-    with np.errstate(invalid="ignore"):
-        fused = (w_head * d + w_gps * g) / (w_head + w_gps)
-    return np.where(np.isfinite(d) & np.isfinite(g), fused, np.inf)
+    # the inverse-variance mean written with variances, (v_gps d + v_head g) / (v_head + v_gps):
+    # no 1 / 0 when a variance underflows, no inf / inf when one overflows
+    with np.errstate(over="ignore", invalid="ignore"):
+        v_head = np.square(relative_sigma * d)
+        v_gps = np.square(float(gps_sigma_m))
+        total = v_head + v_gps
+        safe = np.where((total > 0) & np.isfinite(total), total, 1.0)
+        w_g = np.where(total > 0, v_head / safe, 0.5)  # the GPS reading's weight
+        w_d = np.where(total > 0, v_gps / safe, 0.5)
+        w_g, w_d = np.where(np.isfinite(v_head), w_g, 1.0), np.where(np.isfinite(v_head), w_d, 0.0)
+        fused = w_d * d + w_g * g
+    return np.where(np.isfinite(d) & np.isfinite(g) & np.isfinite(fused), fused, np.inf)

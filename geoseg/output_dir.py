@@ -252,7 +252,8 @@ def prepare_output_file(
     """Check that a single output file can be written at ``path`` (its folder is created).
 
     An existing file is replaced only when ``owned(path)`` says geoseg wrote it (e.g. an ONNX
-    file with geoseg metadata), or with ``overwrite``.
+    file with geoseg metadata), or with ``overwrite``. Temporary files an interrupted earlier
+    write of ``path`` left are removed.
 
     Raises:
         GeosegError: ``path`` is a folder, or an existing file geoseg did not write (without
@@ -263,6 +264,9 @@ def prepare_output_file(
     if path.is_dir():
         raise OutputError(f"{option}: {path} is a folder; give a file name")
     ensure_writable_dir(path.parent, option=option)
+    for leftover in path.parent.glob(f".{path.name}.*.tmp"):  # of an interrupted earlier write
+        if TEMP_PATTERN.match(leftover.name) and leftover.is_file():
+            leftover.unlink()
     if path.exists() and not overwrite and not (owned is not None and owned(path)):
         raise GeosegError(
             f"{option}: {path} exists and was not written by geoseg; choose another name or "

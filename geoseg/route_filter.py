@@ -51,6 +51,8 @@ logger = logging.getLogger(__name__)
 
 # The motion band reaches this many sigmas (at least one base spacing) around the step.
 _BAND_SIGMAS = 4.0
+# Floor of a log-likelihood term (a probability of exp(-1e300) is 0 for every purpose).
+_LOG_FLOOR = 1e300
 
 
 @dataclass
@@ -248,7 +250,11 @@ class RouteFilter:
         if (d < 0).any():
             raise GeosegError("distances: expected embedding distances >= 0")
         d = d[:, self.order]
-        log_l = -(d - d.min(axis=1, keepdims=True)) / self.appearance_scale(d)
+        # Log-likelihoods, each term floored at -_LOG_FLOOR (not -inf): two terms that both
+        # underflow (a tiny tau and a tiny GPS sigma) still sum to a finite, ordered value.
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            log_l = -(d - d.min(axis=1, keepdims=True)) / self.appearance_scale(d)
+        log_l = np.maximum(np.nan_to_num(log_l, nan=-_LOG_FLOOR), -_LOG_FLOOR)
         empty = 0
         if radius_m is not None or gps_sigma_m is not None:
             if gps is None:
@@ -260,13 +266,19 @@ class RouteFilter:
                     f"gps: expected shape ({d.shape[0]}, 2) or (.., 3), got {g.shape}"
                 )
             check_finite("gps", g)
-            r2 = np.sum(np.square(g[:, None, :2] - self._xy[None]), axis=2)
+            with np.errstate(over="ignore"):
+                r2 = np.sum(np.square(g[:, None, :2] - self._xy[None]), axis=2)
             if gps_sigma_m is not None:
                 check_positive("gps_sigma_m", gps_sigma_m)
-                log_l = log_l - r2 / (2.0 * gps_sigma_m**2)
+                # relative to the nearest base image, so the nearest keeps a finite term however
+                # small sigma is (sigma -> 0: the posterior goes to the nearest base image)
+                rel = r2 - r2.min(axis=1, keepdims=True)
+                with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+                    gps_term = np.where(rel > 0, rel / (2.0 * np.square(float(gps_sigma_m))), 0.0)
+                log_l = log_l - np.minimum(np.nan_to_num(gps_term, nan=_LOG_FLOOR), _LOG_FLOOR)
             if radius_m is not None:
                 check_positive("radius_m", radius_m)
-                outside = r2 > radius_m**2
+                outside = r2 > np.square(float(radius_m))
                 all_out = outside.all(axis=1)
                 empty = int(all_out.sum())
                 if empty:
@@ -285,10 +297,11 @@ class RouteFilter:
         cfg = self.config
         if cfg.appearance_scale is not None:
             return float(cfg.appearance_scale)
-        median = float(np.median(distances)) if distances.size else 0.0
-        if not median > 0:  # every query duplicates every base image: appearance says nothing
+        top = float(distances.max()) if distances.size else 0.0
+        if not top > 0:  # every query duplicates every base image: appearance says nothing
             return 1.0
-        return cfg.appearance_scale_rel * median
+        # the median of distances / max, times max: no overflow for distances near 1e308
+        return cfg.appearance_scale_rel * float(np.median(distances / top)) * top
 
     # ------------------------------------------------------------------ inference
     def _predict(self, alpha: np.ndarray, motion: tuple) -> np.ndarray:
@@ -323,7 +336,13 @@ class RouteFilter:
     def _result(self, post_sorted: np.ndarray, empty: int) -> RouteFilterResult:
         post = np.empty_like(post_sorted)
         post[:, self.order] = post_sorted
-        post /= post.sum(axis=1, keepdims=True)
+        total = post.sum(axis=1, keepdims=True)
+        if not (np.isfinite(total).all() and (total > 0).all()):  # never a silent NaN posterior
+            raise GeosegError(
+                "route filter: the posterior underflowed for some query (inputs far outside "
+                "the model's range: check distances, steps_m and the GPS sigmas)"
+            )
+        post /= total
         ranked = np.argsort(-post, axis=1, kind="stable").astype(np.int64)
         return RouteFilterResult(posterior=post, ranked=ranked, empty_windows=empty)
 

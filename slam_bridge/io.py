@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from geoseg.atomic import atomic_write
 from geoseg.errors import check_finite, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.lie import so3_exp, so3_log
@@ -120,6 +121,30 @@ class CalibratedProblem:
     k2: np.ndarray
 
 
+def _read_bal_text(path: Path) -> str:
+    """The text of a BAL file, decompressing ``.bz2``/``.gz``; SlamError for anything else."""
+    import bz2
+    import gzip
+    import zlib
+
+    opener = {".bz2": bz2.open, ".gz": gzip.open}.get(path.suffix.lower())
+    try:
+        if opener is not None:
+            with opener(path, "rt", encoding="ascii") as handle:
+                return handle.read()
+        return path.read_text(encoding="ascii")
+    except UnicodeDecodeError:
+        raise SlamError(
+            f"read_bal: {path} is not a BAL text file (binary content; a compressed file needs "
+            "its .bz2/.gz suffix)"
+        ) from None
+    except (OSError, EOFError, zlib.error, ValueError) as err:  # bad archives
+        raise SlamError(
+            f"read_bal: {path}: corrupt or truncated {path.suffix or 'text'} file "
+            f"({type(err).__name__}: {err})"
+        ) from None
+
+
 def read_bal(path: str | Path) -> BALProblem:
     """Read a BAL text file (optionally ``.bz2``/``.gz`` compressed).
 
@@ -128,42 +153,55 @@ def read_bal(path: str | Path) -> BALProblem:
 
     Returns:
         A :class:`BALProblem`.
+
+    Raises:
+        SlamError: missing, binary or corrupt file; a header that is not three counts >= 0;
+            a body with fewer or more numbers than the header announces; non-finite or
+            non-integer observations (the message names the file).
     """
     path = Path(path)
     if not path.is_file():
         raise SlamError(f"read_bal: no such file {path}")
-    if path.suffix == ".bz2":
-        import bz2
-
-        text = bz2.open(path, "rt").read()
-    elif path.suffix == ".gz":
-        import gzip
-
-        text = gzip.open(path, "rt").read()
-    else:
-        text = path.read_text()
-    tokens = text.split()
+    tokens = _read_bal_text(path).split()
     if len(tokens) < 3:
-        raise SlamError(f"read_bal: {path} has no header")
+        raise SlamError(f"read_bal: {path} has no header (3 counts: cameras, points, observations)")
     try:
         C, P, M = (int(v) for v in tokens[:3])
+    except ValueError:
+        raise SlamError(
+            f"read_bal: {path}: the header must be 3 integer counts (cameras, points, "
+            f"observations), got {' '.join(tokens[:3])!r}"
+        ) from None
+    if min(C, P, M) < 0:
+        raise SlamError(
+            f"read_bal: {path}: negative count in the header (cameras {C}, points {P}, "
+            f"observations {M})"
+        )
+    need = 4 * M + 9 * C + 3 * P
+    if len(tokens) - 3 != need:
+        what = "trailing numbers" if len(tokens) - 3 > need else "numbers missing"
+        raise SlamError(
+            f"read_bal: {path}: expected {need} values after the header ({C} cameras, {P} "
+            f"points, {M} observations), got {len(tokens) - 3} ({what})"
+        )
+    try:
         data = np.array(tokens[3:], dtype=np.float64)
     except ValueError as exc:
-        raise SlamError(f"read_bal: {path}: malformed number ({exc})") from exc
-    need = 4 * M + 9 * C + 3 * P
-    if data.size < need:
-        raise SlamError(
-            f"read_bal: {path}: expected {need} values after the header, got {data.size}"
-        )
+        raise SlamError(f"read_bal: {path}: malformed number ({exc})") from None
     obs = data[: 4 * M].reshape(M, 4)
     cams = data[4 * M : 4 * M + 9 * C].reshape(C, 9)
     pts = data[4 * M + 9 * C : need].reshape(P, 3)
-    if not np.all(np.isfinite(obs)):
-        raise SlamError(f"read_bal: {path}: NaN or infinite observations")
+    if not np.all(np.isfinite(data)):
+        raise SlamError(f"read_bal: {path}: NaN or infinite values")
     if np.any(obs[:, :2] != np.round(obs[:, :2])):
         raise SlamError(f"read_bal: {path}: non-integer camera/point index")
     logger.debug("read_bal: %s C=%d P=%d M=%d", path, C, P, M)
-    return BALProblem(cams, pts, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), obs[:, 2:])
+    try:
+        return BALProblem(
+            cams, pts, obs[:, 0].astype(np.int64), obs[:, 1].astype(np.int64), obs[:, 2:]
+        )
+    except SlamError as err:
+        raise SlamError(f"read_bal: {path}: {err}") from None
 
 
 def write_bal(path: str | Path, problem: BALProblem) -> Path:
@@ -190,10 +228,7 @@ def write_bal(path: str | Path, problem: BALProblem) -> Path:
     ]
     lines += [repr(v) for v in problem.cameras.reshape(-1).tolist()]
     lines += [repr(v) for v in problem.points.reshape(-1).tolist()]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return atomic_write(path, "\n".join(lines) + "\n")
 
 
 def bal_project(cameras: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -1,14 +1,21 @@
-"""Fixtures shared across the test tree: the tiny synthetic city most SLAM tests drive through.
+"""Fixtures shared across the test folders.
 
-``tiny_world_dict`` is its configuration as plain values (what a YAML preset holds);
-``make_tiny_world`` builds a :class:`geoseg.synth.world.WorldConfig` from it with overrides
-(``make_tiny_world(preset="dense_occlusion")``). A 2 x 2 block city ~140 m across with a short
-terrain skirt: it builds in well under a second.
+``tiny_world_dict`` / ``make_tiny_world``: the tiny synthetic city most SLAM tests drive
+through, as plain values (what a YAML preset holds) and as a
+:class:`geoseg.synth.world.WorldConfig` factory with overrides
+(``make_tiny_world(preset="dense_occlusion")``): a 2 x 2 block city ~140 m across with a short
+terrain skirt, built in well under a second.
+
+``enet_files``: an ENet ``model.pt`` and ``model.onnx`` with embedded SHA-256 digests, made from
+the shipped ``seg`` weights without running the ONNX exporter (~20 s per ENet export): the
+checkpoint is re-saved with :func:`geoseg.infer.save_model_checkpoint` and the shipped ONNX file
+gets its ``geoseg.sha256`` metadata as :func:`geoseg.export.export_onnx` writes it.
 """
 
 from __future__ import annotations
 
 import copy
+from pathlib import Path
 
 import pytest
 
@@ -42,3 +49,29 @@ def tiny_world_dict() -> dict:
 def make_tiny_world():
     """The :func:`tiny_world_config` factory (test modules cannot import conftest by name)."""
     return tiny_world_config
+
+
+@pytest.fixture(scope="session")
+def enet_files(tmp_path_factory) -> tuple[Path, Path]:
+    import onnx
+
+    from geoseg.export import DIGEST_PROP, META_PREFIX, onnx_content_sha256
+    from geoseg.infer import load_model_checkpoint, save_model_checkpoint
+    from geoseg.pretrained import pretrained_file
+
+    root = tmp_path_factory.mktemp("enet_files")
+    model, ckpt = load_model_checkpoint(pretrained_file("seg", "model.pt"))
+    pt = save_model_checkpoint(
+        model,
+        root / "enet.pt",
+        model_name="enet",
+        model_config=ckpt.get("model_config") or {},
+        normalization=ckpt.get("normalization"),
+    )
+    proto = onnx.load(str(pretrained_file("seg", "model.onnx")))
+    entry = proto.metadata_props.add()
+    entry.key = META_PREFIX + DIGEST_PROP
+    entry.value = onnx_content_sha256(proto)
+    onnx_path = root / "enet.onnx"
+    onnx_path.write_bytes(proto.SerializeToString())
+    return pt, onnx_path

@@ -70,3 +70,46 @@ def test_paths_save_and_numeric_strings_load(tmp_path: Path) -> None:
     assert load_config(WithPath, tmp_path / "c.yaml") == cfg
     with pytest.raises(ConfigError, match="lr"):
         load_config(WithPath, {"lr": "fast"})
+
+
+# ---------------------------------------------------------------------------- reliability
+
+
+@pytest.mark.parametrize(
+    ("override", "key"),
+    [
+        ("optim.lr=nan", "optim.lr"),
+        ("optim.lr=.inf", "optim.lr"),
+        ("optim.betas=[0.9, .nan]", "optim.betas[1]"),
+        ("data.augment.scale=[0.5, .nan]", "data.augment.scale[1]"),
+        ("data.synth.frames=.nan", "data.synth.frames"),
+        ("data.synth.val.seeds=[1, .inf]", "data.synth.val.seeds[1]"),
+        ("model_config.num_classes=.nan", "model_config.num_classes"),
+        ("optim.momentum=-1", "optim.momentum"),
+        ("schedule.gamma=0", "schedule.gamma"),
+        ("class_weight_c=0.5", "class_weight_c"),
+    ],
+)
+def test_non_finite_and_out_of_range_values_name_their_full_key(override, key) -> None:
+    from training.seg import SegConfig
+
+    with pytest.raises(ConfigError) as info:
+        load_config(SegConfig, None, overrides=[override])
+    assert str(info.value).startswith(key), str(info.value)
+
+
+def test_train_finds_the_repository_preset_from_any_folder(tmp_path, monkeypatch, capsys) -> None:
+    import geoseg.config
+    from geoseg.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert geoseg.config.default_config_file("seg.yaml") == geoseg.config.REPO_CONFIGS / "seg.yaml"
+    # the preset is loaded (and printed) before the bad override is refused
+    assert main(["train", "seg", "--set", "epochs=0"]) == 2
+    captured = capsys.readouterr()
+    assert str(geoseg.config.REPO_CONFIGS / "seg.yaml") in captured.out
+    assert "epochs" in captured.err
+    # no preset anywhere: --config is required instead of silent built-in defaults
+    monkeypatch.setattr(geoseg.config, "REPO_CONFIGS", tmp_path / "nowhere")
+    assert main(["train", "seg"]) == 2
+    assert "--config" in capsys.readouterr().err

@@ -112,3 +112,13 @@ def test_prepare_output_file(tmp_path: Path) -> None:
         prepare_output_file(target)
     assert prepare_output_file(target, owned=lambda p: True) == target
     assert prepare_output_file(target, overwrite=True) == target
+
+
+def test_prepare_output_file_removes_leftovers_of_an_interrupted_write(tmp_path: Path) -> None:
+    target = tmp_path / "model.onnx"
+    leftover = tmp_path / ".model.onnx.ab12cd34.tmp"  # what a kill before the rename leaves
+    unrelated = tmp_path / ".other.onnx.ab12cd34.tmp"
+    leftover.write_bytes(b"half")
+    unrelated.write_bytes(b"half")
+    prepare_output_file(target)
+    assert not leftover.exists() and unrelated.exists()

@@ -21,21 +21,26 @@ key                content
 ``config``         the run's configuration (plain dict)
 ``history``        per-epoch metric rows (list of dicts)
 ``best``           best validation value so far (float or None)
+``best_epoch``     the epoch that value comes from (int or None)
 ``extra``          anything else the caller wants to keep (plain data)
+``sha256``         SHA-256 of everything above (:mod:`geoseg.integrity`), checked on load
 ================== ==============================================================
 
 Writes go to a temporary file in the destination's directory, are flushed and fsync-ed, then
 ``os.replace``-d over the destination: a crash or a full disk never leaves a truncated
-checkpoint, and the previous one stays intact. A run keeps :data:`LAST` and :data:`BEST`.
+checkpoint, and the previous one stays intact. A corrupted file (flipped bytes) fails its
+digest check on load instead of training on.
+
+A run keeps :data:`LAST` and :data:`BEST`, written in that order. The pair is consistent after
+a kill at any point: a kill between the two writes leaves ``last.pt`` recording a best epoch
+that ``best.pt`` does not hold yet, and :func:`reconcile_run_checkpoints` (called when a run
+starts or resumes) restores ``best.pt`` from ``last.pt``, which holds exactly those weights.
 """
 
 from __future__ import annotations
 
-import errno
 import logging
 import os
-import pickle
-import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -43,8 +48,9 @@ from typing import Any
 import torch
 from torch import nn
 
-from geoseg.atomic import atomic_output
-from geoseg.errors import GeosegError
+from geoseg.atomic import atomic_write, clean_temp_files
+from geoseg.errors import GeosegError, OutputError
+from geoseg.integrity import read_torch_file, save_torch_file, seal
 from training.reproducibility import capture_rng_state, restore_rng_state
 
 logger = logging.getLogger(__name__)
@@ -102,6 +108,7 @@ def build_checkpoint(
     config: Mapping[str, Any] | None = None,
     history: list[Mapping[str, Any]] | None = None,
     best: float | None = None,
+    best_epoch: int | None = None,
     generators: list[torch.Tensor] | None = None,
     rng: Mapping[str, Any] | None = None,
     extra: Mapping[str, Any] | None = None,
@@ -117,6 +124,7 @@ def build_checkpoint(
         config: the run's configuration as a mapping (Paths and tuples are converted).
         history: per-epoch metric rows.
         best: best validation value so far.
+        best_epoch: the epoch of ``best`` (what ``best.pt`` must hold).
         generators: data-loader generator states (uint8 tensors).
         rng: global RNG states; captured now when None.
         extra: any other plain data.
@@ -137,6 +145,7 @@ def build_checkpoint(
         "config": to_plain(dict(config or {})),
         "history": to_plain(list(history or [])),
         "best": None if best is None else float(best),
+        "best_epoch": None if best_epoch is None else int(best_epoch),
         "extra": to_plain(dict(extra or {})),
     }
 
@@ -145,25 +154,17 @@ def atomic_save(obj: Any, path: str | Path) -> Path:
     """``torch.save(obj)`` to ``path`` atomically (temp file, flush, fsync, ``os.replace``).
 
     Raises:
-        GeosegError: the directory is not writable or the disk is full; the temporary file is
-            removed and any previous file at ``path`` is left untouched.
+        GeosegError: the directory does not exist or is not writable, or the disk is full; the
+            temporary file is removed and any previous file at ``path`` is left untouched.
     """
     path = Path(path)
     if not path.parent.is_dir():
         raise GeosegError(f"checkpoint {path}: directory {path.parent} does not exist")
     try:
-        with atomic_output(path) as handle:
-            torch.save(obj, handle)
-    except OSError as err:
-        if err.errno == errno.ENOSPC:
-            problem = "no space left on device"
-        elif err.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-            problem = "permission denied / read-only"
-        else:
-            problem = f"{type(err).__name__}: {err}"
+        return save_torch_file(obj, path)
+    except OutputError as err:
         kept = " (the previous checkpoint is kept)" if path.exists() else ""
-        raise GeosegError(f"cannot write checkpoint {path}: {problem}{kept}") from err
-    return path
+        raise OutputError(f"checkpoint {err}{kept}", errno=err.errno) from err
 
 
 def save_checkpoint(checkpoint: Mapping[str, Any], path: str | Path) -> Path:
@@ -171,7 +172,7 @@ def save_checkpoint(checkpoint: Mapping[str, Any], path: str | Path) -> Path:
     missing = [k for k in _REQUIRED if k not in checkpoint]
     if missing or checkpoint.get("format") != FORMAT:
         raise GeosegError(f"checkpoint {path}: not built by build_checkpoint (missing {missing})")
-    out = atomic_save(dict(checkpoint), path)
+    out = atomic_save(seal(checkpoint), path)
     logger.debug("wrote checkpoint %s (epoch %s)", out, checkpoint["epoch"])
     return out
 
@@ -195,31 +196,27 @@ def load_checkpoint(path: str | Path, *, map_location: Any = "cpu") -> dict[str,
         map_location: passed to ``torch.load``.
 
     Raises:
-        GeosegError: the file does not exist, is corrupt or truncated, or is not a geoseg
-            checkpoint; the message names the file.
+        GeosegError: the file does not exist, is corrupt or truncated (including a SHA-256
+            mismatch), is not a geoseg checkpoint, or CUDA is asked for but unavailable; the
+            message names the file.
     """
     path = Path(path)
     if not path.is_file():
         raise GeosegError(f"checkpoint {path} does not exist")
-    try:
-        data = torch.load(path, map_location=map_location, weights_only=True)
-    except (
-        RuntimeError,
-        EOFError,
-        OSError,
-        ValueError,
-        pickle.UnpicklingError,
-        zipfile.BadZipFile,
-        AttributeError,
-        TypeError,
-    ) as err:
-        raise GeosegError(
-            f"checkpoint {path} is corrupt or not a torch checkpoint "
-            f"({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})"
-        ) from None
-    if not isinstance(data, dict) or data.get("format") != FORMAT:
+    return validate_checkpoint(read_torch_file(path, map_location=map_location), path)
+
+
+def validate_checkpoint(data: Mapping[str, Any], path: str | Path) -> dict[str, Any]:
+    """Check that a loaded mapping is a geoseg training checkpoint this version reads.
+
+    Raises:
+        GeosegError: another format, missing keys, a newer format version (names the file).
+    """
+    if not isinstance(data, Mapping) or data.get("format") != FORMAT:
         what = (
-            f"keys {sorted(map(str, data))[:8]}" if isinstance(data, dict) else type(data).__name__
+            f"keys {sorted(map(str, data))[:8]}"
+            if isinstance(data, Mapping)
+            else type(data).__name__
         )
         raise GeosegError(f"checkpoint {path} is not a geoseg checkpoint (found {what})")
     missing = [k for k in _REQUIRED if k not in data]
@@ -230,7 +227,54 @@ def load_checkpoint(path: str | Path, *, map_location: Any = "cpu") -> dict[str,
             f"checkpoint {path} has format version {data['version']}, newer than this geoseg "
             f"({FORMAT_VERSION})"
         )
-    return data
+    return dict(data)
+
+
+def reconcile_run_checkpoints(run_dir: str | Path) -> dict[str, Any] | None:
+    """Make ``last.pt`` and ``best.pt`` of a run consistent after a crash; return ``last.pt``.
+
+    Removes the temporary files of interrupted writes, then checks that ``best.pt`` holds the
+    epoch ``last.pt`` records as the best. A kill between the two writes of an epoch that
+    improved the best leaves an older ``best.pt``; ``last.pt`` then holds exactly the best
+    weights and is copied over it (atomically).
+
+    Returns:
+        The loaded ``last.pt`` (None when the run has none).
+
+    Raises:
+        GeosegError: ``best.pt`` and ``last.pt`` disagree in a way no crash produces (e.g. files
+            copied from two runs): the message says which epochs and what to do.
+    """
+    run_dir = Path(run_dir)
+    clean_temp_files(run_dir, recursive=False)
+    last_path, best_path = run_dir / LAST, run_dir / BEST
+    if not last_path.is_file():
+        return None
+    last = load_checkpoint(last_path)
+    best_epoch = last.get("best_epoch")
+    if best_epoch is None:  # written before best_epoch existed, or no best yet
+        return last
+    best_at = int(load_checkpoint(best_path)["epoch"]) if best_path.is_file() else None
+    if best_at == best_epoch:
+        return last
+    if best_epoch == int(last["epoch"]):
+        logger.warning(
+            "%s holds epoch %s but %s records epoch %d as the best (a run stopped between the two "
+            "writes): restoring %s from %s",
+            best_path,
+            best_at,
+            last_path,
+            best_epoch,
+            BEST,
+            LAST,
+        )
+        atomic_write(best_path, last_path.read_bytes())
+        return last
+    raise GeosegError(
+        f"{best_path} holds epoch {best_at} but {last_path} records epoch {best_epoch} as the best: "
+        "these files do not belong together; restore the run's own best.pt, or delete it to let "
+        "the next better epoch write a new one"
+    )
 
 
 def check_compatible(
@@ -287,6 +331,7 @@ def restore_checkpoint(
     model_name: str | None = None,
     restore_rng: bool = True,
     map_location: Any = "cpu",
+    path: str | Path | None = None,
 ) -> dict[str, Any]:
     """Load a checkpoint into ``model`` (and optimizer/scheduler/scaler/RNG when given).
 
@@ -297,6 +342,7 @@ def restore_checkpoint(
         model_name: when given, must match the stored ``model_name``.
         restore_rng: restore the global RNG states.
         map_location: for ``torch.load``.
+        path: the file a mapping ``source`` was read from (for messages).
 
     Returns:
         The checkpoint mapping (epoch, global_step, history, generators, config...).
@@ -305,7 +351,7 @@ def restore_checkpoint(
         GeosegError: see :func:`load_checkpoint` and :func:`check_compatible`.
     """
     if isinstance(source, Mapping):
-        ckpt, path = dict(source), "<checkpoint>"
+        ckpt, path = dict(source), path or "<checkpoint>"
     else:
         path = Path(source)
         ckpt = load_checkpoint(path, map_location=map_location)

@@ -28,10 +28,12 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from geoseg.atomic import atomic_write
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.infer import DEFAULT_NORMALIZATION, save_model_checkpoint
+from geoseg.integrity import file_sha256, read_torch_file
 from training import distributed as dd
-from training.checkpoint import BEST, LAST, load_checkpoint, restore_checkpoint
+from training.checkpoint import BEST, LAST, restore_checkpoint, validate_checkpoint
 from training.config import DataConfig, TrainConfig
 
 logger = logging.getLogger(__name__)
@@ -54,13 +56,25 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
         model: the registry name that trainer trains.
 
     Raises:
-        ConfigError: a non-positive crop, or another model.
+        ConfigError: a non-positive crop, another model, model options its builder does not
+            take (checked now, not after the data are prepared), bad ``data.synth`` keys.
     """
+    from geoseg.models.registry import check_model_config
+
     crop = getattr(cfg, "train_crop", None)
     if crop is not None and min(crop) < 1:
         raise ConfigError(f"train_crop: expected positive (h, w), got {crop}")
     if cfg.model != model:
         raise ConfigError(f"model: the {trainer} trainer trains {model!r}, got {cfg.model!r}")
+    try:
+        check_model_config(model, dict(cfg.model_config))
+    except ConfigError as err:
+        raise ConfigError(f"model_config: {err}") from None
+    if cfg.data.source == "synth":
+        from geoseg.data.synthetic import synthetic_config
+
+        for split in ("train", "val"):
+            synthetic_config(cfg.data.synth, split=split)
 
 
 # ----------------------------------------------------------------------------- data
@@ -239,7 +253,7 @@ def resolve_weights_file(path: str | os.PathLike) -> Path:
 
 
 def load_state(
-    path: str | os.PathLike, *, expected_model: str | None = None
+    path: str | os.PathLike, *, expected_model: str | None = None, option: str | None = None
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
     """Weights and metadata from a geoseg model checkpoint (``model.pt``) or a training
     checkpoint (``best.pt``/``last.pt``), or a run directory holding one.
@@ -247,6 +261,8 @@ def load_state(
     Args:
         path: file or run directory (:func:`resolve_weights_file`).
         expected_model: registry name the checkpoint must hold (e.g. ``"enet"``).
+        option: the config key that named ``path`` (e.g. ``"trunk_checkpoint"``), prefixed to
+            error messages.
 
     Returns:
         ``(state_dict, checkpoint)``.
@@ -254,19 +270,17 @@ def load_state(
     Raises:
         GeosegError: unreadable file, not a geoseg checkpoint, or another architecture.
     """
+    if option is not None:
+        try:
+            return load_state(path, expected_model=expected_model)
+        except GeosegError as err:
+            raise GeosegError(f"{option}: {err}") from None
     file = resolve_weights_file(path)
-    try:
-        ckpt = torch.load(file, map_location="cpu", weights_only=True)
-    except Exception as err:
-        raise GeosegError(
-            f"{file}: not a readable checkpoint ({type(err).__name__}: {err})"
-        ) from None
-    if not isinstance(ckpt, dict):
-        raise GeosegError(f"{file}: expected a checkpoint dict, got {type(ckpt).__name__}")
+    ckpt = read_torch_file(file)
     if "state_dict" in ckpt:
         state = ckpt["state_dict"]
     elif "model" in ckpt and ckpt.get("format") is not None:
-        ckpt = load_checkpoint(file)
+        ckpt = validate_checkpoint(ckpt, file)
         state = ckpt["model"]
     else:
         raise GeosegError(f"{file}: not a geoseg model or training checkpoint")
@@ -292,21 +306,19 @@ def read_history(run_dir: str | os.PathLike) -> list[dict[str, Any]]:
     return list(json.loads(path.read_text()))
 
 
-def best_row(history: Sequence[Mapping[str, Any]], key: str, mode: str) -> dict[str, Any]:
-    """The epoch row with the best ``key`` (the last row when none holds a number)."""
-    scored = [r for r in history if isinstance(r.get(key), int | float) and math.isfinite(r[key])]
-    if not scored:
-        return dict(history[-1]) if history else {}
-    pick = min if mode == "min" else max
-    return dict(pick(scored, key=lambda r: r[key]))
+def load_best_weights(model: nn.Module, run_dir: str | os.PathLike) -> tuple[Path, dict[str, Any]]:
+    """Load ``best.pt`` (else ``last.pt``) of ``run_dir`` into ``model``.
 
-
-def load_best_weights(model: nn.Module, run_dir: str | os.PathLike) -> Path:
-    """Load ``best.pt`` (else ``last.pt``) of ``run_dir`` into ``model``; returns the file."""
+    Returns:
+        ``(file, metrics)``: the file loaded and the metric row of the epoch it holds (from its
+        own history), so that a model card always reports the metrics of the weights it ships.
+    """
     run_dir = Path(run_dir)
     file = run_dir / BEST if (run_dir / BEST).is_file() else run_dir / LAST
-    restore_checkpoint(file, model, restore_rng=False)
-    return file
+    ckpt = restore_checkpoint(file, model, restore_rng=False)
+    epoch = int(ckpt["epoch"])
+    rows = [dict(r) for r in ckpt.get("history") or [] if r.get("epoch") == epoch]
+    return file, rows[-1] if rows else {}
 
 
 def finalize_run(
@@ -396,8 +408,12 @@ def finalize_run(
         },
     }
     card.update(extra_card or {})
-    _atomic_write(run_dir / CARD_JSON, json.dumps(card, indent=1, default=str))
-    _atomic_write(run_dir / CARD_MD, _card_markdown(card))
+    # what load_model_checkpoint / OnnxModel verify files without an embedded digest against
+    card["sha256"] = {
+        f: file_sha256(run_dir / f) for f in card["files"].values() if (run_dir / f).is_file()
+    }
+    atomic_write(run_dir / CARD_JSON, json.dumps(card, indent=1, default=str))
+    atomic_write(run_dir / CARD_MD, _card_markdown(card))
     return run_dir
 
 
@@ -414,8 +430,8 @@ def finish_run(
 ) -> Path:
     """The end of an image trainer's ``main``: best weights, best epoch's metrics, artefacts.
 
-    Loads the best weights into ``model`` (:func:`load_best_weights`), takes the metrics of the
-    best epoch by ``cfg.best_metric``/``cfg.best_mode`` (:func:`best_row`), adds
+    Loads the best weights into ``model`` and takes the metrics of the epoch they come from
+    (:func:`load_best_weights`), adds
     ``extra_metrics(model)`` when given (e.g. a dense evaluation, run on the best weights before
     the model moves to the CPU), then :func:`finalize_run` with the config's data summary,
     ``cfg.export`` and ``cfg.data.size`` as the export's example size.
@@ -433,8 +449,7 @@ def finish_run(
     Returns:
         ``run_dir`` as a :class:`~pathlib.Path`.
     """
-    load_best_weights(model, run_dir)
-    metrics = best_row(read_history(run_dir), cfg.best_metric, cfg.best_mode)
+    _, metrics = load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model))
     return finalize_run(
@@ -463,12 +478,6 @@ def _plain(cfg: Any) -> Any:
     from geoseg.config import to_dict
 
     return to_dict(cfg)
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
 
 
 def _card_markdown(card: Mapping[str, Any]) -> str:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from geoseg.config import to_dict
+from geoseg.config import check_range, to_dict
 from geoseg.data.transforms import AugmentConfig
 from geoseg.errors import ConfigError
 
@@ -36,6 +36,9 @@ class OptimConfig:
             raise ConfigError(f"optim.weight_decay: expected >= 0, got {self.weight_decay}")
         if self.grad_clip is not None and self.grad_clip <= 0:
             raise ConfigError(f"optim.grad_clip: expected > 0 or null, got {self.grad_clip}")
+        check_range("optim.momentum", self.momentum, 0.0, 1.0, high_open=True)
+        for i, beta in enumerate(self.betas):
+            check_range(f"optim.betas[{i}]", beta, 0.0, 1.0, high_open=True)
 
 
 @dataclass
@@ -59,6 +62,9 @@ class ScheduleConfig:
             raise ConfigError(f"schedule.step_epochs: expected >= 1, got {self.step_epochs}")
         if self.warmup_steps < 0:
             raise ConfigError(f"schedule.warmup_steps: expected >= 0, got {self.warmup_steps}")
+        check_range("schedule.gamma", self.gamma, 0.0, None, low_open=True)
+        check_range("schedule.power", self.power, 0.0, None, low_open=True)
+        check_range("schedule.min_factor", self.min_factor, 0.0, 1.0)
 
 
 @dataclass

@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,11 +46,13 @@ import torch
 from torch.utils.data import Subset
 from tqdm.auto import tqdm
 
-from geoseg.classes import BUILDING, IGNORE_INDEX
-from geoseg.config import to_dict
+from geoseg.atomic import atomic_write
+from geoseg.classes import BUILDING, IGNORE_INDEX, NUM_CLASSES
+from geoseg.config import check_range, to_dict
 from geoseg.dirichlet import DirichletFilter, MaxProbabilityFilter
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
+from geoseg.output_dir import prepare_output_dir, record_outputs
 from training import common
 from training import distributed as dd
 from training.config import DataConfig
@@ -133,6 +134,12 @@ class DirichletConfig:
             raise ConfigError(f"window: expected an odd int >= 1, got {self.window}")
         if not self.temperature > 0:
             raise ConfigError(f"temperature: expected > 0, got {self.temperature}")
+        if self.seed < 0:
+            raise ConfigError(f"seed: expected >= 0, got {self.seed}")
+        if self.band_rows is not None and self.band_rows < 1:
+            raise ConfigError(f"band_rows: expected >= 1 or null, got {self.band_rows}")
+        check_range("lam", self.lam, 0.0)
+        check_range("eps", self.eps, 0.0, 1.0 / NUM_CLASSES, low_open=True, high_open=True)
         if not 0.0 <= self.false_rejection_rate < 1.0:
             raise ConfigError(
                 f"false_rejection_rate: expected a number in [0, 1), got {self.false_rejection_rate}"
@@ -196,6 +203,15 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     """
     out = Path(cfg.out_dir)
     outputs = [out / FILTER_FILE, out / BASELINE_FILE, out / METRICS_FILE]
+    if dd.is_main_process():  # refuse a folder of other files before any work
+        prepare_output_dir(
+            out,
+            producer="train",
+            overwrite=cfg.overwrite,
+            option="out_dir",
+            adopt=lambda folder: all(p.is_file() for p in outputs),
+        )
+        record_outputs(out, [p.name for p in outputs])
     if all(p.is_file() for p in outputs) and not cfg.overwrite:
         logger.info("%s: already fitted (overwrite=true redoes it)", out)
         return out
@@ -204,7 +220,9 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
             "naive_checkpoint: the dirichlet stage needs the trained naive CNN; set it to a naive "
             "run directory or model file (e.g. --set naive_checkpoint=runs/naive)"
         )
-    state, ckpt = common.load_state(cfg.naive_checkpoint, expected_model="naive_cnn")
+    state, ckpt = common.load_state(
+        cfg.naive_checkpoint, expected_model="naive_cnn", option="naive_checkpoint"
+    )
     model_config = dict(ckpt.get("model_config") or {})
     model = get_model("naive_cnn", **model_config)
     model.load_state_dict(state)
@@ -313,12 +331,9 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         "config": cfg.as_dict(),
     }
     if dd.is_main_process():
-        out.mkdir(parents=True, exist_ok=True)
         dirichlet.save(out / FILTER_FILE)
         baseline.save(out / BASELINE_FILE)
-        tmp = out / f".{METRICS_FILE}.tmp"
-        tmp.write_text(json.dumps(_finite(metrics), indent=1, default=str))
-        os.replace(tmp, out / METRICS_FILE)
+        atomic_write(out / METRICS_FILE, json.dumps(_finite(metrics), indent=1, default=str))
     logger.info(
         "Dirichlet removes %.1f %% of building false positives (+%.1f %% false rejections); "
         "max-probability at the same rate removes %.1f %% (+%.1f %%): %s wins",

@@ -235,7 +235,6 @@ def _segmenter_from_state(
     file: Path, state: Mapping[str, torch.Tensor], ckpt: Mapping[str, Any], device: Any
 ) -> Segmenter:
     """A Segmenter over a training checkpoint's weights (best.pt / last.pt)."""
-    from geoseg.models.naive_cnn import NaiveCNN
     from geoseg.models.registry import get_model
     from training.common import NORMALIZATION
 
@@ -247,19 +246,9 @@ def _segmenter_from_state(
         model.load_state_dict(state, strict=True)
     except RuntimeError as err:
         raise GeosegError(f"{file}: weights do not match {name!r} ({str(err)[:300]})") from None
-    device = torch.device(device)
-    model.to(device).eval()
-
-    def backend(batch: np.ndarray) -> dict[str, np.ndarray]:
-        x = torch.from_numpy(batch).to(device)
-        with torch.inference_mode():
-            if isinstance(model, NaiveCNN):
-                out = {"log_probs": model.dense(x, band_rows=64)}
-            else:
-                out = model(x)
-        return {k: v.float().cpu().numpy() for k, v in out.items()}
-
-    return Segmenter(backend, normalization=NORMALIZATION, model_name=name, source=file)
+    return Segmenter.from_module(
+        model, device=device, normalization=NORMALIZATION, model_name=name, source=file
+    )
 
 
 def load_filters(

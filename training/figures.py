@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from geoseg.atomic import atomic_savefig
 from geoseg.classes import BUILDING, CLASS_NAMES, PALETTE, colorize
 from geoseg.errors import GeosegError
 from geoseg.infer import normals_to_rgb
@@ -71,12 +72,7 @@ def _save(fig: Any, path: Path, dpi: int) -> Path:
 
     FigureCanvasAgg(fig)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.tmp.png")
-    try:
-        fig.savefig(tmp, dpi=dpi)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    atomic_savefig(fig, path, dpi=dpi)
     logger.info("wrote %s", path)
     return path
 

@@ -31,6 +31,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from geoseg.config import check_range
 from geoseg.data.synthetic import TRAIN_CONDITIONS, VAL_SEEDS
 from geoseg.data.traversals import RouteFeatures, TrunkFeatureExtractor, route_features, route_specs
 from geoseg.errors import ConfigError, GeosegError
@@ -104,6 +105,11 @@ class RoutesConfig:
 
         if not self.train_seeds or not self.val_seeds:
             raise ConfigError("routes.train_seeds / routes.val_seeds: expected at least one city")
+        for key in ("train_seeds", "val_seeds"):
+            if any(seed < 0 for seed in getattr(self, key)):
+                raise ConfigError(f"routes.{key}: expected seeds >= 0, got {getattr(self, key)}")
+        if self.draw_seed < 0:
+            raise ConfigError(f"routes.draw_seed: expected >= 0, got {self.draw_seed}")
         held = sorted(set(self.train_seeds + self.val_seeds) & set(EVAL_SEEDS))
         if held:
             raise ConfigError(f"routes: {held} are held-out evaluation cities")
@@ -115,6 +121,11 @@ class RoutesConfig:
                 f"routes.conditions_per_route: expected 1..{len(self.conditions)}, got "
                 f"{self.conditions_per_route}"
             )
+        check_range("routes.hfov_deg", self.hfov_deg, 0.0, 180.0, low_open=True, high_open=True)
+        for key in ("length_m", "val_length_m", "spacing_m"):
+            check_range(f"routes.{key}", getattr(self, key), 0.0, None, low_open=True)
+        check_range("routes.offset_m", self.offset_m, 0.0)
+        check_range("routes.yaw_jitter_deg", self.yaw_jitter_deg, 0.0, 180.0)
         if self.cache_dir is not None:
             self.cache_dir = Path(self.cache_dir)
         self.specs("train")  # validate the world keys and lengths now
@@ -191,7 +202,7 @@ def load_trunk(
             "trunk_checkpoint: the heads sit on a trained ENet trunk; set it to a seg run "
             "directory or model file (e.g. --set trunk_checkpoint=runs/seg)"
         )
-    state, ckpt = common.load_state(path)
+    state, ckpt = common.load_state(path, option="trunk_checkpoint")
     name = ckpt.get("model_name")
     if name not in ("enet", "joint"):
         raise GeosegError(f"{path}: holds a {name!r} model; the trunk comes from enet or joint")
@@ -442,8 +453,8 @@ def finish_head_run(
 ) -> Path:
     """The end of a head trainer's ``main``: best weights, best epoch's metrics, artefacts.
 
-    Loads the best weights into ``model`` (:func:`training.common.load_best_weights`), takes the
-    metrics of the best epoch by ``cfg.best_metric``/``cfg.best_mode``, adds
+    Loads the best weights into ``model`` and takes the metrics of the epoch they come from
+    (:func:`training.common.load_best_weights`), adds
     ``extra_metrics(head)`` when given (run on the best weights before the head moves to the
     CPU), then writes the head's ``model.pt``, ``model.onnx`` (when ``cfg.export``) and card
     (:func:`finalize_head_run`).
@@ -465,8 +476,7 @@ def finish_head_run(
     Returns:
         ``run_dir``.
     """
-    common.load_best_weights(model, run_dir)
-    metrics = common.best_row(common.read_history(run_dir), cfg.best_metric, cfg.best_mode)
+    _, metrics = common.load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model.head))
     c, h, w = data.shape

@@ -36,6 +36,7 @@ import yaml
 from torch import nn
 from tqdm.auto import tqdm
 
+from geoseg.atomic import atomic_write
 from geoseg.config import to_dict
 from geoseg.errors import GeosegError
 from training import distributed as dd
@@ -55,6 +56,7 @@ from training.reproducibility import (
     seed_everything,
     set_deterministic,
 )
+from training.resume import apply_optim_config, check_resume_config, record_run_files, start_run
 
 logger = logging.getLogger(__name__)
 
@@ -297,12 +299,7 @@ def evaluate(
 
 # ----------------------------------------------------------------------------- history files
 def _atomic_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(tmp, path)
+    atomic_write(path, text)
 
 
 def write_history(history: list[Mapping[str, Any]], run_dir: str | Path) -> tuple[Path, Path]:
@@ -389,20 +386,17 @@ def fit(
     model_name = model_name if model_name is not None else cfg.model
     model_config = dict(model_config if model_config is not None else cfg.model_config)
     last = run_dir / LAST
-    resuming = bool(cfg.resume) and last.is_file()
-    if last.is_file() and not cfg.resume and not cfg.overwrite:
-        raise GeosegError(
-            f"{last} exists: pass resume=true to continue that run or overwrite=true to start "
-            "afresh (or choose another out_dir)"
-        )
-    if cfg.resume and not resuming:
-        logger.info("resume requested but %s does not exist; starting a new run", last)
+    saved: dict[str, Any] | None = None
+    failure: GeosegError | None = None
     if main:
         try:
-            run_dir.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise GeosegError(f"out_dir {run_dir}: cannot create ({err})") from None
-    dd.barrier()
+            saved = start_run(run_dir, resume=cfg.resume, overwrite=cfg.overwrite)
+        except GeosegError as err:
+            failure = err
+    # every process stops when the main one refuses the run directory (no rank left waiting)
+    if float(dd.all_reduce_sum_(torch.tensor([float(failure is not None)]))[0]) > 0:
+        raise failure or GeosegError(f"{run_dir}: the main process refused the run directory")
+    resuming = saved is not None if main else bool(cfg.resume) and last.is_file()
 
     if resuming:
         set_deterministic(cfg.deterministic)
@@ -412,6 +406,7 @@ def fit(
         torch.set_num_threads(dd.cpu_threads_per_process(cfg.cpu_threads, cfg.data.num_workers))
     model.to(device)
     net = dd.wrap_model(model, device, find_unused_parameters=cfg.find_unused_parameters)
+    own_optimizer = optimizer is None and scheduler is None
     optimizer = optimizer or build_optimizer(model, cfg.optim)
     steps_per_epoch = len(train_loader)
     scheduler = scheduler or build_scheduler(
@@ -422,20 +417,26 @@ def fit(
         logger.info("amp requested but the device is %s; training in float32", device)
 
     cfg_dict = _config_dict(cfg)
-    start_epoch, global_step, history, best = 0, 0, [], None
+    start_epoch, global_step, history, best, best_epoch = 0, 0, [], None, None
     gens = loader_generators(train_loader)
     if resuming:
         ckpt = restore_checkpoint(
-            last,
+            saved if saved is not None else last,
             model,
             optimizer=optimizer,
             scheduler=scheduler,
             scaler=scaler,
             model_name=model_name,
             map_location=device,
+            path=last,
         )
+        old_cfg = ckpt.get("config") or {}
+        check_resume_config(old_cfg, cfg_dict, last)
+        if own_optimizer:
+            apply_optim_config(optimizer, scheduler, cfg.optim, old_cfg.get("optim") or {})
         start_epoch, global_step = int(ckpt["epoch"]), int(ckpt["global_step"])
         history, best = list(ckpt.get("history") or []), ckpt.get("best")
+        best_epoch = ckpt.get("best_epoch")
         saved_gens = list(ckpt.get("generators") or [])
         if len(saved_gens) == len(gens):
             restore_generators(gens, saved_gens)
@@ -446,10 +447,15 @@ def fit(
                 len(saved_gens),
                 len(gens),
             )
-        _log_config_changes(ckpt.get("config") or {}, cfg_dict, last)
+        _log_config_changes(old_cfg, cfg_dict, last)
         logger.info("resumed %s at epoch %d (step %d)", last, start_epoch, global_step)
     if main:
+        record_run_files(run_dir)
         _atomic_text(run_dir / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
+        if history:  # a run stopped after last.pt but before its history files: redo them
+            write_history(history, run_dir)
+            if cfg.plots:
+                plot_history(history, run_dir)
     if start_epoch >= cfg.epochs:
         logger.info("%s: all %d epochs done already", run_dir, cfg.epochs)
         return run_dir
@@ -483,7 +489,7 @@ def fit(
         history.append(row)
         is_best = _better(row.get(cfg.best_metric), best, cfg.best_mode)
         if is_best:
-            best = float(row[cfg.best_metric])
+            best, best_epoch = float(row[cfg.best_metric]), epoch + 1
         (logger.info if main else logger.debug)(
             "epoch %d/%d: %s",
             epoch + 1,
@@ -503,6 +509,7 @@ def fit(
                 config=cfg_dict,
                 history=history,
                 best=best,
+                best_epoch=best_epoch,
                 generators=capture_generators(gens),
                 extra=extra,
             )

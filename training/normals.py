@@ -95,7 +95,9 @@ def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
             f"data.source: normals training needs ground-truth normals (synth), got "
             f"{cfg.data.source!r}"
         )
-    state, _ = common.load_state(cfg.enet_checkpoint, expected_model="enet")
+    state, _ = common.load_state(
+        cfg.enet_checkpoint, expected_model="enet", option="enet_checkpoint"
+    )
     common.seed_model_init(cfg.seed)
     model = get_model("joint", **cfg.model_config)
     model.load_enet_weights(state)

@@ -12,6 +12,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from geoseg.atomic import atomic_savefig
+
 logger = logging.getLogger(__name__)
 
 _SKIP = {"epoch", "lr", "time_s", "global_step", "n_samples"}
@@ -63,9 +65,5 @@ def plot_history(history: Sequence[Mapping[str, Any]], out_dir: str | Path) -> l
         if len(cols) <= 12:
             ax.legend(fontsize=7)
         fig.tight_layout()
-        path = out_dir / name
-        tmp = out_dir / f".{name}.tmp"
-        fig.savefig(tmp, format="png")
-        tmp.replace(path)
-        written.append(path)
+        written.append(atomic_savefig(fig, out_dir / name))
     return written

@@ -44,6 +44,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from geoseg.config import check_range
 from geoseg.data.pairs import sample_triplets
 from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
@@ -129,6 +130,8 @@ class RelocConfig(HeadTrainConfig):
             raise ConfigError(f"hard_start_epoch: expected >= 0, got {self.hard_start_epoch}")
         if not self.loss_scale > 0:
             raise ConfigError(f"loss_scale: expected > 0, got {self.loss_scale}")
+        check_range("max_distance_m", self.max_distance_m, 0.0, None, low_open=True)
+        check_range("max_angle_deg", self.max_angle_deg, 0.0, 180.0, low_open=True)
         if self.min_negative_distance_m < self.max_distance_m:
             raise ConfigError("min_negative_distance_m: expected >= max_distance_m")
 

@@ -50,6 +50,7 @@ import torch
 from torch import nn
 from torch.utils.data import Dataset
 
+from geoseg.config import check_range
 from geoseg.data.pairs import NoEligiblePairError, sample_relpose_pairs
 from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
@@ -141,6 +142,11 @@ class RelPoseConfig(HeadTrainConfig):
         super().__post_init__()
         if not 0 < self.min_baseline_m <= self.max_baseline_m:
             raise ConfigError("min_baseline_m, max_baseline_m: expected 0 < min <= max")
+        check_range("max_angle_deg", self.max_angle_deg, 0.0, 180.0, low_open=True)
+        for name in ("far_max_baseline_m", "unrelated_min_m", "unrelated_floor_m", "turned_max_m"):
+            check_range(name, getattr(self, name), 0.0, None, low_open=True)
+        check_range("turned_floor_m", self.turned_floor_m, 0.0, None, low_open=True)
+        check_range("turned_min_angle_deg", self.turned_min_angle_deg, 0.0, 180.0)
         for name in ("lam", "mu"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name}: expected > 0, got {getattr(self, name)}")

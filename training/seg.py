@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from geoseg.classes import NUM_CLASSES
+from geoseg.config import check_range
 from geoseg.errors import ConfigError
 from geoseg.models.enet import pad_to_multiple
 from geoseg.models.registry import get_model
@@ -79,6 +80,8 @@ class SegConfig(TrainConfig):
             raise ConfigError(
                 f"class_weight_samples: expected >= 1, got {self.class_weight_samples}"
             )
+        # ENet's weights 1 / ln(c + p) are positive and finite for every p in [0, 1] iff c > 1
+        check_range("class_weight_c", self.class_weight_c, 1.0, None, low_open=True)
 
 
 CONFIG_CLASS = SegConfig

@@ -4,26 +4,55 @@ Usage::
 
     python -m training.ship runs/seg seg
     python -m training.ship runs/dirichlet dirichlet
+    python -m training.ship --record-digests seg     # refresh the card's SHA-256 of shipped seg
 
 Only :data:`geoseg.pretrained.SHIPPED_FILES` are copied (no optimizer checkpoints); each file is
 written to a temporary name and renamed, and the target folder is replaced only once every file
-is in place, so an interrupted copy never leaves half a model behind.
+is in place, so an interrupted copy never leaves half a model behind. The model card records the
+SHA-256 of every weights file (:data:`WEIGHT_FILES`, key ``"sha256"``), which loading verifies
+for files that carry no digest of their own (:mod:`geoseg.integrity`).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 import tempfile
 from pathlib import Path
 
+from geoseg.atomic import atomic_write
 from geoseg.errors import GeosegError
+from geoseg.integrity import CARD_FILE, DIGEST_KEY, file_sha256
 from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, WEIGHTS_DIR
 
 # What a run must hold to be shipped, per name (networks: the model and its card).
 REQUIRED = {"dirichlet": ("dirichlet.json", "max_probability.json", "metrics.json")}
 NETWORK_REQUIRED = ("model.pt", "model.onnx", "model_card.json")
+# The files whose SHA-256 the shipped card records.
+WEIGHT_FILES = ("model.pt", "model.onnx", "dirichlet.json", "max_probability.json")
+
+
+def record_digests(folder: str | Path) -> dict[str, str]:
+    """Write the SHA-256 of ``folder``'s weights files into its ``model_card.json``.
+
+    Returns:
+        ``{file name: hex digest}`` as recorded.
+
+    Raises:
+        GeosegError: no model card in ``folder``.
+    """
+    folder = Path(folder)
+    card_path = folder / CARD_FILE
+    if not card_path.is_file():
+        raise GeosegError(f"{folder}: no {CARD_FILE} to record the digests in")
+    card = json.loads(card_path.read_text())
+    digests = {f: file_sha256(folder / f) for f in WEIGHT_FILES if (folder / f).is_file()}
+    card[DIGEST_KEY] = digests
+    atomic_write(card_path, json.dumps(card, indent=1, default=str))
+    card_path.chmod(0o644)
+    return digests
 
 
 def ship(run_dir: str | Path, name: str, *, weights_dir: Path = WEIGHTS_DIR) -> Path:
@@ -52,6 +81,7 @@ def ship(run_dir: str | Path, name: str, *, weights_dir: Path = WEIGHTS_DIR) -> 
             # the filter's card is its metrics (fit data, threshold, figures, wall time)
             shutil.copy2(run_dir / "metrics.json", staging / "model_card.json")
             (staging / "model_card.json").chmod(0o644)
+        record_digests(staging)
         staging.chmod(0o755)  # mkdtemp makes it 0700
         old = None
         if target.exists():
@@ -67,10 +97,22 @@ def ship(run_dir: str | Path, name: str, *, weights_dir: Path = WEIGHTS_DIR) -> 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run_dir", type=Path, help="a finished run directory")
-    parser.add_argument("name", choices=sorted(PRETRAINED), help="shipped weights name")
+    parser.add_argument(
+        "--record-digests",
+        metavar="NAME",
+        choices=sorted(PRETRAINED),
+        help="only refresh the SHA-256 digests in the card of shipped weights NAME",
+    )
+    parser.add_argument("run_dir", type=Path, nargs="?", help="a finished run directory")
+    parser.add_argument("name", nargs="?", choices=sorted(PRETRAINED), help="shipped weights name")
     args = parser.parse_args(argv)
     try:
+        if args.record_digests is not None:
+            digests = record_digests(WEIGHTS_DIR / args.record_digests)
+            sys.stdout.write(f"recorded {', '.join(sorted(digests))} in {args.record_digests}\n")
+            return 0
+        if args.run_dir is None or args.name is None:
+            parser.error("run_dir and name are required")
         target = ship(args.run_dir, args.name)
     except GeosegError as err:
         sys.stderr.write(f"error: {err}\n")

@@ -41,6 +41,7 @@ class DemoContext:
             for the map to show the GPS error).
         seed: seed of the routes and GIS errors.
         force: redo steps whose outputs exist.
+        overwrite: write into sequence folders that hold files no render wrote.
         world: the built world (set by the first step that needs it).
         sequences: ``(rig, condition)`` -> sequence directory.
         outputs: label -> path of what the steps wrote, printed at the end.
@@ -55,6 +56,7 @@ class DemoContext:
     fps: float = 1.0
     seed: int = 0
     force: bool = False
+    overwrite: bool = False
     world: Any = None
     sequences: dict[tuple[str, str], Path] = field(default_factory=dict)
     outputs: dict[str, Path] = field(default_factory=dict)
@@ -85,6 +87,7 @@ def step_render(ctx: DemoContext) -> None:
                 seed=ctx.seed,
                 world=world,
                 overwrite=ctx.force,
+                allow_other_files=ctx.overwrite,
                 progress=True,
             )
     ctx.outputs["sequences"] = ctx.out / "sequences"
@@ -92,18 +95,18 @@ def step_render(ctx: DemoContext) -> None:
 
 def step_contact_sheet(ctx: DemoContext) -> None:
     """One row per sequence: a few RGB frames and the label map of the middle one."""
-    import cv2
     import numpy as np
 
+    from geoseg.image_base import read_rgb
     from geoseg.synth.maps import contact_sheet
 
     rows, labels = [], []
     n_show = min(4, ctx.frames)
     picks = np.unique(np.linspace(0, ctx.frames - 1, n_show).round().astype(int))
     for (rig, condition), seq in ctx.sequences.items():
-        row = [cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1] for i in picks]
+        row = [read_rgb(seq / "rgb" / f"{i:06d}.png") for i in picks]
         mid = picks[len(picks) // 2]
-        row.append(cv2.imread(str(seq / "labels_color" / f"{mid:06d}.png"))[..., ::-1])
+        row.append(read_rgb(seq / "labels_color" / f"{mid:06d}.png"))
         rows.append(row)
         labels.append(f"{rig} / {condition}")
     path = contact_sheet(
@@ -158,6 +161,7 @@ def step_segment(ctx: DemoContext) -> None:
 
     from geoseg.classes import CLASS_NAMES, NUM_CLASSES, SKY, colorize
     from geoseg.errors import GeosegError
+    from geoseg.image_base import read_rgb
     from geoseg.infer import normals_to_rgb
     from geoseg.pretrained import pretrained_segmenter
     from geoseg.synth.maps import contact_sheet
@@ -173,8 +177,10 @@ def step_segment(ctx: DemoContext) -> None:
     for (rig, condition), seq in ctx.sequences.items():
         mid = ctx.frames // 2
         for i in range(ctx.frames):
-            rgb = cv2.imread(str(seq / "rgb" / f"{i:06d}.png"))[..., ::-1].copy()
+            rgb = read_rgb(seq / "rgb" / f"{i:06d}.png")
             truth = cv2.imread(str(seq / "labels" / f"{i:06d}.png"), cv2.IMREAD_UNCHANGED)
+            if truth is None or truth.shape != rgb.shape[:2]:
+                raise GeosegError(f"{seq / 'labels' / f'{i:06d}.png'}: missing or unreadable")
             result = segmenter(rgb)
             pred = result.labels[0].astype(np.int64)
             cm += confusion_matrix(torch.from_numpy(pred), torch.from_numpy(truth.astype(np.int64)))
@@ -227,7 +233,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help=f"world config YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"world config YAML (default: {DEFAULT_CONFIG} of the working directory, else of "
+        "the geoseg source tree, else built-in defaults)",
     )
     parser.add_argument("--frames", type=int, default=10, help="frames per sequence (default 10)")
     parser.add_argument("--fps", type=float, default=1.0, help="frame rate (default 1)")
@@ -245,30 +252,54 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="override a world config key (repeatable)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="redo steps whose outputs exist")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an --out folder that holds files the demo did not write (they are "
+        "kept, unless a file of the same name is written)",
+    )
+
+
+def _earlier_demo(folder: Path) -> bool:
+    """True when ``folder`` is a demo output written before output markers existed."""
+    names = {p.name for p in folder.iterdir()}
+    return {"sequences", "contact_sheet.png", "map.png"} <= names and names <= {
+        "sequences",
+        "contact_sheet.png",
+        "map.png",
+        "segmentation.png",
+    }
 
 
 def run(args: argparse.Namespace) -> int:
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
+    from geoseg.output_dir import prepare_output_dir
     from geoseg.synth.conditions import get_condition
-    from geoseg.synth.export import ensure_writable, parse_size
+    from geoseg.synth.export import check_fps, parse_size
     from geoseg.synth.world import WorldConfig
 
     start = time.perf_counter()
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
-    if not args.fps > 0:
-        raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
+    check_fps(args.fps, "--fps")
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
-    if not conditions:
-        raise GeosegError(f"--conditions: expected condition names, got {args.conditions!r}")
+    if len(conditions) < 2 or len(set(conditions)) != len(conditions):
+        raise GeosegError(
+            f"--conditions: expected two or more different comma-separated conditions (the "
+            f"demo compares the same routes under them), got {args.conditions!r}"
+        )
     for c in conditions:
         get_condition(c)
-    out = ensure_writable(args.out)
+    out = prepare_output_dir(
+        args.out, producer="demo", overwrite=args.overwrite, adopt=_earlier_demo
+    )
     source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    if source is None:
+        source = default_config_file(DEFAULT_CONFIG.name)
+        if source is None:
+            logger.warning("no %s found: using the built-in world defaults", DEFAULT_CONFIG)
     overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
     world_config = load_config(WorldConfig, source, overrides=overrides)
     ctx = DemoContext(
@@ -280,6 +311,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps,
         seed=world_config.seed,
         force=args.force,
+        overwrite=args.overwrite,
     )
     for name, step in STEPS:
         t0 = time.perf_counter()

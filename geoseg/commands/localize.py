@@ -33,7 +33,12 @@ Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame of the ba
 
 Intrinsics for the essential-matrix baseline: ``BASE_DIR/camera.json``, else ``--focal``, else
 an assumed focal length of ``max(W, H)`` pixels (flagged in the output). Base and query images
-are assumed taken with the same camera.
+are assumed taken with the same camera: every query must have the size the intrinsics hold for
+(``camera.json``'s ``image_size``, else the base images' size); a resized query is refused
+rather than given confidently wrong poses.
+
+``--out FILE`` is written atomically; an existing file is replaced only when an earlier
+``geoseg localize`` wrote it (``--overwrite`` replaces any file).
 """
 
 from __future__ import annotations
@@ -81,7 +86,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--distance-rel-sigma",
         type=float,
-        default=0.3,
+        default=None,
         help="relative error of the head's predicted distance, for --gps-sigma (default 0.3)",
     )
     parser.add_argument(
@@ -140,6 +145,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--no-cache", action="store_true", help="do not read/write cached embeddings"
     )
     parser.add_argument("--out", type=Path, help="write the results as JSON to this file")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an existing --out file that geoseg localize did not write",
+    )
 
 
 # ============================================================================ inputs
@@ -172,7 +182,10 @@ def _read_query_gps(path: Path, queries: list[Path]) -> list[tuple[float, float]
             ) from None
         if not all(math.isfinite(v) for v in xy):
             raise GeosegError(f"--gps: {path} row {i + 2}: x, y are not finite")
-        table[(row.get("image") or "").strip()] = xy
+        name = (row.get("image") or "").strip()
+        if name in table:
+            raise GeosegError(f"--gps: {path} row {i + 2}: image {name!r} is listed twice")
+        table[name] = xy
     out = []
     for q in queries:
         for key in (str(q), q.as_posix(), q.name):
@@ -203,13 +216,21 @@ def _load_head(path: Path, kind: str, device: str):
 
 
 def _intrinsics(base, args, image_shape: tuple[int, ...]):
+    """``(K, where K comes from, (W, H) it holds for, where that size comes from)``."""
     import numpy as np
 
-    from geoseg.errors import check_positive
+    from geoseg.errors import GeosegError, check_positive
+    from geoseg.image_base import CAMERA_FILE
 
-    if base.K is not None:
-        return base.K, "camera.json"
     h, w = image_shape[:2]
+    if base.K is not None:
+        if args.focal is not None:
+            raise GeosegError(
+                f"--focal: {args.base / CAMERA_FILE} gives the intrinsics; drop --focal (or the file)"
+            )
+        if base.image_size is not None:
+            return base.K, "camera.json", base.image_size, str(args.base / CAMERA_FILE)
+        return base.K, "camera.json", (w, h), f"{args.base / CAMERA_FILE} (base image size)"
     if args.focal is not None:
         check_positive("--focal", args.focal)
         f, source = float(args.focal), "--focal"
@@ -220,7 +241,17 @@ def _intrinsics(base, args, image_shape: tuple[int, ...]):
             "(relative poses of the essential-matrix baseline are approximate)",
             f,
         )
-    return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]]), source
+    K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return K, source, (w, h), f"{source} focal on the base images' size"
+
+
+def _is_localize_output(path: Path) -> bool:
+    """True when ``path`` is a JSON result an earlier ``geoseg localize`` wrote."""
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(doc, dict) and {"base", "queries", "relative_pose_method"} <= set(doc)
 
 
 # ============================================================================ output
@@ -299,6 +330,7 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.image_base import (
         HeadEmbedder,
         ThumbnailEmbedder,
+        check_image_size,
         layer21_features,
         load_image_base,
         raw_layer21_embedder,
@@ -317,11 +349,19 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.radius is not None:
         check_positive("--radius", args.radius)
+    if args.distance_rel_sigma is not None:
+        if args.gps_sigma is None or args.sequence is not None:
+            raise GeosegError(
+                "--distance-rel-sigma: only with --gps-sigma, to fuse a distance head's "
+                "distances with the GPS (not with --sequence)"
+            )
+        check_positive("--distance-rel-sigma", args.distance_rel_sigma)
+    else:
+        args.distance_rel_sigma = 0.3
     if args.gps_sigma is not None:
         if args.gps is None:
             raise GeosegError("--gps-sigma: needs --gps (the query positions)")
         check_positive("--gps-sigma", args.gps_sigma)
-        check_positive("--distance-rel-sigma", args.distance_rel_sigma)
     appearance_weight = args.appearance_weight
     if appearance_weight is None:
         appearance_weight = 0.5 if args.reloc_head is not None else 0.0
@@ -349,10 +389,19 @@ def run(args: argparse.Namespace) -> int:
             **({} if args.appearance_scale is None else {"appearance_scale": args.appearance_scale})
         )
 
+    if args.out is not None:
+        from geoseg.output_dir import prepare_output_file
+
+        prepare_output_file(args.out, overwrite=args.overwrite, owned=_is_localize_output)
     base = load_image_base(args.base)
     queries: list[Path] = list(args.queries)
     gps = _read_query_gps(args.gps, queries) if args.gps is not None else None
     query_images = [read_rgb(q) for q in queries]
+    K, k_source = None, None
+    if args.relpose_head is None:  # the essential matrix: one K for base and query images
+        K, k_source, camera_size, size_source = _intrinsics(base, args, base.load_image(0).shape)
+        for q, img in zip(queries, query_images):
+            check_image_size(f"query {q}", img, camera_size, size_source)
 
     # ---- models (all loaded before any work, so that a bad file fails fast)
     segmenter = None
@@ -425,7 +474,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         ranked, dists = index.query(
             np.stack(q_emb),
-            k=args.k,
+            k=min(args.k, len(base)),  # no more matches than base images
             gps=None if gps is None else np.asarray(gps),
             radius_m=args.radius,
         )
@@ -434,10 +483,8 @@ def run(args: argparse.Namespace) -> int:
     if relpose_head is not None:
         features = layer21_features(segmenter)
         method = f"relative-pose head ({args.relpose_head.name})"
-        K, k_source = None, None
     else:
         method = f"essential matrix ({args.features.upper()} + MAGSAC)"
-        K, k_source = _intrinsics(base, args, base.load_image(0).shape)
 
     def relative_pose(i_base: int, q_img: np.ndarray, q_name: Path) -> dict[str, Any]:
         base_img = base.load_image(i_base)
@@ -585,10 +632,11 @@ def run(args: argparse.Namespace) -> int:
     )
     _print_table(result)
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
+        from geoseg.atomic import atomic_write, write_error
+
         try:
-            args.out.write_text(json.dumps(result, indent=2) + "\n")
+            atomic_write(args.out, json.dumps(result, indent=2) + "\n")
         except OSError as err:
-            raise GeosegError(f"--out: {args.out}: could not write ({err})") from None
+            raise write_error(args.out, err, what="--out") from None
         print(f"results written to {args.out}")
     return 0

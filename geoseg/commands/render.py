@@ -14,7 +14,10 @@ the ``README.txt`` written next to the files.
 from __future__ import annotations
 
 import argparse
+import logging
 from pathlib import Path
+
+logger = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = Path("configs/world_default.yaml")
 
@@ -24,7 +27,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help=f"world config YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"world config YAML (default: {DEFAULT_CONFIG} of the working directory, else of "
+        "the geoseg source tree, else built-in defaults)",
     )
     parser.add_argument("--out", type=Path, required=True, help="output directory")
     parser.add_argument("--frames", type=int, default=30, help="number of frames (default 30)")
@@ -42,23 +46,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="override a GIS error-model key, e.g. gps.bias_max_m=5 (repeatable)",
     )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="re-render even if up to date")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into an --out folder that holds files no render wrote (they are kept, "
+        "unless a file of the same name is rendered)",
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
-    from geoseg.synth.export import GisConfig, ensure_writable, parse_size, render_sequence
+    from geoseg.synth.export import GisConfig, check_fps, parse_size, render_sequence
     from geoseg.synth.world import WorldConfig
 
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
-    if not args.fps > 0:
-        raise GeosegError(f"--fps: expected a number > 0, got {args.fps}")
-    ensure_writable(args.out)  # before any work
+    check_fps(args.fps, "--fps")
     source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    if source is None:
+        source = default_config_file(DEFAULT_CONFIG.name)
+        if source is None:
+            logger.warning("no %s found: using the built-in world defaults", DEFAULT_CONFIG)
     overrides = list(args.overrides) + ([f"seed={args.seed}"] if args.seed is not None else [])
     world_config = load_config(WorldConfig, source, overrides=overrides)
     gis = load_config(GisConfig, None, overrides=args.gis_overrides)
@@ -74,6 +84,7 @@ def run(args: argparse.Namespace) -> int:
         fps=args.fps,
         gis=gis,
         overwrite=args.force,
+        allow_other_files=args.overwrite,
     )
     if before is not None and meta.stat().st_mtime_ns == before:
         print(f"{out} already holds this render (same request); nothing redone (--force redoes it)")

@@ -13,7 +13,10 @@ Examples::
 
 The config YAML overrides the trainer's typed defaults (``training.<trainer>``); ``--set
 key.sub=value`` overrides it (values parsed as YAML). An unknown key is an error naming it.
-``--config`` defaults to ``configs/<trainer>.yaml`` when that file exists.
+``--config`` defaults to ``configs/<trainer>.yaml`` of the working directory, else of the geoseg
+source tree (:func:`geoseg.config.default_config_file`); without either, ``--config`` is required
+(an empty YAML file selects the built-in defaults), so that a run never silently trains with
+other settings than the preset. The config file used is printed.
 """
 
 from __future__ import annotations
@@ -38,9 +41,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help="trainer config YAML (default: configs/<trainer>.yaml when present)",
+        help="trainer config YAML (default: configs/<trainer>.yaml of the working directory, "
+        "else of the geoseg source tree)",
     )
     parser.add_argument("--resume", action="store_true", help="continue from <out>/last.pt")
+    parser.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="start afresh over an earlier run in --out (its checkpoints and results are "
+        "replaced), or write into a folder that holds other files (they are kept)",
+    )
     parser.add_argument(
         "--device", default=None, help="auto (CUDA when present), cpu, cuda or cuda:N"
     )
@@ -57,6 +67,8 @@ def _command_line(args: argparse.Namespace, config: Path | None) -> str:
         parts += ["--config", str(config)]
     if args.resume:
         parts.append("--resume")
+    if args.overwrite:
+        parts.append("--overwrite")
     if args.device:
         parts += ["--device", args.device]
     if args.out is not None:
@@ -69,7 +81,7 @@ def _command_line(args: argparse.Namespace, config: Path | None) -> str:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
 
     module_name = TRAINERS[args.trainer]
@@ -80,8 +92,14 @@ def run(args: argparse.Namespace) -> int:
     fields = {f.name for f in dataclasses.fields(cls)}
     config = args.config
     if config is None:
-        default = Path("configs") / f"{args.trainer}.yaml"
-        config = default if default.is_file() else None
+        config = default_config_file(f"{args.trainer}.yaml")
+        if config is None:
+            raise GeosegError(
+                f"--config: no configs/{args.trainer}.yaml in the working directory nor in the "
+                "geoseg source tree; pass --config FILE (an empty file selects the built-in "
+                "defaults)"
+            )
+    print(f"geoseg train {args.trainer}: config {config}")
     overrides = list(args.overrides)
     if args.resume:
         if "resume" not in fields:
@@ -90,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
             )
         else:
             overrides.append("resume=true")
+    if args.overwrite:
+        if "overwrite" not in fields:
+            raise GeosegError(f"train {args.trainer}: --overwrite is not an option of this trainer")
+        overrides.append("overwrite=true")
     if args.device is not None:
         overrides.append(f"device={args.device}")
     if args.out is not None:

@@ -11,6 +11,7 @@ import importlib
 import inspect
 import logging
 from collections.abc import Callable
+from typing import Any
 
 from torch import nn
 
@@ -52,6 +53,40 @@ def get_builder(name: str) -> Callable[..., nn.Module]:
     return getattr(module, attr)
 
 
+# integer options that may be 0 (every other integer option counts something: >= 1)
+_NON_NEGATIVE = ("correlation_radius", "table_seed")
+
+
+def check_model_config(name: str, cfg: dict) -> Any:
+    """Check ``cfg`` against the options of the builder registered under ``name`` (known
+    keywords; integers >= 1, or >= 0 for the few that may be 0; booleans), without building;
+    returns the builder.
+
+    Raises:
+        GeosegError: unknown name.
+        ConfigError: a keyword the builder does not take, or a value of the wrong type.
+    """
+    builder = get_builder(name)
+    params = inspect.signature(builder).parameters
+    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        unknown = sorted(set(cfg) - set(params))
+        if unknown:
+            raise ConfigError(
+                f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}"
+            )
+    for key, value in cfg.items():  # the builders' annotated option types, strictly
+        kind = str(params[key].annotation) if key in params else ""
+        if kind in ("int", "<class 'int'>"):
+            low = 0 if key in _NON_NEGATIVE else 1
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ConfigError(
+                    f"model {name!r}: {key}: expected an integer >= {low}, got {value!r}"
+                )
+        if kind in ("bool", "<class 'bool'>") and not isinstance(value, bool):
+            raise ConfigError(f"model {name!r}: {key}: expected true/false, got {value!r}")
+    return builder
+
+
 def get_model(name: str, **cfg) -> nn.Module:
     """Build the model registered under ``name`` with keyword configuration ``cfg``.
 
@@ -64,12 +99,10 @@ def get_model(name: str, **cfg) -> nn.Module:
         GeosegError: unknown name.
         ConfigError: a keyword the builder does not take.
     """
-    builder = get_builder(name)
-    params = inspect.signature(builder).parameters
-    if not any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        unknown = sorted(set(cfg) - set(params))
-        if unknown:
-            raise ConfigError(
-                f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}"
-            )
-    return builder(**cfg)
+    builder = check_model_config(name, cfg)
+    try:
+        return builder(**cfg)
+    except (TypeError, ValueError, RuntimeError) as err:
+        if isinstance(err, GeosegError):
+            raise
+        raise ConfigError(f"model {name!r}: options {cfg} rejected ({err})") from None

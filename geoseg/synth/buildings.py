@@ -30,9 +30,10 @@ from typing import Any, Literal
 
 import numpy as np
 
+from geoseg.atomic import atomic_write
 from geoseg.config import to_dict
 from geoseg.errors import ConfigError, GeosegError, check_finite, check_shape
-from geoseg.synth.tables import read_table
+from geoseg.synth.tables import read_table, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -93,6 +94,10 @@ class BuildingErrorConfig:
             raise ConfigError(f"extra_count: expected >= 0, got {self.extra_count}")
         if self.storey_height_m <= 0 or self.min_height_m <= 0:
             raise ConfigError("storey_height_m and min_height_m: expected > 0")
+        if self.storey_count_error < 0:
+            raise ConfigError(f"storey_count_error: expected >= 0, got {self.storey_count_error}")
+        if not self.street_clearance_m >= 0:
+            raise ConfigError(f"street_clearance_m: expected >= 0, got {self.street_clearance_m}")
 
 
 @dataclass(frozen=True)
@@ -187,8 +192,7 @@ class FacadePlanes:
             ]
         )
         fmt = ["%d", "%d", "%d"] + ["%.4f"] * 6 + ["%.6f"] * 3 + ["%.4f", "%d"]
-        np.savetxt(path, table, fmt=fmt, delimiter=",", header=self.CSV_HEADER, comments="")
-        return path
+        return write_table(path, table, fmt, self.CSV_HEADER)
 
     @classmethod
     def read_csv(cls, path: str | Path) -> FacadePlanes:
@@ -350,7 +354,7 @@ class BuildingModel:
             "facades_csv": directory / "facades.csv",
             "buildings_json": directory / "buildings_model.json",
         }
-        self.to_mesh().export(paths["mesh"], file_type=mesh_format)
+        write_mesh(self.to_mesh(), paths["mesh"], mesh_format)
         self.planes.write_csv(paths["facades_csv"])
         doc = self.to_json_dict()
         doc["facades"] = {
@@ -358,8 +362,15 @@ class BuildingModel:
             "columns": FacadePlanes.CSV_HEADER.split(","),
             "plane": "normal . X = d, normal outward and horizontal",
         }
-        paths["buildings_json"].write_text(json.dumps(doc, indent=1))
+        atomic_write(paths["buildings_json"], json.dumps(doc, indent=1), fsync=False)
         return paths
+
+
+def write_mesh(mesh: Any, path: str | Path, mesh_format: Literal["ply", "obj"] = "ply") -> Path:
+    """Export a trimesh mesh to ``path`` atomically (no partial mesh on a full disk)."""
+    data = mesh.export(file_type=mesh_format)
+    atomic_write(path, data if isinstance(data, bytes | str) else bytes(data), fsync=False)
+    return Path(path)
 
 
 def build_building_model(

@@ -21,10 +21,11 @@ from typing import Any
 
 import numpy as np
 
+from geoseg.atomic import atomic_write
 from geoseg.config import to_dict
 from geoseg.errors import ConfigError, GeosegError, check_finite, check_shape
 from geoseg.synth.georef import Georeference
-from geoseg.synth.tables import read_table
+from geoseg.synth.tables import read_table, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -197,8 +198,7 @@ class DemModel:
             ]
         )
         fmt = ["%d", "%d"] + ["%.4f"] * 8
-        np.savetxt(path, table, fmt=fmt, delimiter=",", header=self.CSV_HEADER, comments="")
-        return path
+        return write_table(path, table, fmt, self.CSV_HEADER)
 
     @classmethod
     def read_csv(cls, path: str | Path) -> DemModel:
@@ -263,7 +263,7 @@ class DemModel:
         directory.mkdir(parents=True, exist_ok=True)
         paths = {"dem_csv": directory / "dem.csv", "dem_geojson": directory / "dem.geojson"}
         self.write_csv(paths["dem_csv"])
-        paths["dem_geojson"].write_text(json.dumps(self.to_geojson(georef)))
+        atomic_write(paths["dem_geojson"], json.dumps(self.to_geojson(georef)), fsync=False)
         return paths
 
 

@@ -3,7 +3,10 @@
 :func:`render_sequence` follows DESIGN §3.1 (stages with path contracts): it takes a world
 config and a request, writes everything under ``out_dir``, returns ``out_dir``, and skips the
 work when ``out_dir/meta.json`` records the very same request (``overwrite=True`` redoes it).
-``meta.json`` is written last, so a directory without it is an unfinished render.
+``meta.json`` is written last, so a directory without it is an unfinished render. Every file is
+written atomically (a full disk leaves no partial frame or mesh). ``out_dir`` must be empty or
+an earlier render (:func:`geoseg.output_dir.prepare_output_dir`); a folder holding other files
+is refused unless ``allow_other_files``, and files the render did not write are never deleted.
 
 Layout of ``out_dir`` (copied into the ``README.txt`` written there)::
 
@@ -34,7 +37,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import os
 import platform
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,18 +45,41 @@ from typing import Any, Literal
 
 import numpy as np
 
+from geoseg.atomic import atomic_imwrite, atomic_output, atomic_write
 from geoseg.classes import CLASS_NAMES, colorize
 from geoseg.config import to_dict
 from geoseg.errors import ConfigError, GeosegError
-from geoseg.synth.buildings import BuildingErrorConfig, build_building_model, extrude_footprints
+from geoseg.output_dir import prepare_output_dir, read_marker, record_outputs, remove_outputs
+from geoseg.synth.buildings import (
+    BuildingErrorConfig,
+    build_building_model,
+    extrude_footprints,
+    write_mesh,
+)
 from geoseg.synth.dem import DemConfig, build_dem
 from geoseg.synth.georef import Georeference
 from geoseg.synth.gps import GpsConfig, simulate_gps
 from geoseg.synth.odometry import OdometryConfig, simulate_odometry
+from geoseg.synth.tables import write_table
 
 logger = logging.getLogger(__name__)
 
 FORMAT_VERSION = 1
+PRODUCER = "render"
+# Smallest rendered image side (the networks need one layer-21 cell: geoseg.infer.MIN_IMAGE_SIDE).
+MIN_IMAGE_SIDE = 8
+MAX_IMAGE_SIDE = 8192
+# Frame rates a rig can have, Hz, and the longest drive a sequence may ask for, metres.
+FPS_RANGE = (0.01, 1000.0)
+MAX_DRIVE_M = 1e6
+
+
+def check_fps(fps: float, name: str = "fps") -> float:
+    """``fps`` as a float, or GeosegError unless it lies in :data:`FPS_RANGE`."""
+    lo, hi = FPS_RANGE
+    if isinstance(fps, bool) or not isinstance(fps, int | float) or not lo <= fps <= hi:
+        raise GeosegError(f"{name}: expected a frame rate in [{lo:g}, {hi:g}] Hz, got {fps!r}")
+    return float(fps)
 
 
 @dataclass
@@ -152,8 +177,14 @@ def drive_frames(
 
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
+    check_fps(fps)
     cruise = speed_mps or RIG_DEFAULTS.get(rig, {"speed": 11.0})["speed"]
     length = max(10.0, 1.2 * cruise * frames / fps + 5.0)
+    if length > MAX_DRIVE_M:
+        raise GeosegError(
+            f"frames, fps: {frames} frames at {fps:g} fps is a drive of {length / 1000:.3g} km, "
+            f"longer than {MAX_DRIVE_M / 1000:g} km; use fewer frames or a higher frame rate"
+        )
     for _ in range(6):
         traj = drive(
             world,
@@ -207,6 +238,7 @@ def render_sequence(
     gis: GisConfig | None = None,
     world: Any = None,
     overwrite: bool = False,
+    allow_other_files: bool = False,
     progress: bool = True,
     preview_frames: int = 6,
     render_fn: RenderFn | None = None,
@@ -225,6 +257,8 @@ def render_sequence(
         gis: GIS error models (defaults when None).
         world: the world built from ``config``, to save rebuilding it (it must match).
         overwrite: redo the work even when ``out_dir`` holds this very request.
+        allow_other_files: write into an ``out_dir`` that holds files no render wrote (they
+            are kept, unless a file of the same name is written).
         progress: show a tqdm progress bar.
         preview_frames: frames shown in ``preview.png``.
         render_fn: ``fn(K, R_wc, t_wc, time_s) -> Frame``, to replace the default renderer.
@@ -233,7 +267,8 @@ def render_sequence(
         ``out_dir``.
 
     Raises:
-        GeosegError: unwritable ``out_dir`` (checked before any rendering), bad arguments.
+        GeosegError: unwritable ``out_dir`` or one holding other files (checked before any
+            rendering), bad arguments; a failed write (full disk) names the file.
     """
     from tqdm import tqdm
 
@@ -246,7 +281,21 @@ def render_sequence(
         raise GeosegError(f"rig: expected 'car' or 'tram', got {rig!r}")
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
-    out_dir = ensure_writable(out_dir)
+    check_fps(fps)
+    if len(image_size) != 2 or not all(
+        isinstance(v, int | np.integer) and not isinstance(v, bool) for v in image_size
+    ):
+        raise GeosegError(f"image_size: expected (W, H) integers, got {image_size!r}")
+    parse_size(f"{image_size[0]}x{image_size[1]}")  # the same bounds as --size
+    legacy = _legacy_render_files(Path(out_dir))
+    out_dir = prepare_output_dir(
+        out_dir,
+        producer=PRODUCER,
+        overwrite=allow_other_files,
+        adopt=lambda folder: legacy is not None,
+    )
+    if legacy:
+        record_outputs(out_dir, legacy)
     request = {
         "format_version": FORMAT_VERSION,
         "world": to_dict(config),
@@ -273,10 +322,11 @@ def render_sequence(
     products = make_gis_products(world, traj, gis, seed=seed)
     render = render_fn or default_renderer(world, condition, tuple(image_size))
 
-    meta_path.unlink(missing_ok=True)  # unfinished until the new meta.json is written
+    remove_outputs(out_dir, ["meta.json"])  # unfinished until the new meta.json is written
     for sub in ("rgb", "labels", "labels_color", "geometry", "gis"):
         (out_dir / sub).mkdir(exist_ok=True)
     _remove_stale_frames(out_dir, frames)
+    record_outputs(out_dir, [f for i in range(frames) for f in frame_files(i)])
     preview_idx = set(
         np.unique(np.linspace(0, frames - 1, min(preview_frames, frames)).round())
         .astype(int)
@@ -311,8 +361,9 @@ def render_sequence(
         gps={rig: products.gps},
         title=f"seed {seed}: world, GIS model, DEM, trajectory, GPS",
     )
-    (out_dir / "README.txt").write_text(readme_text(request))
+    atomic_write(out_dir / "README.txt", readme_text(request), fsync=False)
     files += ["preview.png", "map.png", "README.txt"]
+    record_outputs(out_dir, files + ["meta.json"])
     meta = {
         "request": request,
         "frames_written": frames,
@@ -331,27 +382,38 @@ def render_sequence(
         },
         "versions": _versions(),
     }
-    _atomic_write(meta_path, json.dumps(meta, indent=1))
+    atomic_write(meta_path, json.dumps(meta, indent=1))
     logger.info("wrote %d frames and GIS products to %s", frames, out_dir)
     return out_dir
 
 
-def write_frame(out_dir: Path, index: int, frame: Any) -> None:
-    """Write one frame's PNGs (``rgb``, ``labels``, ``labels_color``) and ``geometry`` npz."""
-    import cv2
-
+def frame_files(index: int) -> list[str]:
+    """The files of frame ``index`` in a render directory (relative paths)."""
     name = f"{index:06d}"
-    labels = np.asarray(frame.labels).astype(np.uint8)
-    _imwrite(cv2, out_dir / "rgb" / f"{name}.png", np.asarray(frame.rgb)[..., ::-1])
-    _imwrite(cv2, out_dir / "labels" / f"{name}.png", labels)
-    _imwrite(cv2, out_dir / "labels_color" / f"{name}.png", colorize(labels)[..., ::-1])
-    np.savez_compressed(
-        out_dir / "geometry" / f"{name}.npz",
-        depth=np.asarray(frame.depth, dtype=np.float32),
-        normals=np.asarray(frame.normals, dtype=np.float16),
-        normal_valid=np.asarray(frame.normal_valid, dtype=bool),
-        instance=np.asarray(frame.instance, dtype=np.int32),
-    )
+    return [
+        f"rgb/{name}.png",
+        f"labels/{name}.png",
+        f"labels_color/{name}.png",
+        f"geometry/{name}.npz",
+    ]
+
+
+def write_frame(out_dir: Path, index: int, frame: Any) -> None:
+    """Write one frame's PNGs (``rgb``, ``labels``, ``labels_color``) and ``geometry`` npz, each
+    atomically."""
+    rgb, labels, labels_color, geometry = (out_dir / f for f in frame_files(index))
+    label_ids = np.asarray(frame.labels).astype(np.uint8)
+    atomic_imwrite(rgb, np.asarray(frame.rgb)[..., ::-1])
+    atomic_imwrite(labels, label_ids)
+    atomic_imwrite(labels_color, colorize(label_ids)[..., ::-1])
+    with atomic_output(geometry, fsync=False) as handle:
+        np.savez_compressed(
+            handle,
+            depth=np.asarray(frame.depth, dtype=np.float32),
+            normals=np.asarray(frame.normals, dtype=np.float16),
+            normal_valid=np.asarray(frame.normal_valid, dtype=bool),
+            instance=np.asarray(frame.instance, dtype=np.int32),
+        )
 
 
 def preview_tiles(frame: Any) -> list[np.ndarray]:
@@ -382,7 +444,7 @@ def write_sequence_products(
         "camera_height_m": float((traj.R_wc[0].T @ (traj.vehicle_xyz[0] - traj.t_wc[0]))[1]),
         "gps_antenna_c": (traj.R_wc[0].T @ (traj.vehicle_xyz[0] - traj.t_wc[0])).round(6).tolist(),
     }
-    (out_dir / "camera.json").write_text(json.dumps(camera, indent=1))
+    atomic_write(out_dir / "camera.json", json.dumps(camera, indent=1), fsync=False)
     gis_dir = out_dir / "gis"
     written = products.building_model.write(gis_dir, mesh_format=gis.mesh_format)
     true_mesh = extrude_footprints(
@@ -392,11 +454,13 @@ def write_sequence_products(
         building_ids=[b.id for b in world.buildings],
     )
     true_path = gis_dir / f"buildings_true.{gis.mesh_format}"
-    true_mesh.export(true_path, file_type=gis.mesh_format)
+    write_mesh(true_mesh, true_path, gis.mesh_format)
     written.update(products.dem.write(gis_dir, gis.georef))
     written["gps"] = products.gps.write_csv(gis_dir / "gps.csv")
     written["odometry"] = products.odometry.write_csv(gis_dir / "odometry.csv")
-    (gis_dir / "georeference.json").write_text(json.dumps(to_dict(gis.georef), indent=1))
+    atomic_write(
+        gis_dir / "georeference.json", json.dumps(to_dict(gis.georef), indent=1), fsync=False
+    )
     paths = [*written.values(), true_path, gis_dir / "georeference.json"]
     return ["poses.csv", "camera.json"] + [str(Path(p).relative_to(out_dir)) for p in paths]
 
@@ -429,8 +493,7 @@ def write_poses_csv(path: Path, traj: Any) -> Path:
         ]
     )
     fmt = ["%d", "%.6f"] + ["%.6f"] * 3 + ["%.9f"] * 13 + ["%.6f"] * 5
-    np.savetxt(path, table, fmt=fmt, delimiter=",", header=POSES_HEADER, comments="")
-    return path
+    return write_table(path, table, fmt, POSES_HEADER)
 
 
 CONVENTIONS = {
@@ -491,17 +554,34 @@ def readme_text(request: dict[str, Any]) -> str:
 
 
 def _remove_stale_frames(out_dir: Path, frames: int) -> None:
-    """Delete frame files of an earlier, longer render (``NNNNNN.png|npz`` with index >= frames)."""
+    """Delete frame files of an earlier, longer render (``NNNNNN.png|npz`` with index >=
+    ``frames``) that a render recorded writing; any other file is kept."""
     stale = [
         f
         for sub in ("rgb", "labels", "labels_color", "geometry")
         for f in (out_dir / sub).glob("[0-9][0-9][0-9][0-9][0-9][0-9].*")
         if f.suffix in (".png", ".npz") and int(f.stem) >= frames
     ]
-    for f in stale:
-        f.unlink()
-    if stale:
-        logger.info("removed %d frame files of an earlier render from %s", len(stale), out_dir)
+    removed = remove_outputs(out_dir, stale)
+    if removed:
+        logger.info("removed %d frame files of an earlier render from %s", len(removed), out_dir)
+
+
+def _legacy_render_files(out_dir: Path) -> list[str] | None:
+    """The files of a render written before output markers existed (its ``meta.json`` lists
+    them), or None when ``out_dir`` is not such a render."""
+    meta = out_dir / "meta.json"
+    if read_marker(out_dir) is not None or not meta.is_file():
+        return None
+    try:
+        doc = json.loads(meta.read_text())
+        listed = [f for f in doc["files"] if not f.endswith("/")]
+        frames = int(doc["frames_written"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if not isinstance(doc.get("request"), dict):
+        return None
+    return listed + [f for i in range(frames) for f in frame_files(i)] + ["meta.json"]
 
 
 def _same_request(meta_path: Path, request: dict[str, Any]) -> bool:
@@ -512,17 +592,6 @@ def _same_request(meta_path: Path, request: dict[str, Any]) -> bool:
     except (OSError, ValueError):
         return False
     return old == json.loads(json.dumps(request))
-
-
-def _atomic_write(path: Path, text: str) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
-def _imwrite(cv2: Any, path: Path, image: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), np.ascontiguousarray(image)):
-        raise GeosegError(f"could not write {path}")
 
 
 def _versions() -> dict[str, str]:
@@ -541,6 +610,9 @@ def parse_size(text: str) -> tuple[int, int]:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
         raise ConfigError(f"size: expected WxH like 320x240, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise ConfigError(f"size: expected positive W and H, got {text!r}")
+    if not (MIN_IMAGE_SIDE <= w <= MAX_IMAGE_SIDE and MIN_IMAGE_SIDE <= h <= MAX_IMAGE_SIDE):
+        raise ConfigError(
+            f"size: expected W and H in [{MIN_IMAGE_SIDE}, {MAX_IMAGE_SIDE}] pixels (what the "
+            f"networks can use), got {text!r}"
+        )
     return w, h

@@ -24,7 +24,7 @@ import numpy as np
 
 from geoseg.errors import ConfigError, GeosegError, check_finite, check_shape
 from geoseg.synth.georef import Georeference
-from geoseg.synth.tables import read_table
+from geoseg.synth.tables import read_table, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -126,8 +126,7 @@ class GpsLog:
             ]
         )
         fmt = ["%.6f", "%d", "%.4f", "%.4f", "%.4f", "%.10f", "%.10f", "%.4f"] + ["%.4f"] * 5
-        np.savetxt(path, table, fmt=fmt, delimiter=",", header=self.CSV_HEADER, comments="")
-        return path
+        return write_table(path, table, fmt, self.CSV_HEADER)
 
     @classmethod
     def read_csv(cls, path: str | Path, georef: Georeference | None = None) -> GpsLog:

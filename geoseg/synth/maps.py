@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from geoseg.atomic import atomic_savefig
 from geoseg.errors import GeosegError
 
 logger = logging.getLogger(__name__)
@@ -102,9 +103,7 @@ def contact_sheet(
         )
     if title:
         fig.suptitle(title, fontsize=10, y=1.0 - 0.05 / h_in, va="top")
-    path = Path(path)
-    fig.savefig(path, dpi=dpi)
-    return path
+    return atomic_savefig(fig, path, dpi=dpi)
 
 
 def plot_map(
@@ -178,9 +177,7 @@ def plot_map(
         cbar = fig.colorbar(dem_coll, ax=axes[0], shrink=0.6, pad=0.02)
         cbar.set_label("DEM road altitude (m)")
     fig.subplots_adjust(left=0.06, right=0.98, bottom=0.07, top=0.94, wspace=0.12)
-    path = Path(path)
-    fig.savefig(path, dpi=dpi)
-    return path
+    return atomic_savefig(fig, path, dpi=dpi)
 
 
 def _draw_layers(ax, *, true_footprints, building_model, dem, streets, tracks, gps):

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.errors import ConfigError, GeosegError, check_finite, check_shape
-from geoseg.synth.tables import read_table
+from geoseg.synth.tables import read_table, write_table
 
 logger = logging.getLogger(__name__)
 
@@ -79,15 +79,7 @@ class OdometryLog:
         table = np.column_stack(
             [self.timestamps, self.speed, self.heading, self.true_speed, self.true_heading]
         )
-        np.savetxt(
-            path,
-            table,
-            fmt=["%.6f", "%.5f", "%.6f", "%.5f", "%.6f"],
-            delimiter=",",
-            header=self.CSV_HEADER,
-            comments="",
-        )
-        return path
+        return write_table(path, table, ["%.6f", "%.5f", "%.6f", "%.5f", "%.6f"], self.CSV_HEADER)
 
     @classmethod
     def read_csv(cls, path: str | Path) -> OdometryLog:

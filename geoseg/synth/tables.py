@@ -2,11 +2,32 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError
+
+
+def write_table(path: str | Path, table: np.ndarray, fmt: Sequence[str], header: str) -> Path:
+    """Write `(R, C)` ``table`` as CSV under the ``header`` line, atomically (a full disk leaves
+    no partial file; :class:`~geoseg.errors.OutputError` names it).
+
+    Args:
+        path: the CSV file.
+        table: `(R, C)` numbers.
+        fmt: C ``printf`` formats.
+        header: the comma-separated column names.
+
+    Returns:
+        ``path``.
+    """
+    path = Path(path)
+    with atomic_output(path, "w", fsync=False) as handle:
+        np.savetxt(handle, table, fmt=list(fmt), delimiter=",", header=header, comments="")
+    return path
 
 
 def read_table(path: str | Path, header: str) -> np.ndarray:

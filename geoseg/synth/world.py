@@ -215,6 +215,8 @@ def _validate(cfg: WorldConfig) -> None:
 
     if cfg.preset not in PRESETS:
         raise ConfigError(f"preset: expected one of {sorted(PRESETS)}, got {cfg.preset!r}")
+    if isinstance(cfg.seed, bool) or not isinstance(cfg.seed, int) or not 0 <= cfg.seed < 2**63:
+        raise ConfigError(f"seed: expected an integer in [0, 2**63), got {cfg.seed!r}")
     for key in ("blocks_x", "blocks_y"):
         value = getattr(cfg, key)
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:

@@ -326,7 +326,10 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     _save(big, np.zeros((96, 64, 3), np.uint8))
     base = str(tmp_path / "base")
     err = _error(capsys, ["localize", str(big), "--base", base, "--model", str(checkpoints["seg"])])
-    assert "big.png" in err and "mismatched sizes" in err
+    assert "big.png: 64x96 pixels" in err and "hold for 64x48 images" in err  # the intrinsics
+    with_head = ["--model", str(checkpoints["seg"]), "--relpose-head", str(checkpoints["relpose"])]
+    err = _error(capsys, ["localize", str(big), "--base", base, *with_head])
+    assert "big.png" in err and "mismatched sizes" in err  # the features
     # ... or base images of different sizes
     _save(tmp_path / "base" / "img_2.png", np.zeros((96, 64, 3), np.uint8))
     err = _error(

@@ -343,3 +343,53 @@ def test_window_smooths_box_means_and_round_trips(tmp_path, cls) -> None:
             cls(window=bad)
     with pytest.raises(GeosegError, match="H, W, K"):
         f.smooth(probs[0])
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("threshold", float("nan"), "threshold: expected a finite number"),
+        ("threshold", float("inf"), "threshold: expected a finite number"),
+        ("threshold", "8", "threshold: expected a finite number"),
+        ("threshold", True, "threshold: expected a finite number"),
+        ("calibration", [0.0, float("nan"), 1.0], "calibration"),
+        ("calibration", [2.0, 1.0], "non-decreasing"),
+        ("calibration", "quantiles", "calibration"),
+        ("window", 8.9, "window: expected an integer"),
+        ("window", True, "window: expected an integer"),
+        ("window", "8", "window: expected an integer"),
+        ("window", 4, "window"),
+        ("num_classes", 8.0, "num_classes: expected an integer"),
+        ("building_class", True, "building_class: expected an integer"),
+        ("building_class", 9, "building_class"),
+        ("alpha", [1.0] * 7, "alpha: expected 8 numbers"),
+        ("alpha", [1.0] * 7 + [float("nan")], "alpha"),
+        ("alpha", [1.0] * 7 + ["2"], "alpha"),
+        ("lam", float("inf"), "lam"),
+        ("eps", float("nan"), "eps"),
+        ("temperature", 0, "temperature"),
+        ("temperature", None, "temperature"),
+        ("version", True, "version"),
+        ("extra_key", 1, "unknown key"),
+    ],
+)
+def test_every_field_of_a_filter_file_is_type_checked(tmp_path, key, value, message) -> None:
+    """NaN thresholds (which reject every pixel), NaN calibrations (NaN weights) and coerced
+    values (8.9, true, "8") are refused on load, naming the file and the field."""
+    f = DirichletFilter(alpha=_building_alpha())
+    f.threshold_for_false_rejection(np.random.default_rng(0).dirichlet(_building_alpha(), 500), 0.1)
+    data = json.loads(f.save(tmp_path / "f.json").read_text())
+    data[key] = value
+    data.pop("sha256")  # a hand-edited file: only the field checks speak
+    path = tmp_path / "edited.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(GeosegError, match=message) as info:
+        load_filter(path)
+    assert "edited.json" in str(info.value)
+
+
+def test_a_threshold_given_at_call_time_must_be_finite() -> None:
+    f = DirichletFilter(alpha=_building_alpha())
+    probs = np.random.default_rng(0).dirichlet(_building_alpha(), 10)
+    with pytest.raises(GeosegError, match="threshold"):
+        f.filter(probs, threshold=float("nan"))

@@ -213,9 +213,19 @@ def test_images_end_to_end_agree_with_labels(method: str) -> None:
 
 
 def test_blank_images_fail_cleanly() -> None:
-    blank = np.full((120, 160, 3), 128, np.uint8)
+    blank = np.full((H, W, 3), 128, np.uint8)
     est = estimate_relative_pose(blank, blank, K)
     assert not est.ok and est.n_matches == 0 and "too few matches" in est.reason
+
+
+def test_images_that_do_not_fit_one_K_are_refused() -> None:
+    image = np.full((H, W, 3), 128, np.uint8)
+    upscaled = np.full((2 * H, 2 * W, 3), 128, np.uint8)
+    with pytest.raises(GeosegError, match="one K holds for one image size"):
+        estimate_relative_pose(image, upscaled, K)
+    small = np.full((H // 4, W // 4, 3), 128, np.uint8)
+    with pytest.raises(GeosegError, match="principal point"):
+        estimate_relative_pose(small, small, K)
 
 
 def test_error_metrics() -> None:

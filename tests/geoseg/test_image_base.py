@@ -83,6 +83,11 @@ def test_embedding_cache(tmp_path: Path) -> None:
     # no name: no cache
     anon = lambda ims: np.ones((len(ims), 3))  # noqa: E731
     assert base.embeddings(anon).shape == (6, 3)
+    # a file at the cache's name that is not a cache is someone else's: used never, kept
+    other = Counting(size=(2, 2))
+    base.cache_path(other.name).write_bytes(b"a user's file")
+    assert load_image_base(tmp_path).embeddings(other).shape == (6, 4)
+    assert base.cache_path(other.name).read_bytes() == b"a user's file"
 
 
 def test_thumbnail_is_a_normalised_block_mean() -> None:

@@ -13,6 +13,7 @@ from geoseg.infer import (
     normals_to_rgb,
     save_model_checkpoint,
 )
+from geoseg.integrity import seal
 from geoseg.models import get_model
 
 NORM = {"mean": [0.5, 0.4, 0.3], "std": [0.2, 0.25, 0.3]}
@@ -121,11 +122,11 @@ def test_corrupt_and_mismatched_checkpoints_name_the_file(tmp_path) -> None:
     other = save_model_checkpoint(get_model("enet"), tmp_path / "other.pt", model_name="enet")
     payload = torch.load(other, weights_only=True)
     payload["model_name"] = "joint"
-    torch.save(payload, tmp_path / "mismatch.pt")
+    torch.save(seal(payload), tmp_path / "mismatch.pt")
     with pytest.raises(GeosegError, match="mismatch.pt.*joint"):
         Segmenter.from_checkpoint(tmp_path / "mismatch.pt")
     payload["model_name"] = "unet"
-    torch.save(payload, tmp_path / "unknown.pt")
+    torch.save(seal(payload), tmp_path / "unknown.pt")
     with pytest.raises(GeosegError, match="unknown.pt.*known models"):
         load_model_checkpoint(tmp_path / "unknown.pt")
     torch.save({"weights": 1}, tmp_path / "nokeys.pt")
@@ -167,7 +168,16 @@ def test_cli_infer_end_to_end(joint_files, tmp_path, capsys) -> None:
     b = cv2.imread(str(tmp_path / "ckpt_out" / "frame_labels.png"))
     assert (a == b).all(-1).mean() >= 0.99
     assert (
-        main(["infer", str(tmp_path / "nope.png"), "--model", str(ckpt), "--out", str(tmp_path)])
+        main(
+            [
+                "infer",
+                str(tmp_path / "nope.png"),
+                "--model",
+                str(ckpt),
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
         == 2
     )
     assert "nope.png" in capsys.readouterr().err

@@ -116,3 +116,39 @@ def test_dubrovnik_from_gtsam():
     res = levenberg_marquardt(BAObjective([f]), state, LMConfig(max_iterations=30))
     assert res.cost <= res.initial_cost
     assert np.all(np.isfinite(res.state.X_w))
+
+
+@pytest.mark.parametrize(
+    ("name", "content", "message"),
+    [
+        ("neg.txt", b"-1 1 1\n0 0 1 2\n", "negative count"),
+        ("negm.txt", b"1 1 -2\n", "negative count"),
+        ("float.txt", b"1.5 1 1\n", "3 integer counts"),
+        ("trailing.txt", b"1 1 1\n0 0 1 2\n" + b"0\n" * 6 + b"1\n0\n0\n0\n0\n1\n7 8\n", "trailing"),
+        ("binary.txt", bytes(range(256)) * 4, "binary"),
+        ("corrupt.bz2", b"BZh91AY&SY" + b"\x00" * 40, "corrupt or truncated"),
+        ("corrupt.gz", b"\x1f\x8b\x08\x00" + b"\xff" * 40, "corrupt or truncated"),
+        (
+            "index.txt",
+            b"1 1 1\n3 0 1 2\n" + b"0\n" * 6 + b"1\n0\n0\n0\n0\n1\n",
+            "index out of range",
+        ),
+        ("inf.txt", b"1 1 1\n0 0 1 2\n" + b"0\n" * 6 + b"1\n0\n0\n0\n0\ninf\n", "NaN or infinite"),
+    ],
+)
+def test_bad_bal_files_name_the_file_and_the_problem(tmp_path, name, content, message):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(GeosegError, match=message) as info:
+        read_bal(path)
+    assert name in str(info.value)
+
+
+def test_truncated_bz2_is_a_clear_error(tmp_path, street):
+    import bz2
+
+    good = write_bal(tmp_path / "p.txt", _bal_from_scene(street))
+    data = bz2.compress(good.read_bytes())
+    (tmp_path / "p.txt.bz2").write_bytes(data[: len(data) // 2])
+    with pytest.raises(GeosegError, match="p.txt.bz2.*corrupt or truncated"):
+        read_bal(tmp_path / "p.txt.bz2")

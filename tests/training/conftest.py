@@ -9,8 +9,15 @@ would leak into later tests. A test module defining a fixture of the same name o
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
+
+# tiny_run.py (a helper module, also run as a script by the fault-injection tests) is imported
+# by name from this folder.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 @pytest.fixture(autouse=True)

@@ -7,72 +7,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from torch import nn
-from torch.utils.data import Dataset
+from tiny_run import Frames, TinySeg, ce_loss
+from tiny_run import tiny_cfg as _cfg
+from tiny_run import tiny_run as _run
 
 from geoseg.config import load_config
 from geoseg.errors import ConfigError, GeosegError
 from training.config import TrainConfig
-from training.distributed import make_loader
-from training.loop import evaluate, fit, train_one_epoch
+from training.loop import evaluate, train_one_epoch
 from training.metrics import SegmentationMeter
-
-
-class TinySeg(nn.Module):
-    """A stand-in for the real networks: dict output, dropout to exercise the RNG."""
-
-    def __init__(self, classes: int = 3) -> None:
-        super().__init__()
-        self.conv = nn.Conv2d(3, 8, 3, padding=1)
-        self.drop = nn.Dropout2d(0.2)
-        self.head = nn.Conv2d(8, classes, 1)
-
-    def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
-        return {"logits": self.head(self.drop(torch.relu(self.conv(x))))}
-
-
-class Frames(Dataset):
-    def __init__(self, n: int = 12, seed: int = 0) -> None:
-        g = torch.Generator().manual_seed(seed)
-        self.images = torch.rand(n, 3, 8, 8, generator=g)
-        self.labels = (self.images[:, 0] * 3).long().clamp(max=2)
-
-    def __len__(self) -> int:
-        return len(self.images)
-
-    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
-        # per-sample randomness from the global RNGs, restored on resume
-        noise = 0.01 * torch.rand(1) + 0.0 * random.random() + 0.0 * np.random.rand()
-        return {"image": self.images[i] + noise, "labels": self.labels[i]}
-
-
-def ce_loss(outputs, batch):
-    return nn.functional.cross_entropy(outputs["logits"], batch["labels"], ignore_index=255)
-
-
-def _cfg(out_dir: Path, **overrides) -> TrainConfig:
-    base = {
-        "model": "tiny",
-        "epochs": 2,
-        "batch_size": 4,
-        "device": "cpu",
-        "out_dir": str(out_dir),
-        "seed": 3,
-        "progress": False,
-        "best_metric": "val_miou",
-        "best_mode": "max",
-        "optim": {"lr": 1e-2},
-        "schedule": {"name": "cosine"},
-    }
-    return load_config(TrainConfig, base, overrides=overrides)
-
-
-def _run(cfg: TrainConfig, model_seed: int = 0, loss_fn=ce_loss) -> Path:
-    torch.manual_seed(model_seed)
-    model = TinySeg()
-    train = make_loader(Frames(12), batch_size=cfg.batch_size, shuffle=True, seed=cfg.seed)
-    val = make_loader(Frames(4, seed=1), batch_size=2, shuffle=False)
-    return fit(cfg, model, train, val, loss_fn, SegmentationMeter(3, class_names=["a", "b", "c"]))
 
 
 def test_one_step_lowers_the_loss_on_a_fixed_batch() -> None:
@@ -113,7 +56,7 @@ def test_fit_writes_checkpoints_metrics_and_plots(tmp_path: Path) -> None:
     assert {"train_loss", "val_loss", "val_miou", "lr"} <= set(rows[0])
     assert (run / "metrics.csv").read_text().splitlines()[0].startswith("epoch,")
     # the same out_dir again without resume/overwrite must not clobber the run
-    with pytest.raises(GeosegError, match="last.pt exists"):
+    with pytest.raises(GeosegError, match="holds an earlier run.*last.pt"):
         _run(_cfg(tmp_path / "run"))
     # a finished run resumed is a no-op that returns the directory
     stamp = (run / "last.pt").stat().st_mtime_ns

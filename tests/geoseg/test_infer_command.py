@@ -1,0 +1,75 @@
+"""`geoseg infer` over batches: unique outputs per input, every unreadable input reported."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from geoseg.cli import main
+from geoseg.commands.infer import output_stems
+from geoseg.errors import GeosegError
+
+
+@pytest.fixture(scope="module")
+def model(enet_files):
+    return enet_files[1]
+
+
+def _image(path, value: int, size=(24, 32)):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    img = np.random.default_rng(value).integers(0, 256, (*size, 3), dtype=np.uint8)
+    cv2.imwrite(str(path), img)
+    return path
+
+
+def test_same_names_in_two_folders_give_two_results(model, tmp_path) -> None:
+    a = _image(tmp_path / "in" / "a" / "x.png", 1)
+    b = _image(tmp_path / "in" / "b" / "x.png", 2)
+    out = tmp_path / "out"
+    assert main(["infer", str(a), str(b), "--model", str(model), "--out", str(out)]) == 0
+    la, lb = (cv2.imread(str(out / d / "x_overlay.png")) for d in ("a", "b"))
+    assert la is not None and lb is not None and not np.array_equal(la, lb)
+
+
+def test_one_folder_keeps_flat_names_and_colliding_stems_are_refused(tmp_path) -> None:
+    a, b = tmp_path / "x.png", tmp_path / "y.png"
+    assert output_stems([a, b]) == {a: "x", b: "y"}
+    assert output_stems([a, a]) == {a: "x"}
+    with pytest.raises(GeosegError, match="x.png and .*x.jpg would both write"):
+        output_stems([a, tmp_path / "x.jpg"])
+
+
+def test_a_batch_reports_every_unreadable_input_and_goes_on(model, tmp_path, capsys) -> None:
+    good1 = _image(tmp_path / "good1.png", 1)
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    missing = tmp_path / "missing.png"
+    tiny = _image(tmp_path / "tiny.png", 3, size=(1, 1))
+    good2 = _image(tmp_path / "good2.png", 4)
+    out = tmp_path / "out"
+    argv = ["infer", str(good1), str(broken), str(missing), str(tiny), str(good2)]
+    assert main(argv + ["--model", str(model), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "3 of 5 input(s)" in err
+    for name in ("broken.png", "missing.png", "tiny.png"):
+        assert name in err
+    assert (out / "good1_labels.png").is_file() and (out / "good2_labels.png").is_file()
+
+
+def test_infer_refuses_a_folder_of_other_files_and_a_file_as_out(model, tmp_path, capsys) -> None:
+    image = _image(tmp_path / "in" / "x.png", 1)
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "thesis.pdf").write_bytes(b"%PDF")
+    assert main(["infer", str(image), "--model", str(model), "--out", str(other)]) == 2
+    assert "thesis.pdf" in capsys.readouterr().err
+    assert sorted(p.name for p in other.iterdir()) == ["thesis.pdf"]
+    assert (
+        main(["infer", str(image), "--model", str(model), "--out", str(other), "--overwrite"]) == 0
+    )
+    assert (other / "thesis.pdf").read_bytes() == b"%PDF"
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["infer", str(image), "--model", str(model), "--out", str(blocker)]) == 2
+    assert "is a file" in capsys.readouterr().err
