@@ -60,6 +60,7 @@ __all__ = [
 ]
 
 PRODUCER = "slam run"
+OUTPUTS = ["trajectory.csv", "keyframes.csv", "map_points.ply", "trajectory.png", "summary.json"]
 
 
 @dataclass
@@ -199,11 +200,12 @@ def run_image_slam(
         SlamError: the SLAM could not start (too few frames or tracks), a non-finite estimate.
         GeosegError: ``out_dir`` holds other files (without ``overwrite``) or is not writable.
     """
-    from geoseg.output_dir import prepare_output_dir
+    from geoseg.output_dir import prepare_output_dir, record_outputs, remove_outputs
 
     cfg = config or ImageSlamConfig()
     out = prepare_output_dir(out_dir, producer=PRODUCER, overwrite=overwrite)
-    (out / "summary.json").unlink(missing_ok=True)  # unfinished until written again
+    remove_outputs(out, ["summary.json"])  # unfinished until written again (only our own)
+    record_outputs(out, OUTPUTS)
     t0 = time.perf_counter()
     result, tracks = run_on_images(inputs, cfg, progress)
     seconds = time.perf_counter() - t0

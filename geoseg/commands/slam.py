@@ -38,7 +38,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     run_p.add_argument(
         "--config", type=Path, default=None,
-        help=f"settings YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"settings YAML (default: the repository's {DEFAULT_CONFIG}, else built-in defaults)",
     )  # fmt: skip
     run_p.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
@@ -53,12 +53,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import json
 
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_image_slam
 
-    source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    source = args.config or default_config_file(DEFAULT_CONFIG.name)
     overrides = list(args.overrides) + ([f"method={args.method}"] if args.method else [])
     cfg = load_config(ImageSlamConfig, source, overrides=overrides)
     inputs = load_inputs(

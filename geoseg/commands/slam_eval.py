@@ -29,7 +29,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--config",
         type=Path,
         default=None,
-        help=f"experiment YAML (default: {DEFAULT_CONFIG} when present, else built-in defaults)",
+        help=f"experiment YAML (default: the repository's {DEFAULT_CONFIG}, else built-in defaults)",
     )
     parser.add_argument("--out", type=Path, default=Path("out/fusion_ch3"), help="output directory")
     parser.add_argument(
@@ -38,19 +38,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     parser.add_argument("--full", action="store_true", help="the whole grid on the full sequence")
     parser.add_argument("--force", action="store_true", help="recompute even if up to date")
+    parser.add_argument(
+        "--overwrite", action="store_true", help="write into a folder holding other files"
+    )
 
 
 def run(args: argparse.Namespace) -> int:
-    from geoseg.config import load_config
+    from geoseg.config import default_config_file, load_config
     from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
 
-    source = args.config
-    if source is None and DEFAULT_CONFIG.is_file():
-        source = DEFAULT_CONFIG
+    source = args.config or default_config_file(DEFAULT_CONFIG.name)
     cfg = load_config(ExperimentConfig, source, overrides=args.overrides)
     if not args.full:
         cfg = cfg.quick()
-    out = run_experiment(cfg, args.out, force=args.force)
+    out = run_experiment(cfg, args.out, force=args.force, overwrite=args.overwrite)
     print((out / "fusion_ch3.md").read_text())
     print(f"results: {out / 'fusion_ch3.json'}")
     print(f"plots:   {out / 'trajectory.png'}, {out / 'memory.png'}")

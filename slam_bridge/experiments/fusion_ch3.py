@@ -358,13 +358,17 @@ def keyframe_truth(seq: Sequence, result: SlamResult) -> tuple[np.ndarray, np.nd
     return traj.R_wc[idx], traj.t_wc[idx]
 
 
-def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, *, force: bool = False) -> Path:
+def run_experiment(
+    cfg: ExperimentConfig, out_dir: str | Path, *, force: bool = False, overwrite: bool = False
+) -> Path:
     """Run every (method, GPS setting) and write the tables, JSON and plots (a stage).
 
     Args:
         cfg: the experiment.
-        out_dir: output directory (created).
+        out_dir: output directory (created; refused when it holds other files, unless
+            ``overwrite``).
         force: rerun even when ``out_dir`` holds results of the same config.
+        overwrite: write into a folder holding files this stage did not write.
 
     Returns:
         ``out_dir``, holding ``fusion_ch3.md``, ``fusion_ch3.json``, ``trajectory.png``,
@@ -372,10 +376,15 @@ def run_experiment(cfg: ExperimentConfig, out_dir: str | Path, *, force: bool = 
         final and online poses, ground truth, GPS, Hessian bytes, fusion timings, fallbacks).
     """
     from geoseg.config import to_dict
+    from geoseg.output_dir import prepare_output_dir
     from slam_bridge import evaluate as ev
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    out = prepare_output_dir(
+        out_dir,
+        producer="slam-eval fusion",
+        overwrite=overwrite,
+        adopt=lambda d: (d / "fusion_ch3.json").is_file() and (d / "config.json").is_file(),
+    )
     cfg_json = json.dumps(to_dict(cfg), sort_keys=True, default=str)
     done = out / "fusion_ch3.json"
     if not force and done.is_file() and (out / "config.json").is_file():
