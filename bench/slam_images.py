@@ -242,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
             frames = int(np.searchsorted(inputs.frames.timestamps, result.map.timestamps[-1])) + 1
             fig.update({f"{prefix}{k}": v for k, v in e.items()})
             fig[f"{prefix}tracking_failures"] = result.tracking_failures
+            fig[f"{prefix}bridged_keyframes"] = result.bridged
             if setting != "sigma0.75":
                 continue
             loop_s = sum(r.seconds for r in result.records) - tracks.timings.get("total", 0.0)
@@ -271,7 +272,8 @@ def main(argv: list[str] | None = None) -> int:
 
     chapter3 = {} if args.no_chapter3 else chapter3_on_images(args.data, args.full)
     keys = [
-        "tracking_failures", "bad_observation_share", "bad_observation_share_used",
+        "tracking_failures", "bridged_keyframes", "bad_observation_share",
+        "bad_observation_share_used",
         "bad_observation_share_consistency", "track_length_mean_keyframes",
         "translation_error_m", "gps_error_m", "translation_error_over_gps", "rotation_error_deg",
         "translation_error_over_colmap", "wall_time_over_colmap", "frames_per_second",

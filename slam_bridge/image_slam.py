@@ -217,6 +217,7 @@ def run_image_slam(
         "keyframes": result.map.num_keyframes,
         "segments": int(result.map.segment.max()) + 1,
         "tracking_failures": result.tracking_failures,
+        "bridged_keyframes": result.bridged,
         "georeferenced": bool(result.georeferenced),
         "map_points": int(result.map.triangulated.sum()),
         "gps_fused_keyframes": sum(r.gps_used for r in result.records),
@@ -317,7 +318,7 @@ def run_on_images(
         )
     source = _Progress(tracks, progress)
     try:
-        result = run_slam(source, cfg.method, start, providers, cfg.slam)
+        result = run_slam(source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry)
     finally:
         source.bar.close()
     return result, tracks

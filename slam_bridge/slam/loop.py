@@ -8,9 +8,10 @@ into a :class:`slam_bridge.slam.map.Map` and runs, for each keyframe ``k``:
    experiment; :class:`slam_bridge.slam.initialization.TwoViewStart`: two-view geometry, scale
    from odometry, georeferencing to the GPS, for images).
 1. *Tracking* (:mod:`slam_bridge.slam.tracking`): the pose of ``k`` from its observations of
-   mapped points. A lost tracking is reported in the keyframe's record and recovered from by
-   the start-up's ``restart`` (a new segment), never by killing the run when the start-up
-   can restart.
+   mapped points; when too few are left, from the tracks it shares with ``k - 1`` and the
+   distance driven (*bridged*). A lost tracking is reported in the keyframe's record and
+   recovered from by the start-up's ``restart`` (a new segment), never by killing the run when
+   the start-up can restart.
 2. *Mapping* (:mod:`slam_bridge.slam.mapping`): triangulation of the new points.
 3. *k-BA* (:mod:`slam_bridge.slam.windows`): ``X* = argmin zeta``, plain or hybrid window.
 4. *Fusion* (:mod:`slam_bridge.slam.fusion`): barrier fusion with the constraint providers'
@@ -27,6 +28,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -40,7 +42,7 @@ from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import ConstraintProvider, fuse
 from slam_bridge.slam.map import Map
 from slam_bridge.slam.mapping import MappingConfig, gate_window, refine_points, triangulate_new
-from slam_bridge.slam.tracking import TrackingLost, track_keyframe
+from slam_bridge.slam.tracking import TrackingLost, bridge_two_view, track_keyframe
 from slam_bridge.slam.windows import METHODS, carry_points, hessian_bytes, optimise_window
 
 logger = logging.getLogger(__name__)
@@ -55,7 +57,7 @@ __all__ = [
 ]
 
 #: tracking states of a keyframe record
-TRACKING_STATES = ("start", "tracked", "weak", "lost", "restart")
+TRACKING_STATES = ("start", "tracked", "weak", "bridged", "lost", "restart")
 
 
 @dataclass
@@ -163,7 +165,8 @@ class KeyframeRecord:
     Attributes:
         keyframe: its index.
         tracking: ``start`` (placed by the start-up), ``tracked``, ``weak`` (fewer than
-            ``min_tracked`` PnP inliers), ``lost`` (tracking lost: a new segment starts) or
+            ``min_tracked`` PnP inliers), ``bridged`` (too few mapped points: placed by two
+            views with the previous keyframe), ``lost`` (tracking lost: a new segment starts) or
             ``restart`` (placed by the restart of a new segment).
         segment: its segment.
         n_tracked: PnP inliers.
@@ -263,6 +266,11 @@ class SlamResult:
         """Keyframes whose tracking was lost."""
         return sum(r.tracking == "lost" for r in self.records)
 
+    @property
+    def bridged(self) -> int:
+        """Keyframes placed by two views with the previous keyframe (too few mapped points)."""
+        return sum(r.tracking == "bridged" for r in self.records)
+
 
 def run_slam(
     source: ObservationSource,
@@ -271,6 +279,7 @@ def run_slam(
     providers: list[ConstraintProvider] | tuple = (),
     config: SlamConfig | None = None,
     *,
+    distance: Callable[[float, float], float] | None = None,
     max_keyframes: int | None = None,
 ) -> SlamResult:
     """Run the SLAM over ``source`` (module docstring).
@@ -281,6 +290,8 @@ def run_slam(
         start: the start-up.
         providers: constraint providers of the fusion (none: vision only).
         config: loop settings.
+        distance: metres driven between two times (wheel odometry), the scale of a bridged
+            keyframe (default: the last motion's speed).
         max_keyframes: stop after this many keyframes (default: the whole stream).
 
     Returns:
@@ -293,19 +304,22 @@ def run_slam(
     if method not in METHODS:
         raise SlamError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
     cfg = config or SlamConfig()
+    loop = _Loop(source, method, start, list(providers), cfg, max_keyframes, distance)
     if cfg.blas_threads is None:
-        return _Loop(source, method, start, list(providers), cfg, max_keyframes).run()
+        return loop.run()
     with threadpool_limits(limits=cfg.blas_threads, user_api="blas"):
-        return _Loop(source, method, start, list(providers), cfg, max_keyframes).run()
+        return loop.run()
 
 
 class _Loop:
     """The state of one run: map, links, fixed keyframes, segment, records."""
 
-    def __init__(self, source, method, start, providers, cfg: SlamConfig, max_keyframes) -> None:
+    def __init__(
+        self, source, method, start, providers, cfg: SlamConfig, max_keyframes, distance
+    ) -> None:
         self.source, self.method, self.start_up = source, method, start
         self.providers, self.cfg = providers, cfg
-        self.max_keyframes = max_keyframes
+        self.max_keyframes, self.distance = max_keyframes, distance
         self.map = Map(source.K, source.image_size)
         self.links = cfg.window.links()
         self.left = np.zeros(0, dtype=bool)  # points that left a hybrid window (carried)
@@ -375,12 +389,15 @@ class _Loop:
         # 1. tracking
         try:
             tracked = track_keyframe(m, k, cfg.tracking)
+            rec.tracking = "weak" if tracked.weak else "tracked"
         except TrackingLost as exc:
-            logger.warning("%s", exc)
-            rec.tracking = "lost"
-            self._restart(k, exc)
-            return
-        rec.tracking = "weak" if tracked.weak else "tracked"
+            tracked = bridge_two_view(m, k, distance=self.distance)
+            if tracked is None:
+                logger.warning("%s", exc)
+                rec.tracking = "lost"
+                self._restart(k, exc)
+                return
+            rec.tracking = "bridged"
         rec.n_tracked, rec.n_gated = tracked.inliers, tracked.gated
         m.set_pose(k, tracked.R_wc, tracked.t_wc)
         # 2. mapping

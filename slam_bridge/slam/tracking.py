@@ -5,9 +5,9 @@ inliers (reprojection error below ``pnp_threshold_px``): PnP with RANSAC
 (:func:`slam_bridge.geometry.pnp`) and the constant-velocity prediction from the two previous
 keyframes (which survives a RANSAC failure when the motion is smooth). With fewer than
 ``min_tracked`` inliers the tracking is *weak*: the pose is kept and the k-BA decides, and no
-observation is gated at it; with fewer than 6 (or fewer than ``min_tracked`` observations of
-mapped points at all) it is *lost* (:class:`TrackingLost`), which the loop reports and recovers
-from. With a good pose, the observations erring more than ``outlier_gate_px`` are gross
+observation is gated at it; with fewer than 6 the loop first tries to *bridge* the gap from the
+tracks shared with the previous keyframe (:func:`bridge_two_view`), else the tracking is *lost*
+(:class:`TrackingLost`), which the loop reports and recovers from. With a good pose, the observations erring more than ``outlier_gate_px`` are gross
 outliers and are deactivated.
 """
 
@@ -27,7 +27,18 @@ from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["TrackingConfig", "TrackingLost", "Tracked", "track_keyframe", "reprojection_errors"]
+__all__ = [
+    "TrackingConfig",
+    "TrackingLost",
+    "Tracked",
+    "track_keyframe",
+    "bridge_two_view",
+    "reprojection_errors",
+]
+
+
+#: fewest PnP inliers that place a keyframe (a weak tracking below ``min_tracked``)
+MIN_INLIERS = 6
 
 
 class TrackingLost(SlamError):
@@ -93,17 +104,17 @@ def track_keyframe(slam_map: Map, k: int, cfg: TrackingConfig) -> Tracked:
     m = slam_map
     sl = m.keyframe_observations(k)
     trk = sl[m.obs_active[sl] & m.triangulated[m.obs_point[sl]]]
-    if trk.size < cfg.min_tracked:
+    if trk.size < MIN_INLIERS:
         raise TrackingLost(
             f"tracking lost at keyframe {k}: {trk.size} observations of mapped points, "
-            f"fewer than {cfg.min_tracked}"
+            f"fewer than {MIN_INLIERS}"
         )
     X, uv = m.X_w[m.obs_point[trk]], m.obs_uv[trk]
     R_k, t_k, n_in = _best_pose(m.K, X, uv, m.R_wc, m.t_wc, k, cfg.pnp_threshold_px)
-    if n_in < 6:
+    if n_in < MIN_INLIERS:
         raise TrackingLost(
             f"tracking lost at keyframe {k}: {n_in} PnP inliers among {trk.size} "
-            f"observations of mapped points (at least 6 needed)"
+            f"observations of mapped points (at least {MIN_INLIERS} needed)"
         )
     weak = n_in < cfg.min_tracked
     gated = 0
@@ -155,3 +166,69 @@ def _best_pose(
         if best is None or n_in > best[2]:
             best = (R, t, n_in)
     return best
+
+
+def bridge_two_view(
+    slam_map: Map,
+    k: int,
+    *,
+    distance=None,
+    min_matches: int = 15,
+    threshold_px: float = 1.0,
+) -> Tracked | None:
+    """Place keyframe ``k`` from its tracks shared with ``k - 1`` when PnP cannot.
+
+    When the map has (almost) no point in view (a flat vehicle passing in front of the camera,
+    the open ground at the edge of town), the tracks between the previous keyframe and this one
+    still give their relative pose up to scale (essential matrix, MAGSAC++,
+    :func:`slam_bridge.geometry.two_view_init`); the length of the baseline is the distance
+    driven (``distance(t0, t1)``, wheel odometry) or, without it, the last motion's speed. The
+    tracks the essential matrix rejects lose their observations. The map then goes on from
+    this pose instead of starting a new segment.
+
+    Returns:
+        The pose (a weak tracking, ``inliers`` = essential-matrix inliers), or None: the
+        previous keyframe is unplaced or of another segment, too few shared tracks, no
+        essential matrix, no scale.
+    """
+    from slam_bridge.geometry import two_view_init
+
+    m, a = slam_map, k - 1
+    if a < 0 or m.segment[a] != m.segment[k] or not np.all(np.isfinite(m.t_wc[a])):
+        return None
+    oa, ok = m.keyframe_observations(a), m.keyframe_observations(k)
+    oa, ok = oa[m.obs_active[oa]], ok[m.obs_active[ok]]
+    _, ia, ik = np.intersect1d(m.obs_point[oa], m.obs_point[ok], return_indices=True)
+    if ia.size < min_matches:
+        return None
+    ia, ik = oa[ia], ok[ik]
+    try:
+        tv = two_view_init(m.K, m.obs_uv[ia], m.obs_uv[ik], threshold_px=threshold_px, seed=k)
+    except SlamError:
+        return None
+    if tv.inliers.sum() < min_matches:
+        return None
+    dt = float(m.timestamps[k] - m.timestamps[a])
+    if distance is not None:
+        length = float(distance(float(m.timestamps[a]), float(m.timestamps[k])))
+    elif a >= 1 and m.segment[a - 1] == m.segment[a]:
+        speed = np.linalg.norm(m.t_wc[a] - m.t_wc[a - 1]) / (m.timestamps[a] - m.timestamps[a - 1])
+        length = float(speed * dt)
+    else:
+        return None
+    if not length > 1e-3:
+        return None
+    outliers = np.r_[ia[~tv.inliers], ik[~tv.inliers]]
+    m.obs_active[outliers] = False
+    R_a, t_a = m.R_wc[a], m.t_wc[a]
+    logger.info(
+        "keyframe %d: placed by two views with keyframe %d (%d inliers, baseline %.2f m)",
+        k, a, int(tv.inliers.sum()), length,
+    )  # fmt: skip
+    return Tracked(
+        R_a @ tv.R_wc,
+        t_a + length * (R_a @ tv.t_wc),
+        int(tv.inliers.sum()),
+        True,
+        int(outliers.size // 2),
+    )

@@ -132,3 +132,40 @@ def test_lost_tracking_restarts_a_segment(noisy):
     assert res.placed.all() and res.in_world[20:].all()  # 20 dead-reckoned, then re-anchored
     e = np.linalg.norm(res.t_wc[:, :2] - seq.t_wc_true[:, :2], axis=1)
     assert e[20] < 1.0 and e[21:].mean() < 2.0
+
+
+def test_a_keyframe_without_mapped_points_is_bridged_by_two_views(noisy):
+    """With no mapped point in view, the tracks shared with the previous keyframe and the
+    distance driven place the keyframe (close to the truth) instead of a lost tracking."""
+    from slam_bridge.slam.tracking import bridge_two_view
+
+    cfg, seq = noisy
+    res = run_slam(
+        seq.source(), "ba", _known_start(seq, cfg), [], cfg.slam, max_keyframes=20
+    )
+    m = res.map
+    o = seq.observations
+    sel = o.keyframe == 20
+    k = m.add_keyframe(seq.timestamps[20], o.point[sel], o.uv[sel])
+    m.triangulated[o.point[sel]] = False  # the map has nothing in view
+    odo = _odometry(seq)
+    tracked = bridge_two_view(m, k, distance=odo)
+    assert tracked is not None and tracked.weak and tracked.inliers >= 15
+    # the motion from keyframe 19 (as the map has it) matches the true motion
+    step = tracked.t_wc - m.t_wc[19]
+    true_step = seq.t_wc_true[20] - seq.t_wc_true[19]
+    assert np.linalg.norm(step - true_step) < 0.1
+    turn = m.R_wc[19].T @ tracked.R_wc
+    true_turn = seq.R_wc_true[19].T @ seq.R_wc_true[20]
+    assert np.degrees(np.linalg.norm(so3_log(turn.T @ true_turn))) < 0.5
+    # no scale, or too few shared tracks: no bridge
+    m2 = Map(seq.K, seq.image_size)
+    m2.add_keyframe(0.0, [], np.zeros((0, 2)))
+    m2.add_keyframe(1.0, [], np.zeros((0, 2)))
+    assert bridge_two_view(m2, 1, distance=odo) is None
+
+
+def _known_start(seq, cfg):
+    from slam_bridge.slam.loop import KnownStartPoses
+
+    return KnownStartPoses(seq.R_wc_true, seq.t_wc_true, mapping=cfg.slam.mapping)
