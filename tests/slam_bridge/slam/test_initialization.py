@@ -140,9 +140,7 @@ def test_a_keyframe_without_mapped_points_is_bridged_by_two_views(noisy):
     from slam_bridge.slam.tracking import bridge_two_view
 
     cfg, seq = noisy
-    res = run_slam(
-        seq.source(), "ba", _known_start(seq, cfg), [], cfg.slam, max_keyframes=20
-    )
+    res = run_slam(seq.source(), "ba", _known_start(seq, cfg), [], cfg.slam, max_keyframes=20)
     m = res.map
     o = seq.observations
     sel = o.keyframe == 20
