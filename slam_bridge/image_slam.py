@@ -43,7 +43,7 @@ from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.sensor_logs import read_columns, read_dem_csv, read_gps_csv, read_odometry_csv
 from slam_bridge.slam.config import SlamConfig
-from slam_bridge.slam.fusion import DemConstraints, GpsConstraints
+from slam_bridge.slam.fusion import DemConstraints, GpsConstraints, OdometryConstraints
 from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
 from slam_bridge.slam.loop import SlamResult, run_slam
 from slam_bridge.slam.windows import METHODS
@@ -316,6 +316,8 @@ def run_on_images(
         providers.append(
             DemConstraints(inputs.dem, inputs.rig.camera_height_m, weight=cfg.dem_weight)
         )
+    if inputs.odometry is not None:
+        providers.append(OdometryConstraints(inputs.odometry))
     source = _Progress(tracks, progress)
     try:
         result = run_slam(source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry)

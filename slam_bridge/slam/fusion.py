@@ -7,7 +7,8 @@ window is fused with the constraints ``C_i`` the providers give for it:
 Sherman-Morrison, so a provider must add no dense term, appendix B). A provider is anything
 with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
 keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
-constraints plug in the same way (:class:`DemConstraints`: terrain elevation). A keyframe for which no provider has a constraint keeps
+constraints plug in the same way (:class:`DemConstraints`: terrain elevation;
+:class:`OdometryConstraints`: the distance driven between the newest keyframes). A keyframe for which no provider has a constraint keeps
 ``X*`` (a GPS dropout, for instance).
 """
 
@@ -34,6 +35,7 @@ __all__ = [
     "ConstraintProvider",
     "GpsConstraints",
     "DemConstraints",
+    "OdometryConstraints",
     "FusionConfig",
     "FusionOutcome",
     "fuse",
@@ -41,9 +43,16 @@ __all__ = [
 
 
 class ConstraintProvider(Protocol):
-    """A source of constraint families for the fusion of keyframe ``k`` (module docstring)."""
+    """A source of constraint families for the fusion of keyframe ``k`` (module docstring).
+
+    Attributes:
+        name: label of its families in the records.
+        world_frame: its constraints hold in the world frame (GPS, DEM): the loop applies them
+            only once the map is georeferenced.
+    """
 
     name: str
+    world_frame: bool
 
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
         """The constraint families on ``problem``'s state (a
@@ -73,6 +82,7 @@ class GpsConstraints:
     """
 
     name = "gps"
+    world_frame = True
 
     def __init__(
         self,
@@ -150,6 +160,7 @@ class DemConstraints:
     """
 
     name = "dem"
+    world_frame = True
 
     def __init__(
         self, terrain, camera_height_m: float, *, weight: float = 1.0, max_distance_m: float = 15.0
@@ -173,6 +184,47 @@ class DemConstraints:
         return [
             DEMFactor(np.array([cam]), self.terrain, self.camera_height_m, np.array([self.weight]))
         ]
+
+
+class OdometryConstraints:
+    """The distance driven between the two newest keyframes: the length of their baseline.
+
+    ``r = (||T_k - T_{k-1}|| - d) / sigma`` with ``d`` the wheel odometry's distance between
+    their times and ``sigma = max(sigma_rel d, sigma_min_m)``
+    (:class:`slam_bridge.factors.baseline_length.BaselineLengthFactor`, an off-diagonal block
+    of two successive cameras: no dense term). A monocular SLAM's scale drifts, most after a
+    start or a restart on few points; the GPS alone corrects it only slowly, within the
+    barrier's slack. The chord of a keyframe spacing is its arc to a fraction of a percent.
+
+    Args:
+        distance: ``distance(t0, t1) -> metres`` driven.
+        sigma_rel: relative standard deviation of the odometry's distance.
+        sigma_min_m: its floor, metres.
+    """
+
+    name = "odometry"
+    world_frame = False
+
+    def __init__(self, distance, *, sigma_rel: float = 0.02, sigma_min_m: float = 0.02) -> None:
+        check_positive("sigma_rel", sigma_rel)
+        check_positive("sigma_min_m", sigma_min_m)
+        self.distance = distance
+        self.sigma_rel, self.sigma_min_m = float(sigma_rel), float(sigma_min_m)
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One baseline-length row between keyframes ``k - 1`` and ``k`` (when both are in
+        the window and one is free)."""
+        from slam_bridge.factors.baseline_length import BaselineLengthFactor
+
+        ids = list(problem.camera_ids)
+        if k - 1 not in ids or k not in ids:
+            return []
+        i, j = ids.index(k - 1), ids.index(k)
+        d = float(self.distance(float(slam_map.timestamps[k - 1]), float(slam_map.timestamps[k])))
+        if not d > 0:
+            return []
+        sigma = max(self.sigma_rel * d, self.sigma_min_m)
+        return [BaselineLengthFactor(np.array([[i, j]]), np.array([d]), sigma)]
 
 
 @dataclass

@@ -15,7 +15,7 @@ into a :class:`slam_bridge.slam.map.Map` and runs, for each keyframe ``k``:
 2. *Mapping* (:mod:`slam_bridge.slam.mapping`): triangulation of the new points.
 3. *k-BA* (:mod:`slam_bridge.slam.windows`): ``X* = argmin zeta``, plain or hybrid window.
 4. *Fusion* (:mod:`slam_bridge.slam.fusion`): barrier fusion with the constraint providers'
-   families for ``k`` (GPS, ...), once the map is georeferenced.
+   families for ``k`` (GPS, DEM once the map is georeferenced; odometry).
 5. *Gating* (:func:`slam_bridge.slam.mapping.gate_window`): bad observations of the fusion
    window deactivated, degenerate points untriangulated.
 
@@ -425,7 +425,7 @@ class _Loop:
         rec.n_cameras, rec.n_points = int(st.free_cameras.size), int(st.free_points.size)
         rec.hessian_bytes = hessian_bytes(problem)
         # 4. fusion
-        providers = self.providers if self.georeferenced else []
+        providers = [p for p in self.providers if self.georeferenced or not p.world_frame]
         fused = fuse(m, problem, k, providers, cfg.fusion)
         rec.constraints = fused.constraints
         rec.fusion_seconds, rec.fusion_iterations = fused.seconds, fused.iterations
