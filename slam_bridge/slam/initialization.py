@@ -310,9 +310,7 @@ class TwoViewStart:
             logging.DEBUG if self.georeferenced else logging.INFO,
             "keyframe %d: georeferenced on %d fixes over %.0f m: scale %.3f, horizontal residual "
             "%.2f m rms",
-            k,
-            kf.size, float(np.max(np.linalg.norm(xy - xy[0], axis=1))), s,
-            float(np.sqrt(np.mean(resid**2))),
+            k, kf.size, spread, s, float(np.sqrt(np.mean(resid**2))),
         )  # fmt: skip
         self.georeferenced = True
         self._spread = spread
