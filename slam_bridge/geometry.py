@@ -144,9 +144,10 @@ def triangulate(
     h = np.concatenate([uv, np.ones((M, 1))], axis=1)
     xn = (Kinv @ h[:, :, None])[:, :, 0] if Kinv.ndim == 3 else h @ Kinv.T
     xn = xn[:, :2] / xn[:, 2:]
-    # world -> camera projection matrices, in a frame centred on the observing cameras' mean
-    # optical centre (conditioning that does not depend on cameras no point is seen from)
-    centre = t_wc[cams].mean(axis=0) if M else np.zeros(3)
+    # world -> camera projection matrices, in a frame centred on the mean optical centre of the
+    # cameras given (the map's keyframes). Centring on each point's observing cameras instead
+    # was measured worse on the chapter-3 grid (docs/slam_loop_history.md).
+    centre = np.nanmean(t_wc, axis=0) if t_wc.shape[0] else np.zeros(3)
     Rt = np.swapaxes(R_wc[cams], 1, 2)  # R_cw (M, 3, 3)
     tc = -(Rt @ (t_wc[cams] - centre)[:, :, None])[:, :, 0]
     Pm = np.concatenate([Rt, tc[:, :, None]], axis=2)  # (M, 3, 4)
