@@ -356,13 +356,24 @@ def neighbours(uv: np.ndarray, k: int) -> np.ndarray:
 
 
 def flow_consistent(
-    uv0: np.ndarray, uv1: np.ndarray, nb: np.ndarray, abs_px: float, rel: float
+    uv0: np.ndarray,
+    uv1: np.ndarray,
+    nb: np.ndarray,
+    abs_px: float,
+    rel: float,
+    radius: float = math.inf,
 ) -> np.ndarray:
     """``(N,)`` bool: each displacement ``uv1 - uv0`` lies within ``abs_px + rel * |m|`` of
-    the median displacement ``m`` of its neighbours ``nb`` ``(N, k)``."""
+    the median displacement ``m`` of its neighbours ``nb`` ``(N, k)``, or the track is
+    isolated: its neighbours lie farther than ``radius`` (median distance in ``uv1``), on other
+    surfaces at other depths, and tell nothing of its motion."""
     d = (uv1 - uv0).astype(np.float64)
     med = np.median(d[nb], axis=1)
-    return np.linalg.norm(d - med, axis=1) <= abs_px + rel * np.linalg.norm(med, axis=1)
+    ok = np.linalg.norm(d - med, axis=1) <= abs_px + rel * np.linalg.norm(med, axis=1)
+    if math.isfinite(radius):
+        spread = np.median(np.linalg.norm(uv1[nb] - uv1[:, None], axis=2), axis=1)
+        ok |= spread > radius
+    return ok
 
 
 def local_affine(uv0: np.ndarray, uv1: np.ndarray, nb: np.ndarray) -> np.ndarray:

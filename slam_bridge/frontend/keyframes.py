@@ -11,7 +11,18 @@ never a keyframe twice since each frame is tracked once):
    rotation-compensated parallax);
 2. **tracks**: the share of the last keyframe's tracks still tracked falls below
    ``min_tracked_share`` (whichever mode: the map must get a keyframe before its tracks are gone);
-3. **gap**: ``max_frame_gap`` frames since the last keyframe (None: no limit).
+   **scarce**: their number falls below ``min_tracked`` while some of them were lost since the
+   last keyframe. Where few tracks live long (open, nearly featureless ground at the edge of
+   town, the near road racing past), the share rule waits for the spacing while the few tracks
+   that continue from keyframe to keyframe die: the map then gets neither enough tracks shared
+   by consecutive keyframes (the loop's two-view bridge needs 15) nor new points before the old
+   ones leave the view. A keyframe as soon as they become scarce keeps both (at the cost of
+   keyframes only where tracks are scarce; a stopped vehicle loses no track, so makes none);
+3. **turn**: the tracker's constant-velocity prediction failed and its recovery found the
+   tracks again (:mod:`slam_bridge.frontend.motion`): the image moves abruptly (a sharp turn,
+   tens of degrees a frame), the view changes within a few frames, and the tracks shared with
+   the last keyframe would be gone before the spacing is driven;
+4. **gap**: ``max_frame_gap`` frames since the last keyframe (None: no limit).
 
 A stopped vehicle thus makes keyframes only through rule 3 (spacing mode) or when its view
 changes (parallax mode, rule 2).
@@ -39,6 +50,8 @@ class KeyframeConfig:
             ``reference_width`` (without a distance callable).
         min_tracked_share: a keyframe when fewer than this share of the last keyframe's tracks
             remain.
+        min_tracked: a keyframe when fewer than this many of the last keyframe's tracks remain
+            and at least one of them was lost since (0: off).
         max_frame_gap: a keyframe at the latest this many frames after the last (None: never
             forced).
         reference_width: image width at which ``parallax_px`` is given.
@@ -47,6 +60,7 @@ class KeyframeConfig:
     spacing_m: float = 2.0
     parallax_px: float = 24.0
     min_tracked_share: float = 0.6
+    min_tracked: int = 50
     max_frame_gap: int | None = 10
     reference_width: int = 640
 
@@ -60,6 +74,9 @@ class KeyframeConfig:
                 f"KeyframeConfig.min_tracked_share: expected a share in [0, 1], got "
                 f"{self.min_tracked_share!r}"
             )
+        n = self.min_tracked
+        if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+            raise SlamError(f"KeyframeConfig.min_tracked: expected an integer >= 0, got {n!r}")
         gap = self.max_frame_gap
         if gap is not None and (isinstance(gap, bool) or not isinstance(gap, int) or gap < 1):
             raise SlamError(
@@ -90,6 +107,9 @@ class KeyframeRule:
         t_frame: float,
         tracked_share: float,
         median_flow_px: float,
+        tracked: int | None = None,
+        lost: int = 0,
+        turned: bool = False,
     ) -> str | None:
         """The reason this frame is a keyframe, or None.
 
@@ -101,9 +121,14 @@ class KeyframeRule:
                 none).
             median_flow_px: median displacement of those tracks since the last keyframe
                 (NaN when none is left).
+            tracked: how many of the last keyframe's tracks are still tracked (None: the
+                ``scarce`` rule is not checked).
+            lost: how many of them were lost since the last keyframe.
+            turned: the tracker recovered from a failed prediction at this frame.
 
         Returns:
-            ``"spacing"``, ``"parallax"``, ``"tracks"``, ``"gap"`` or None.
+            ``"spacing"``, ``"parallax"``, ``"tracks"``, ``"scarce"``, ``"turn"``, ``"gap"`` or
+            None.
         """
         if frame_gap < 1:
             return None
@@ -119,6 +144,10 @@ class KeyframeRule:
             return "parallax"
         if tracked_share < cfg.min_tracked_share:
             return "tracks"
+        if tracked is not None and tracked < cfg.min_tracked and lost > 0:
+            return "scarce"
+        if turned:
+            return "turn"
         if cfg.max_frame_gap is not None and frame_gap >= cfg.max_frame_gap:
             return "gap"
         return None

@@ -89,7 +89,11 @@ def test_keyframes_spaced_by_distance(car_drive, car_run, helpers):
 
 
 def test_keyframes_by_parallax_without_distance(car_drive, helpers):
-    cfg = ImageTracksConfig(keyframes=KeyframeConfig(parallax_px=16.0, max_frame_gap=None))
+    cfg = ImageTracksConfig(  # the parallax rule (the others only when most tracks are gone)
+        keyframes=KeyframeConfig(
+            parallax_px=16.0, max_frame_gap=None, min_tracked=0, min_tracked_share=0.4
+        )
+    )
     kfs, src, _, _ = helpers[0](car_drive, cfg)
     log = src.keyframe_log
     parallax = [i for i, (r, _, _) in enumerate(log) if r == "parallax"]
@@ -97,11 +101,25 @@ def test_keyframes_by_parallax_without_distance(car_drive, helpers):
     threshold = 16.0 * SIZE[0] / 640  # given at 640 px, scaled
     assert all(log[i][2] >= threshold for i in parallax)
     assert all(r in ("first", "parallax", "tracks") for r, _, _ in log)
-    assert all(share < 0.6 for r, share, _ in log if r == "tracks")
+    assert all(share < 0.4 for r, share, _ in log if r == "tracks")
     for i in parallax:  # the tracks shared with the last keyframe moved about that much
         common, a, b = np.intersect1d(kfs[i - 1].point_ids, kfs[i].point_ids, return_indices=True)
         flow = np.linalg.norm(kfs[i].uv[b] - kfs[i - 1].uv[a], axis=1)
         assert np.median(flow) >= 0.5 * threshold
+
+
+def test_scarce_tracks_make_keyframes(car_drive, helpers):
+    """With ``min_tracked`` above any count, every frame that loses a track of the last
+    keyframe is a keyframe; at 0 (off) none is ``scarce``."""
+    dist = helpers[1](car_drive)
+    cfg = ImageTracksConfig(keyframes=KeyframeConfig(min_tracked=10**6))
+    kfs, src, _, _ = helpers[0](car_drive, cfg, distance=dist)
+    reasons = [r for r, _, _ in src.keyframe_log]
+    assert reasons.count("scarce") >= len(kfs) - 3
+    assert np.all(np.diff([k.frame_index for k in kfs])[1:] == 1)  # after the first
+    cfg = ImageTracksConfig(keyframes=KeyframeConfig(min_tracked=0))
+    _, src, _, _ = helpers[0](car_drive, cfg, distance=dist)
+    assert "scarce" not in [r for r, _, _ in src.keyframe_log]
 
 
 def _relative_pose_errors(R_wc, t_wc, truth, f0, f1) -> tuple[float, float]:

@@ -37,9 +37,29 @@ def test_gap_and_never_the_same_frame():
     assert KeyframeRule(KeyframeConfig(max_frame_gap=None), 640).decide(99, 0, 9.9, 1, 0) is None
 
 
+def test_scarce_tracks_make_a_keyframe_before_the_spacing():
+    rule = KeyframeRule(
+        KeyframeConfig(spacing_m=2.0, min_tracked=50), 640, distance=lambda t0, t1: 11 * (t1 - t0)
+    )
+    assert rule.decide(1, 0.0, 0.1, 0.9, 5.0, tracked=45, lost=5) == "scarce"
+    assert rule.decide(1, 0.0, 0.1, 0.9, 5.0, tracked=50, lost=5) is None  # enough left
+    assert rule.decide(1, 0.0, 0.1, 1.0, 0.0, tracked=20, lost=0) is None  # stopped: none lost
+    assert rule.decide(1, 0.0, 0.1, 0.9, 5.0) is None  # no count given: rule not checked
+    assert rule.decide(1, 0.0, 0.1, 0.9, 5.0, tracked=80, lost=5, turned=True) == "turn"
+    off = KeyframeRule(KeyframeConfig(min_tracked=0), 640, distance=lambda t0, t1: 0.0)
+    assert off.decide(1, 0.0, 0.1, 0.9, 5.0, tracked=3, lost=30) is None
+
+
 @pytest.mark.parametrize(
     "kw",
-    [{"spacing_m": 0}, {"parallax_px": -1}, {"min_tracked_share": 1.5}, {"max_frame_gap": 0}],
+    [
+        {"spacing_m": 0},
+        {"parallax_px": -1},
+        {"min_tracked_share": 1.5},
+        {"max_frame_gap": 0},
+        {"min_tracked": -1},
+        {"min_tracked": 2.5},
+    ],
 )
 def test_bad_config(kw):
     with pytest.raises(SlamError, match="KeyframeConfig"):
