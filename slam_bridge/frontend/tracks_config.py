@@ -33,15 +33,18 @@ class ImageTracksConfig:
         equalize_clip: contrast-limited histogram equalisation (``cv2.createCLAHE``) with this
             clip limit instead of the gamma (None: the gamma).
         equalize_tiles: its tiles per side (1: one global lookup table).
-        window_px: Lucas-Kanade window side (odd, pixels); small windows drift less when the
-            view changes.
+        window_px: Lucas-Kanade window side (odd, pixels). LK moves a window by one
+            translation; the views of a surface seen 2 m apart differ by more (scale, shear),
+            which biases a wide window along the motion, past 2 px on a tenth of the
+            observations with 11 px, on 3 % with 5 px (docs/frontend_accuracy.md).
         pyramid_levels: LK pyramid levels above the image (reach about
             ``2 ** levels * window_px / 2`` pixels from the prediction).
         lk_iterations: LK iterations per level.
         lk_epsilon: LK convergence threshold (pixels).
         lk_min_eigenvalue: LK's least eigenvalue of the window's gradient matrix (divided by
             the window area); weaker windows fail.
-        fb_threshold_px: largest forward-backward distance.
+        fb_threshold_px: largest forward-backward distance. A track that LK does not bring
+            back within a tenth of a pixel is one whose window matched ambiguously.
         recover_share: when fewer than this share of the established tracks (tracked through a
             frame before) survive a frame, the prediction failed (a sharp turn): the frame's
             motion is estimated from ORB matches (:mod:`slam_bridge.frontend.motion`) and the
@@ -98,12 +101,12 @@ class ImageTracksConfig:
     gamma_target: float | None = 0.4
     equalize_clip: float | None = 3.0
     equalize_tiles: int = 8
-    window_px: int = 11
+    window_px: int = 5
     pyramid_levels: int = 3
     lk_iterations: int = 20
     lk_epsilon: float = 0.03
     lk_min_eigenvalue: float = 1e-4
-    fb_threshold_px: float = 0.5
+    fb_threshold_px: float = 0.1
     recover_share: float = 0.5
     recover_min_tracks: int = 10
     recover_keyframe_tracks: int = 20

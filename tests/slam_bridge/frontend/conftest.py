@@ -1,4 +1,5 @@
-"""Short rendered drives shared by the front-end tests (rendered once per session, 320x240).
+"""Short rendered drives shared by the front-end tests (rendered once per session at 640x480, the
+resolution the front end's defaults were measured at).
 
 ``car_drive`` (forward camera, summer day, light city) and ``tram_drive`` (side camera,
 overcast, dense occlusion) are ``geoseg render`` folders in a session temporary directory;
@@ -17,18 +18,18 @@ from slam_bridge.evaluate_tracks import RenderTruth, TruthMap
 from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 
-SIZE = (320, 240)
+SIZE = (640, 480)
 FRAMES = 24
 
 
-def _render(root: Path, name: str, rig: str, condition: str, world) -> Path:
+def _render(root: Path, name: str, rig: str, condition: str, world, size=SIZE) -> Path:
     return render_sequence(
         world,
         root / name,
         FRAMES,
         condition,
         rig,
-        image_size=SIZE,
+        image_size=size,
         seed=1,
         progress=False,
         preview_frames=1,
@@ -39,6 +40,13 @@ def _render(root: Path, name: str, rig: str, condition: str, world) -> Path:
 def car_drive(tmp_path_factory, make_tiny_world) -> Path:
     root = tmp_path_factory.mktemp("frontend")
     return _render(root, "car", "car", "summer_day", make_tiny_world())
+
+
+@pytest.fixture(scope="session")
+def car_drive_320(tmp_path_factory, make_tiny_world) -> Path:
+    """``car_drive`` at 320x240 (pixel tolerances of the turn tests are set at that size)."""
+    root = tmp_path_factory.mktemp("frontend")
+    return _render(root, "car", "car", "summer_day", make_tiny_world(), size=(320, 240))
 
 
 @pytest.fixture(scope="session")
