@@ -1,0 +1,132 @@
+"""The GIS building model as the bridge sees it: vertical facade rectangles.
+
+A facade ``i`` is the rectangle above the footprint edge ``p0_i -> p1_i`` between the altitudes
+``z_min_i`` and ``z_max_i``, on the plane ``n_i . X = d_i`` (``n_i`` the outward unit normal,
+horizontal). ``geoseg render`` writes such a table as ``gis/facades.csv`` (columns ``x0, y0,
+x1, y1, z_min, z_max, nx, ny, nz, d``; others, such as ``plane_id`` or the synthetic world's
+``true_facade_id``, are read when present and never used by the association), and a user's own
+GIS model can be exported to the same columns.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from geoseg.errors import check_shape
+from slam_bridge.errors import SlamError
+from slam_bridge.sensor_logs import read_columns
+
+__all__ = ["Facades"]
+
+COLUMNS = ["x0", "y0", "x1", "y1", "z_min", "z_max", "nx", "ny", "nz", "d"]
+NORMAL_TOL = 1e-3  # |n| must be 1 within this
+PLANE_TOL_M = 0.05  # the footprint edge must lie on its plane within this
+
+
+@dataclass(frozen=True)
+class Facades:
+    """Facade rectangles of a building model (module docstring); ``F`` rows.
+
+    Attributes:
+        p0: ``(F, 2)`` start of each bottom edge, world metres.
+        p1: ``(F, 2)`` its end.
+        z_min: ``(F,)`` bottom altitude.
+        z_max: ``(F,)`` top altitude.
+        normal: ``(F, 3)`` outward unit normal.
+        d: ``(F,)`` plane offset, ``normal . X = d``.
+        true_facade_id: ``(F,)`` the world's facade each row models (-1: none), for evaluation
+            only; -1 everywhere when the table does not say.
+    """
+
+    p0: np.ndarray
+    p1: np.ndarray
+    z_min: np.ndarray
+    z_max: np.ndarray
+    normal: np.ndarray
+    d: np.ndarray
+    true_facade_id: np.ndarray
+
+    def __post_init__(self) -> None:
+        F = self.d.shape[0]
+        for name, tail in (("p0", (2,)), ("p1", (2,)), ("normal", (3,))):
+            check_shape(name, getattr(self, name), (F, *tail))
+        for name in ("p0", "p1", "z_min", "z_max", "normal", "d"):
+            bad = ~np.isfinite(np.asarray(getattr(self, name), dtype=np.float64))
+            if bad.any():
+                row = int(np.flatnonzero(bad.reshape(F, -1).any(axis=1))[0])
+                raise SlamError(f"facade {row}: {name} is not a finite number")
+        norm = np.linalg.norm(self.normal, axis=1)
+        if np.any(np.abs(norm - 1.0) > NORMAL_TOL):
+            row = int(np.argmax(np.abs(norm - 1.0)))
+            raise SlamError(f"facade {row}: its normal has length {norm[row]:.4f}, expected 1")
+        if np.any(np.linalg.norm(self.p1 - self.p0, axis=1) <= 0):
+            raise SlamError("a facade has a bottom edge of zero length")
+        if np.any(self.z_max <= self.z_min):
+            raise SlamError("a facade has z_max <= z_min")
+        off = np.abs(self.plane_residual(self.p0))
+        if np.any(off > PLANE_TOL_M):
+            row = int(np.argmax(off))
+            raise SlamError(f"facade {row}: its edge lies {off[row]:.3f} m off its plane n . X = d")
+
+    def __len__(self) -> int:
+        return int(self.d.shape[0])
+
+    def plane_residual(self, xy: np.ndarray) -> np.ndarray:
+        """``n_xy . xy - d`` of each facade's own point ``xy`` ``(F, 2)`` (0 on the plane)."""
+        return np.einsum("fi,fi->f", self.normal[:, :2], xy) - self.d
+
+    @classmethod
+    def read_csv(cls, path: str | Path) -> Facades:
+        """Read a facade table (module docstring).
+
+        Raises:
+            SlamError: no such file, missing columns, non-numeric cells, no facade, non-finite
+                or non-unit normals, an edge off its plane, an empty rectangle.
+        """
+        cols = read_columns(path, COLUMNS, optional=["true_facade_id"])
+        if cols["d"].size == 0:
+            raise SlamError(f"{path}: no facade")
+        truth = cols.get("true_facade_id")
+        try:
+            return cls(
+                p0=np.column_stack([cols["x0"], cols["y0"]]),
+                p1=np.column_stack([cols["x1"], cols["y1"]]),
+                z_min=cols["z_min"],
+                z_max=cols["z_max"],
+                normal=np.column_stack([cols["nx"], cols["ny"], cols["nz"]]),
+                d=cols["d"],
+                true_facade_id=(
+                    np.full(cols["d"].size, -1, np.int64)
+                    if truth is None
+                    else np.nan_to_num(truth, nan=-1).astype(np.int64)
+                ),
+            )
+        except SlamError as err:
+            raise SlamError(f"{path}: {err}") from None
+
+    def distances(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
+        """Euclidean distance of each point to each facade rectangle.
+
+        Args:
+            points: ``(N, 3)`` world points.
+
+        Returns:
+            ``(N, F)`` metres (the distance to the plane where the point faces the rectangle).
+        """
+        points = np.asarray(points, dtype=np.float64)
+        check_shape("points", points, (None, 3))
+        edge = self.p1 - self.p0
+        length2 = np.einsum("fi,fi->f", edge, edge)
+        out = np.empty((points.shape[0], len(self)))
+        for a in range(0, points.shape[0], chunk):
+            X = points[a : a + chunk]
+            rel = X[:, None, :2] - self.p0[None]
+            s = np.clip(np.einsum("nfi,fi->nf", rel, edge) / length2, 0.0, 1.0)
+            h = rel - s[..., None] * edge[None]
+            z = X[:, 2:3]
+            dz = np.maximum(np.maximum(self.z_min[None] - z, z - self.z_max[None]), 0.0)
+            out[a : a + chunk] = np.sqrt(np.einsum("nfi,nfi->nf", h, h) + dz**2)
+        return out

@@ -1,0 +1,113 @@
+"""Network outputs accumulated on map points (the bridge's 2D -> 3D step) on a toy map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from slam_bridge.bridge.evidence import PointEvidence
+from slam_bridge.errors import SlamError
+from slam_bridge.slam.map import Map
+
+K_CLASSES = 3
+SIZE = (8, 6)  # (W, H)
+
+
+def _map() -> Map:
+    """Two keyframes: points 0 and 1 seen in both, point 2 in the second only; the second
+    camera is turned 90 degrees about the world z axis."""
+    m = Map(np.array([[10.0, 0, 3.5], [0, 10.0, 2.5], [0, 0, 1]]), SIZE)
+    m.add_keyframe(0.0, np.array([0, 1]), np.array([[1.0, 1.0], [6.2, 4.4]]))
+    m.add_keyframe(1.0, np.array([0, 1, 2]), np.array([[1.4, 0.6], [6.0, 1.0], [3.0, 3.0]]))
+    Rz = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    m.set_pose(1, Rz, np.zeros(3))
+    return m
+
+
+def _probs(building_left: bool) -> np.ndarray:
+    """``(H, W, 3)``: class 0 on the left half and class 1 on the right, or the reverse."""
+    W, H = SIZE
+    p = np.zeros((H, W, K_CLASSES))
+    left, right = (0, 1) if building_left else (1, 0)
+    p[:, : W // 2, left] = 0.7
+    p[:, : W // 2, 2] = 0.3
+    p[:, W // 2 :, right] = 0.6
+    p[:, W // 2 :, 2] = 0.4
+    return p
+
+
+def test_mean_vote_and_normals():
+    m = _map()
+    ev = PointEvidence(m, K_CLASSES)
+    W, H = SIZE
+    n0 = np.zeros((H, W, 3))
+    n0[..., 2] = -1.0  # every pixel faces the camera
+    n0[:, W // 2 :] = 0.0  # no normal on the right half
+    assert ev.add_keyframe(0, _probs(True), n0) == 2
+    n1 = np.zeros((H, W, 3))
+    n1[..., 0] = 1.0  # camera +x
+    assert ev.add_keyframe(1, _probs(False), n1) == 3
+
+    mean = ev.mean_probs()
+    np.testing.assert_allclose(mean[0], [0.35, 0.35, 0.3])  # (0.7, 0, 0.3) and (0, 0.7, 0.3)
+    np.testing.assert_allclose(mean[1], [0.3, 0.3, 0.4])  # (0, .6, .4) then (.6, 0, .4)
+    np.testing.assert_allclose(mean[2], [0.0, 0.7, 0.3])  # pixel (3, 3): column 3 is left
+    np.testing.assert_array_equal(ev.samples, [2, 2, 1])
+    np.testing.assert_array_equal(ev.labels(), [0, 0, 1])  # ties go to the lower id
+    n = ev.normals()
+    # keyframe 0 (identity): camera -z is world -z; keyframe 1: camera +x is world +y
+    np.testing.assert_allclose(n[0], np.array([0.0, 1.0, -1.0]) / np.sqrt(2))
+    np.testing.assert_allclose(n[1], [0.0, 1.0, 0.0])  # keyframe 0 gave no normal there
+    np.testing.assert_allclose(n[2], [0.0, 1.0, 0.0])
+
+
+def test_points_added_later_and_smoothing():
+    m = _map()
+    calls = []
+    ev = PointEvidence(m, K_CLASSES, smooth=lambda p: calls.append(p.shape) or p)
+    ev.add_keyframe(1, _probs(True))
+    assert calls == [(SIZE[1], SIZE[0], K_CLASSES)]
+    m.add_keyframe(2.0, np.array([5]), np.array([[0.0, 0.0]]))  # the map grows
+    ev.add_keyframe(2, _probs(True))
+    np.testing.assert_array_equal(ev.samples, [1, 1, 1, 0, 0, 1])
+    assert np.isnan(ev.mean_probs()[3]).all() and ev.labels()[3] == -1
+    assert np.isnan(ev.normals()).all()  # no normal map given
+
+
+def test_rejected_observations_are_not_sampled():
+    m = _map()
+    m.obs_active[m.keyframe_observations(1)[0]] = False  # point 0 in keyframe 1
+    ev = PointEvidence(m, K_CLASSES)
+    assert ev.add_keyframe(1, _probs(True)) == 2
+    assert ev.samples[0] == 0
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda p: p[:-1], "probs"),
+        (lambda p: p[..., :2], "probs"),
+        (lambda p: p * 2, "sum to 1"),
+        (lambda p: np.where(p > 0.5, np.nan, p), "NaN"),
+    ],
+)
+def test_bad_probability_maps(change, message):
+    ev = PointEvidence(_map(), K_CLASSES)
+    with pytest.raises(SlamError, match=message):
+        ev.add_keyframe(0, change(_probs(True)))
+
+
+def test_bad_calls():
+    m = _map()
+    ev = PointEvidence(m, K_CLASSES)
+    with pytest.raises(SlamError, match="keyframe 5"):
+        ev.add_keyframe(5, _probs(True))
+    ev.add_keyframe(0, _probs(True))
+    with pytest.raises(SlamError, match="added already"):
+        ev.add_keyframe(0, _probs(True))
+    with pytest.raises(SlamError, match="normals"):
+        ev.add_keyframe(1, _probs(True), np.zeros((2, 2, 3)))
+    with pytest.raises(SlamError, match="exists already"):
+        PointEvidence(m, K_CLASSES)  # one accumulator per map
+    with pytest.raises(SlamError, match="num_classes"):
+        PointEvidence(Map(np.eye(3), SIZE), 1)
