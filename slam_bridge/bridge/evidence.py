@@ -23,17 +23,91 @@ the points see the vectors the filter was calibrated on.
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.map import Map
 
-__all__ = ["PointEvidence"]
+__all__ = ["OutputSamples", "PointEvidence", "sample_outputs"]
 
 PROB_SUM, VOTES, SAMPLES = "bridge.prob_sum", "bridge.votes", "bridge.samples"
 NORMAL_SUM, NORMAL_SAMPLES = "bridge.normal_sum", "bridge.normal_samples"
 SUM_TOL = 1e-3  # a probability vector must sum to 1 within this
+
+
+@dataclass(frozen=True)
+class OutputSamples:
+    """Network outputs at ``N`` observation pixels of one keyframe.
+
+    Attributes:
+        probs: ``(N, K)`` probability vectors.
+        normals_w: ``(N, 3)`` unit normals in the world frame (rows without a normal: 0), or
+            None without a normal map.
+        has_normal: ``(N,)`` bool, the network gave a normal there.
+    """
+
+    probs: np.ndarray
+    normals_w: np.ndarray | None
+    has_normal: np.ndarray
+
+
+def sample_outputs(
+    probs: np.ndarray,
+    normals: np.ndarray | None,
+    uv: np.ndarray,
+    R_wc: np.ndarray,
+    image_size: tuple[int, int],
+    num_classes: int,
+    smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> OutputSamples:
+    """Sample one keyframe's network maps at its observation pixels (nearest map pixel).
+
+    Args:
+        probs: ``(h, w, K)`` class probabilities; ``(w, h)`` is the image size or a scaling of
+            it (pixel ``u`` of the image is ``(u + 0.5) w / W - 0.5`` of the map).
+        normals: ``(h, w, 3)`` camera-frame unit normals (zero rows: none), or None.
+        uv: ``(N, 2)`` observation pixels of the image.
+        R_wc: ``(3, 3)`` the keyframe's rotation, to turn normals into the world frame.
+        image_size: ``(W, H)`` of the image.
+        num_classes: ``K``.
+        smooth: applied to ``probs`` first (None: as given).
+
+    Raises:
+        SlamError: maps of another aspect ratio or class count, normals of another size,
+            non-finite values, probability vectors that are negative or do not sum to 1.
+    """
+    W, H = image_size
+    probs = np.asarray(probs, dtype=np.float64)
+    if probs.ndim != 3 or probs.shape[2] != num_classes:
+        raise SlamError(f"probs: expected (h, w, {num_classes}) maps, got shape {probs.shape}")
+    h, w = probs.shape[:2]
+    if abs(W * h / H - w) > 1.0:  # the same aspect ratio, to a pixel of rounding
+        raise SlamError(f"probs: {w}x{h} maps for {W}x{H} images (not the same aspect ratio)")
+    if not np.isfinite(probs).all():
+        raise SlamError("probs: the probability map holds NaN or infinite values")
+    if smooth is not None:
+        probs = np.asarray(smooth(probs), dtype=np.float64)
+    uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    cols = np.clip(np.rint((uv[:, 0] + 0.5) * w / W - 0.5).astype(np.int64), 0, w - 1)
+    rows = np.clip(np.rint((uv[:, 1] + 0.5) * h / H - 0.5).astype(np.int64), 0, h - 1)
+    p = probs[rows, cols]
+    if np.any(np.abs(p.sum(axis=1) - 1.0) > SUM_TOL) or np.any(p < 0):
+        raise SlamError("probs: probability vectors must be >= 0 and sum to 1")
+    if normals is None:
+        return OutputSamples(p, None, np.zeros(p.shape[0], bool))
+    normals = np.asarray(normals, dtype=np.float64)
+    if normals.shape != (h, w, 3):
+        raise SlamError(f"normals of shape {normals.shape}, expected {(h, w, 3)} like probs")
+    if not np.isfinite(normals).all():
+        raise SlamError("normals: the normal map holds NaN or infinite values")
+    n_c = normals[rows, cols]
+    norm = np.linalg.norm(n_c, axis=1)
+    ok = norm > 0.5  # zero rows: no normal there
+    n_w = np.zeros_like(n_c)
+    n_w[ok] = (n_c[ok] / norm[ok, None]) @ np.asarray(R_wc, dtype=np.float64).T
+    return OutputSamples(p, n_w, ok)
 
 
 class PointEvidence:
@@ -68,60 +142,51 @@ class PointEvidence:
 
         Args:
             k: the keyframe.
-            probs: ``(H, W, K)`` class probabilities at the image size of the map.
-            normals: ``(H, W, 3)`` unit normals in the camera frame (OpenCV axes), zero rows
+            probs: ``(h, w, K)`` class probabilities, at the map's image size or a scaled copy
+                of it (a network run on a downsized image).
+            normals: ``(h, w, 3)`` unit normals in the camera frame (OpenCV axes), zero rows
                 where the network gives none; None: no normals (the 2015 network).
 
         Returns:
             The number of observations sampled.
 
         Raises:
-            SlamError: ``k`` added already or not a keyframe; maps of the wrong size or class
-                count, non-finite values, probability vectors that do not sum to 1.
+            SlamError: ``k`` added already or not a keyframe, and the errors of
+                :func:`sample_outputs`.
         """
         m = self.map
         if not 0 <= k < m.num_keyframes:
             raise SlamError(f"keyframe {k}: the map has {m.num_keyframes} keyframes")
         if k in self.added:
             raise SlamError(f"keyframe {k}: its network outputs were added already")
-        W, H = m.image_size
-        probs = np.asarray(probs, dtype=np.float64)
-        if probs.shape != (H, W, self.num_classes):
-            raise SlamError(
-                f"keyframe {k}: probs of shape {probs.shape}, expected (H, W, K) = "
-                f"{(H, W, self.num_classes)} (the map's image size, the class count)"
-            )
-        if not np.isfinite(probs).all():
-            raise SlamError(f"keyframe {k}: the probability map holds NaN or infinite values")
-        if self.smooth is not None:
-            probs = np.asarray(self.smooth(probs), dtype=np.float64)
         obs = m.keyframe_observations(k)
         obs = obs[m.obs_active[obs]]
-        cols = np.clip(np.rint(m.obs_uv[obs, 0]).astype(np.int64), 0, W - 1)
-        rows = np.clip(np.rint(m.obs_uv[obs, 1]).astype(np.int64), 0, H - 1)
-        p = probs[rows, cols]
-        if np.any(np.abs(p.sum(axis=1) - 1.0) > SUM_TOL) or np.any(p < 0):
-            raise SlamError(f"keyframe {k}: probability vectors must be >= 0 and sum to 1")
-        pts = m.obs_point[obs]
-        np.add.at(m.attribute(PROB_SUM), pts, p)
-        np.add.at(m.attribute(VOTES), (pts, p.argmax(axis=1)), 1)
-        np.add.at(m.attribute(SAMPLES), pts, 1)
-        if normals is not None:
-            normals = np.asarray(normals, dtype=np.float64)
-            if normals.shape != (H, W, 3):
-                raise SlamError(
-                    f"keyframe {k}: normals of shape {normals.shape}, expected {(H, W, 3)}"
-                )
-            if not np.isfinite(normals).all():
-                raise SlamError(f"keyframe {k}: the normal map holds NaN or infinite values")
-            n_c = normals[rows, cols]
-            norm = np.linalg.norm(n_c, axis=1)
-            ok = norm > 0.5  # zero rows: no normal there
-            n_w = (n_c[ok] / norm[ok, None]) @ m.R_wc[k].T
-            np.add.at(m.attribute(NORMAL_SUM), pts[ok], n_w)
-            np.add.at(m.attribute(NORMAL_SAMPLES), pts[ok], 1)
-        self.added.add(k)
+        samples = sample_outputs(
+            probs, normals, m.obs_uv[obs], m.R_wc[k], m.image_size, self.num_classes, self.smooth
+        )
+        self.add_samples(k, m.obs_point[obs], samples)
         return int(obs.size)
+
+    def add_samples(self, k: int, points: np.ndarray, samples: OutputSamples) -> None:
+        """Add samples taken from keyframe ``k`` (:func:`sample_outputs`) to ``points`` ``(N,)``.
+
+        Raises:
+            SlamError: ``k`` added already; samples and points of different lengths.
+        """
+        if k in self.added:
+            raise SlamError(f"keyframe {k}: its network outputs were added already")
+        points = np.asarray(points, dtype=np.int64)
+        if samples.probs.shape != (points.size, self.num_classes):
+            raise SlamError(f"keyframe {k}: {samples.probs.shape} samples for {points.size} points")
+        m = self.map
+        np.add.at(m.attribute(PROB_SUM), points, samples.probs)
+        np.add.at(m.attribute(VOTES), (points, samples.probs.argmax(axis=1)), 1)
+        np.add.at(m.attribute(SAMPLES), points, 1)
+        if samples.normals_w is not None:
+            ok = samples.has_normal
+            np.add.at(m.attribute(NORMAL_SUM), points[ok], samples.normals_w[ok])
+            np.add.at(m.attribute(NORMAL_SAMPLES), points[ok], 1)
+        self.added.add(k)
 
     @property
     def samples(self) -> np.ndarray:

@@ -37,7 +37,7 @@ from threadpoolctl import threadpool_limits
 
 from geoseg.errors import check_finite, check_shape
 from slam_bridge.errors import SlamError
-from slam_bridge.frontend.base import ObservationSource
+from slam_bridge.frontend.base import KeyframeObservations, ObservationSource
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import ConstraintProvider, fuse
 from slam_bridge.slam.map import Map
@@ -281,6 +281,7 @@ def run_slam(
     *,
     distance: Callable[[float, float], float] | None = None,
     max_keyframes: int | None = None,
+    on_keyframe: Callable[[Map, int, KeyframeObservations], None] | None = None,
 ) -> SlamResult:
     """Run the SLAM over ``source`` (module docstring).
 
@@ -293,6 +294,10 @@ def run_slam(
         distance: metres driven between two times (wheel odometry), the scale of a bridged
             keyframe (default: the last motion's speed).
         max_keyframes: stop after this many keyframes (default: the whole stream).
+        on_keyframe: called with ``(map, k, observations)`` after each keyframe the loop
+            processes (not those the start-up takes): the network bridge's hook
+            (:class:`slam_bridge.bridge.worker.BridgeWorker`); its time counts in the
+            keyframe's.
 
     Returns:
         A :class:`SlamResult`.
@@ -305,6 +310,7 @@ def run_slam(
         raise SlamError(f"method: expected one of {sorted(METHODS)}, got {method!r}")
     cfg = config or SlamConfig()
     loop = _Loop(source, method, start, list(providers), cfg, max_keyframes, distance)
+    loop.on_keyframe = on_keyframe
     if cfg.blas_threads is None:
         return loop.run()
     with threadpool_limits(limits=cfg.blas_threads, user_api="blas"):
@@ -329,6 +335,7 @@ class _Loop:
         self.segment_start = 0
         self.first_observation = 0
         self.records: list[KeyframeRecord] = []
+        self.on_keyframe: Callable[[Map, int, KeyframeObservations], None] | None = None
 
     def run(self) -> SlamResult:
         t_start = time.perf_counter()
@@ -346,6 +353,8 @@ class _Loop:
             rec = KeyframeRecord(k, n_observations=int(obs.point_ids.size))
             self.records.append(rec)
             self._keyframe(k, rec)
+            if self.on_keyframe is not None:
+                self.on_keyframe(self.map, k, obs)
             rec.seconds += time.perf_counter() - t0
             if k % 25 == 0:
                 logger.info(

@@ -24,9 +24,9 @@ def _map() -> Map:
     return m
 
 
-def _probs(building_left: bool) -> np.ndarray:
+def _probs(building_left: bool, size=SIZE) -> np.ndarray:
     """``(H, W, 3)``: class 0 on the left half and class 1 on the right, or the reverse."""
-    W, H = SIZE
+    W, H = size
     p = np.zeros((H, W, K_CLASSES))
     left, right = (0, 1) if building_left else (1, 0)
     p[:, : W // 2, left] = 0.7
@@ -59,6 +59,17 @@ def test_mean_vote_and_normals():
     np.testing.assert_allclose(n[0], np.array([0.0, 1.0, -1.0]) / np.sqrt(2))
     np.testing.assert_allclose(n[1], [0.0, 1.0, 0.0])  # keyframe 0 gave no normal there
     np.testing.assert_allclose(n[2], [0.0, 1.0, 0.0])
+
+
+def test_maps_at_half_the_image_size():
+    """A network run on a downsized image: its maps are sampled where the pixels fall."""
+    full, half = PointEvidence(_map(), K_CLASSES), PointEvidence(_map(), K_CLASSES)
+    for k, left in ((0, True), (1, False)):
+        full.add_keyframe(k, _probs(left))
+        half.add_keyframe(k, _probs(left, size=(4, 3)))
+    np.testing.assert_array_equal(half.mean_probs(), full.mean_probs())
+    with pytest.raises(SlamError, match="aspect ratio"):
+        PointEvidence(_map(), K_CLASSES).add_keyframe(0, _probs(True, size=(4, 6)))
 
 
 def test_points_added_later_and_smoothing():

@@ -1,0 +1,218 @@
+"""The bridge beside the SLAM (thesis fig. 4.21): inference and association off the main loop.
+
+:class:`BridgeWorker` is the loop's per-keyframe hook (``run_slam(..., on_keyframe=worker)``).
+At each keyframe it
+
+1. applies, in the main thread and in submission order, what the worker thread has finished
+   since: the network outputs sampled at a keyframe's observations (added to the points'
+   evidence, :class:`~slam_bridge.bridge.evidence.PointEvidence`) and new associations (handed
+   to the fusion's :class:`~slam_bridge.bridge.constraints.BuildingConstraints`);
+2. submits the keyframe's image with a copy of its observations and rotation (inference);
+3. every ``associate_every`` keyframes, submits a snapshot of the points (positions, evidence,
+   the camera centre each is seen from) to the association.
+
+The SLAM never waits: a job that is not finished is applied at a later keyframe (its *lag*, in
+keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
+evidence). The network runtime (onnxruntime, torch) releases the GIL: inference and association
+each run in a thread of their own beside the loop (an association does not queue behind
+inference). With ``asynchronous=False`` the jobs run inline when submitted and their results
+are applied at the next keyframe, as an asynchronous worker that kept up would apply them: the
+same numbers, deterministically.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from slam_bridge.bridge.association import Association
+from slam_bridge.bridge.constraints import BuildingConstraints
+from slam_bridge.bridge.evidence import PointEvidence, sample_outputs
+from slam_bridge.errors import SlamError
+from slam_bridge.slam.map import Map
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker"]
+
+#: image ``(H, W, 3)`` uint8 RGB -> (probabilities ``(h, w, K)``, normals ``(h, w, 3)`` or None)
+NetworkOutputs = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+
+@dataclass(frozen=True)
+class AssociationInputs:
+    """A snapshot of the map's points for an association (``P`` points).
+
+    Attributes:
+        keyframe: the keyframe at which it was taken.
+        points: ``(P, 3)`` positions, NaN where not triangulated.
+        mean_probs: ``(P, K)`` mean probability vectors (NaN rows: no evidence).
+        labels: ``(P,)`` voted classes (-1: no evidence).
+        normals: ``(P, 3)`` mean world-frame normals (NaN rows: none).
+        centres: ``(P, 3)`` centre of the latest keyframe observing each point.
+    """
+
+    keyframe: int
+    points: np.ndarray
+    mean_probs: np.ndarray
+    labels: np.ndarray
+    normals: np.ndarray
+    centres: np.ndarray
+
+
+@dataclass
+class BridgeStats:
+    """What the worker did.
+
+    Attributes:
+        inference_seconds: per inference job (worker time).
+        association_seconds: per association job.
+        main_seconds: per keyframe, the hook's own time in the main loop.
+        lags: keyframes between an association's submission and its use.
+        dropped: inference jobs dropped (too many pending).
+    """
+
+    inference_seconds: list[float] = field(default_factory=list)
+    association_seconds: list[float] = field(default_factory=list)
+    main_seconds: list[float] = field(default_factory=list)
+    lags: list[int] = field(default_factory=list)
+    dropped: int = 0
+
+
+class BridgeWorker:
+    """Network inference, evidence and association beside the loop (module docstring).
+
+    Args:
+        network: the network's outputs for an image.
+        num_classes: ``K`` of its probabilities.
+        associate: an association of a snapshot (e.g. :func:`~slam_bridge.bridge.association.
+            associate_bayes` over the model's facades).
+        constraints: the fusion's building provider, given each new association.
+        smooth: applied to each probability map before sampling (the Dirichlet filter's).
+        associate_every: keyframes between associations.
+        max_pending: most inference jobs waiting; more are dropped.
+        asynchronous: run the jobs in a worker thread (False: inline, deterministic).
+    """
+
+    def __init__(
+        self,
+        network: NetworkOutputs,
+        num_classes: int,
+        associate: Callable[[AssociationInputs], Association],
+        constraints: BuildingConstraints,
+        *,
+        smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+        associate_every: int = 5,
+        max_pending: int = 4,
+        asynchronous: bool = True,
+    ) -> None:
+        if associate_every < 1 or max_pending < 1:
+            raise SlamError("associate_every and max_pending must be >= 1")
+        self.network, self.num_classes = network, num_classes
+        self.associate, self.constraints, self.smooth = associate, constraints, smooth
+        self.associate_every, self.max_pending = associate_every, max_pending
+        self.asynchronous = asynchronous
+        self.evidence: PointEvidence | None = None
+        self.stats = BridgeStats()
+        # one thread and one queue per kind: an association never waits behind inference
+        self._pending: dict[str, deque[tuple[int, object, Future]]] = {
+            "infer": deque(),
+            "associate": deque(),
+        }
+        self._pools = (
+            {kind: ThreadPoolExecutor(1, f"bridge-{kind}") for kind in self._pending}
+            if asynchronous
+            else None
+        )
+
+    # ------------------------------------------------------------------ the loop's hook
+    def __call__(self, slam_map: Map, k: int, obs) -> None:
+        """Apply finished jobs, then submit keyframe ``k``'s (module docstring)."""
+        t0 = time.perf_counter()
+        if self.evidence is None:
+            self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
+        self._apply(slam_map, k, wait=False)
+        if obs is not None and obs.image is not None and 0 <= k < slam_map.num_keyframes:
+            waiting = sum(not f.done() for _, _, f in self._pending["infer"])
+            if waiting >= self.max_pending:
+                self.stats.dropped += 1
+            else:
+                idx = slam_map.keyframe_observations(k)
+                idx = idx[slam_map.obs_active[idx]]
+                job = (obs.image, slam_map.obs_uv[idx].copy(), slam_map.R_wc[k].copy())
+                self._submit("infer", k, slam_map.obs_point[idx].copy(), self._infer, job)
+        if k % self.associate_every == 0:
+            self._submit("associate", k, None, self._associate, self._snapshot(slam_map, k))
+        self.stats.main_seconds.append(time.perf_counter() - t0)
+
+    def finish(self, slam_map: Map) -> Association | None:
+        """Wait for every job, apply them, associate the final map once more and stop the
+        thread. Returns the final association (None before any keyframe)."""
+        if self.evidence is None:
+            return None
+        k = slam_map.num_keyframes
+        self._apply(slam_map, k, wait=True)
+        final = self.associate(self._snapshot(slam_map, k))
+        self.constraints.update(final)
+        if self._pools is not None:
+            for pool in self._pools.values():
+                pool.shutdown(wait=True)
+        return final
+
+    # ------------------------------------------------------------------ jobs
+    def _submit(self, kind: str, k: int, payload, fn, arg) -> None:
+        if self._pools is None:
+            fut: Future = Future()
+            fut.set_result(fn(arg))
+        else:
+            fut = self._pools[kind].submit(fn, arg)
+        self._pending[kind].append((k, payload, fut))
+
+    def _infer(self, job):
+        image, uv, R_wc = job
+        t0 = time.perf_counter()
+        probs, normals = self.network(image)
+        W, H = image.shape[1], image.shape[0]
+        out = sample_outputs(probs, normals, uv, R_wc, (W, H), self.num_classes, self.smooth)
+        self.stats.inference_seconds.append(time.perf_counter() - t0)
+        return out
+
+    def _associate(self, inputs: AssociationInputs) -> Association:
+        t0 = time.perf_counter()
+        out = self.associate(inputs)
+        self.stats.association_seconds.append(time.perf_counter() - t0)
+        return out
+
+    def _apply(self, slam_map: Map, k: int, wait: bool) -> None:
+        """Apply the finished jobs of each kind in submission order (all when ``wait``)."""
+        for kind, pending in self._pending.items():
+            while pending and (wait or pending[0][2].done()):
+                k_sub, payload, fut = pending.popleft()
+                result = fut.result()  # re-raises a job's error here, in the main thread
+                if kind == "infer":
+                    self.evidence.add_samples(k_sub, payload, result)
+                else:
+                    self.constraints.update(result)
+                    self.stats.lags.append(k - k_sub)
+
+    def _snapshot(self, slam_map: Map, k: int) -> AssociationInputs:
+        ev = self.evidence
+        P = slam_map.num_points
+        points = np.where(slam_map.triangulated[:, None], slam_map.X_w, np.nan)
+        last = np.full(P, -1, np.int64)
+        np.maximum.at(last, slam_map.obs_point, slam_map.obs_keyframe)
+        centres = np.where((last >= 0)[:, None], slam_map.t_wc[np.maximum(last, 0)], np.nan)
+        return AssociationInputs(
+            keyframe=k,
+            points=points,
+            mean_probs=ev.mean_probs(),
+            labels=ev.labels(),
+            normals=ev.normals(),
+            centres=centres,
+        )

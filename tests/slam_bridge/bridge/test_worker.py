@@ -1,0 +1,141 @@
+"""The bridge beside the loop on the tiny chapter-3 drive, with a stand-in network that labels
+the projections of facade landmarks "building" and gives their true normals (the pipeline is
+tested, not a network): evidence, eq. 4.14 against the exact facades, building constraints."""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+
+import numpy as np
+import pytest
+
+from geoseg.synth import build_world
+from geoseg.synth.world import SurfaceKind
+from slam_bridge.bridge.association import associate_bayes, nearest_facades
+from slam_bridge.bridge.constraints import BuildingConstraints
+from slam_bridge.bridge.facades import Facades
+from slam_bridge.bridge.worker import BridgeWorker
+from slam_bridge.errors import SlamError
+from slam_bridge.experiments.landmarks import sample_landmarks
+from slam_bridge.slam.loop import KnownStartPoses, run_slam
+
+OTHER, BUILDING = 0, 1
+SCALE = 4  # the stand-in network's maps are a quarter of the image size
+
+
+class _ImagesOf:
+    """The sequence's source with an image per keyframe that encodes the keyframe's index."""
+
+    def __init__(self, source):
+        self.source, self.K, self.image_size = source, source.K, source.image_size
+
+    def next_keyframe(self, slam_map=None):
+        obs = self.source.next_keyframe(slam_map)
+        if obs is None:
+            return None
+        W, H = self.image_size
+        image = np.zeros((H, W, 3), np.uint8)
+        image[0, 0, :2] = divmod(obs.frame_index, 256)
+        return dataclasses.replace(obs, image=image)
+
+
+@pytest.fixture(scope="module")
+def scene(noisy):
+    cfg, seq = noisy
+    world = build_world(cfg.world)
+    lm = sample_landmarks(world, seq.trajectory.t_wc[:, :2], cfg.landmarks, seed=cfg.seed)
+    t = world.facades()
+    d = np.einsum("fi,fi->f", t.normal[:, :2], t.p0)
+    facades = Facades(t.p0, t.p1, t.z_min, t.z_max, t.normal, d, t.facade_id)
+    truth, _ = nearest_facades(facades, lm.X_w, radius_m=0.2)
+    truth[lm.kind != SurfaceKind.FACADE] = -1
+    W, H = seq.image_size
+    maps = []
+    o = seq.observations
+    for k in range(seq.num_keyframes):
+        probs = np.zeros((H // SCALE, W // SCALE, 2))
+        probs[..., OTHER] = 0.9
+        probs[..., BUILDING] = 0.1
+        normals = np.zeros((H // SCALE, W // SCALE, 3))
+        sel = np.flatnonzero(o.keyframe == k)
+        c = np.clip(
+            np.rint((o.uv[sel] + 0.5) / SCALE - 0.5).astype(int),
+            0,
+            [W // SCALE - 1, H // SCALE - 1],
+        )
+        facade = lm.kind[o.point[sel]] == SurfaceKind.FACADE
+        probs[c[:, 1], c[:, 0]] = np.where(facade[:, None], [0.05, 0.95], [0.95, 0.05])
+        normals[c[:, 1], c[:, 0]] = lm.normal_w[o.point[sel]] @ seq.R_wc_true[k]
+        maps.append((probs, normals))
+
+    def network(image):
+        return maps[int(image[0, 0, 0]) * 256 + int(image[0, 0, 1])]
+
+    return cfg, seq, facades, truth, network
+
+
+def _run(scene, worker=None, providers=()):
+    cfg, seq, *_ = scene
+    start = KnownStartPoses(
+        seq.R_wc_true, seq.t_wc_true, cfg.slam.tracking.outlier_gate_px, cfg.start_keyframes,
+        cfg.slam.mapping,
+    )  # fmt: skip
+    return run_slam(_ImagesOf(seq.source()), "ba", start, providers, cfg.slam, on_keyframe=worker)
+
+
+def _worker(scene, network=None, delay_s=0.0, **kwargs):
+    _, _, facades, _, stand_in = scene
+
+    def associate(s):
+        time.sleep(delay_s)
+        return associate_bayes(facades, s.points, s.labels, s.normals, BUILDING, 1.0)
+
+    constraints = BuildingConstraints(facades)
+    worker = BridgeWorker(network or stand_in, 2, associate, constraints, **kwargs)
+    return worker, constraints
+
+
+def _error(scene, res):
+    return np.linalg.norm(res.map.t_wc - scene[1].t_wc_true, axis=1).mean()
+
+
+def test_synchronous_bridge(scene):
+    """Measured: mean keyframe error 0.147 m (vision) -> 0.033 m, association precision 0.994
+    over 358 points; every association used one keyframe after it was computed."""
+    truth = scene[3]
+    vision = _run(scene)
+    worker, constraints = _worker(scene, asynchronous=False)
+    bridged = _run(scene, worker, [constraints])
+    final = worker.finish(bridged.map)
+    assert any("building" in r.constraints for r in bridged.records)
+    assert _error(scene, bridged) < 0.5 * _error(scene, vision)
+    got = np.flatnonzero(final.associated)
+    assert got.size > 100
+    assert np.mean(final.facade[got] == truth[got]) > 0.95
+    assert set(worker.stats.lags) == {1} and worker.stats.dropped == 0
+    again, c2 = _worker(scene, asynchronous=False)
+    np.testing.assert_array_equal(_run(scene, again, [c2]).map.t_wc, bridged.map.t_wc)
+
+
+def test_the_loop_never_waits_for_a_slow_network(scene):
+    """A network of 0.2 s per image and an association of 0.1 s: the loop goes on (measured:
+    0.02 ms of its time per keyframe), inference jobs beyond ``max_pending`` are dropped and
+    associations arrive keyframes late."""
+    stand_in = scene[4]
+
+    def slow(image):
+        time.sleep(0.2)
+        return stand_in(image)
+
+    worker, constraints = _worker(scene, network=slow, delay_s=0.1, max_pending=2)
+    res = _run(scene, worker, [constraints])
+    worker.finish(res.map)
+    assert np.median(worker.stats.main_seconds) < 0.05
+    assert worker.stats.dropped > 0 and max(worker.stats.lags) > 1
+    assert np.isfinite(res.map.t_wc).all()
+
+
+def test_bad_worker_settings(scene):
+    with pytest.raises(SlamError, match="associate_every"):
+        _worker(scene, associate_every=0)
