@@ -283,9 +283,19 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
 
 
 def run_on_images(
-    inputs: SlamInputs, cfg: ImageSlamConfig | None = None, progress: bool = True
+    inputs: SlamInputs,
+    cfg: ImageSlamConfig | None = None,
+    progress: bool = True,
+    bridge=None,
 ) -> tuple[SlamResult, ImageTracks]:
     """The run itself, for programs and benchmarks (no file written).
+
+    Args:
+        inputs: what the run reads.
+        cfg: its settings.
+        progress: show a progress bar.
+        bridge: a :class:`slam_bridge.bridge.worker.BridgeWorker`: its building constraints join
+            the fusion and it sees every keyframe; finished (every job applied) at the end.
 
     Returns:
         ``(the SLAM's result, the front end with its timings and counters)``.
@@ -318,11 +328,18 @@ def run_on_images(
         )
     if inputs.odometry is not None:
         providers.append(OdometryConstraints(inputs.odometry))
+    if bridge is not None:
+        providers.append(bridge.constraints)
     source = _Progress(tracks, progress)
     try:
-        result = run_slam(source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry)
+        result = run_slam(
+            source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry,
+            on_keyframe=bridge,
+        )  # fmt: skip
     finally:
         source.bar.close()
+    if bridge is not None:
+        bridge.finish(result.map)
     return result, tracks
 
 

@@ -39,7 +39,7 @@ from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker"]
+__all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker", "segmenter_outputs"]
 
 #: image ``(H, W, 3)`` uint8 RGB -> (probabilities ``(h, w, K)``, normals ``(h, w, 3)`` or None)
 NetworkOutputs = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
@@ -89,7 +89,8 @@ class BridgeWorker:
     """Network inference, evidence and association beside the loop (module docstring).
 
     Args:
-        network: the network's outputs for an image.
+        network: the network's outputs for an image (None: no inference, for the ray-cast
+            baseline, which needs the points' positions only).
         num_classes: ``K`` of its probabilities.
         associate: an association of a snapshot (e.g. :func:`~slam_bridge.bridge.association.
             associate_bayes` over the model's facades).
@@ -102,7 +103,7 @@ class BridgeWorker:
 
     def __init__(
         self,
-        network: NetworkOutputs,
+        network: NetworkOutputs | None,
         num_classes: int,
         associate: Callable[[AssociationInputs], Association],
         constraints: BuildingConstraints,
@@ -138,7 +139,8 @@ class BridgeWorker:
         if self.evidence is None:
             self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
         self._apply(slam_map, k, wait=False)
-        if obs is not None and obs.image is not None and 0 <= k < slam_map.num_keyframes:
+        has_image = obs is not None and obs.image is not None
+        if self.network is not None and has_image and 0 <= k < slam_map.num_keyframes:
             waiting = sum(not f.done() for _, _, f in self._pending["infer"])
             if waiting >= self.max_pending:
                 self.stats.dropped += 1
@@ -216,3 +218,27 @@ class BridgeWorker:
             normals=ev.normals(),
             centres=centres,
         )
+
+
+def segmenter_outputs(segmenter, input_size: tuple[int, int] | None = None) -> NetworkOutputs:
+    """A :class:`geoseg.infer.Segmenter` as the worker's network.
+
+    Args:
+        segmenter: the network (the joint network gives normals, the naive CNN none).
+        input_size: ``(W, H)`` the image is resized to first (area interpolation), the size
+            the network was trained at; None: as it comes.
+
+    Returns:
+        ``image (H, W, 3) uint8 -> (probabilities (h, w, K), normals (h, w, 3) or None)``.
+    """
+    import cv2
+
+    def run(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        if input_size is not None and (image.shape[1], image.shape[0]) != tuple(input_size):
+            image = cv2.resize(image, tuple(input_size), interpolation=cv2.INTER_AREA)
+        out = segmenter(image)
+        probs = out.probabilities[0].transpose(1, 2, 0)
+        normals = None if out.normals is None else out.normals[0].transpose(1, 2, 0)
+        return probs, normals
+
+    return run

@@ -139,3 +139,42 @@ def test_the_loop_never_waits_for_a_slow_network(scene):
 def test_bad_worker_settings(scene):
     with pytest.raises(SlamError, match="associate_every"):
         _worker(scene, associate_every=0)
+
+
+def test_segmenter_outputs_resizes_and_transposes():
+    from geoseg.infer import SegmentationResult
+    from slam_bridge.bridge.worker import segmenter_outputs
+
+    seen = []
+
+    def segmenter(image):
+        seen.append(image.shape)
+        h, w = image.shape[:2]
+        probs = np.zeros((1, 3, h, w), np.float32)
+        probs[0, 2] = 1.0
+        normals = np.zeros((1, 3, h, w), np.float32)
+        normals[0, 0] = 1.0
+        return SegmentationResult(probs, probs.argmax(1).astype(np.uint8), normals)
+
+    probs, normals = segmenter_outputs(segmenter, (32, 24))(np.zeros((48, 64, 3), np.uint8))
+    assert seen == [(24, 32, 3)]
+    assert probs.shape == (24, 32, 3) and np.all(probs[..., 2] == 1)
+    assert normals.shape == (24, 32, 3) and np.all(normals[..., 0] == 1)
+    probs, _ = segmenter_outputs(segmenter)(np.zeros((48, 64, 3), np.uint8))
+    assert probs.shape == (48, 64, 3)
+
+
+def test_geometry_only_worker_runs_no_network(scene):
+    """The ray-cast baseline needs positions only: no network, no evidence, associations."""
+    _, _, facades, _, _ = scene
+    constraints = BuildingConstraints(facades)
+    worker = BridgeWorker(
+        None,
+        2,
+        lambda s: associate_bayes(facades, s.points, s.labels, s.normals, BUILDING, 1.0),
+        constraints,
+        asynchronous=False,
+    )
+    res = _run(scene, worker, [constraints])
+    final = worker.finish(res.map)
+    assert worker.stats.inference_seconds == [] and not final.associated.any()
