@@ -295,7 +295,8 @@ def run_on_images(
         cfg: its settings.
         progress: show a progress bar.
         bridge: a :class:`slam_bridge.bridge.worker.BridgeWorker`: its building constraints join
-            the fusion and it sees every keyframe; finished (every job applied) at the end.
+            the fusion and it sees every keyframe (given the images of the start-up's keyframes
+            when it has no ``image_at``); finished (every job applied) at the end.
 
     Returns:
         ``(the SLAM's result, the front end with its timings and counters)``.
@@ -330,6 +331,9 @@ def run_on_images(
         providers.append(OdometryConstraints(inputs.odometry))
     if bridge is not None:
         providers.append(bridge.constraints)
+        if bridge.image_at is None:
+            frames = inputs.frames
+            bridge.image_at = lambda t: frames[int(np.searchsorted(frames.timestamps, t))][1]
     source = _Progress(tracks, progress)
     try:
         result = run_slam(

@@ -99,6 +99,8 @@ class BridgeWorker:
         associate_every: keyframes between associations.
         max_pending: most inference jobs waiting; more are dropped.
         asynchronous: run the jobs in a worker thread (False: inline, deterministic).
+        image_at: ``timestamp -> (H, W, 3) uint8`` image of a keyframe the hook gets without
+            observations (those the start-up placed; None: they get no evidence).
     """
 
     def __init__(
@@ -112,13 +114,14 @@ class BridgeWorker:
         associate_every: int = 5,
         max_pending: int = 4,
         asynchronous: bool = True,
+        image_at: Callable[[float], np.ndarray] | None = None,
     ) -> None:
         if associate_every < 1 or max_pending < 1:
             raise SlamError("associate_every and max_pending must be >= 1")
         self.network, self.num_classes = network, num_classes
         self.associate, self.constraints, self.smooth = associate, constraints, smooth
         self.associate_every, self.max_pending = associate_every, max_pending
-        self.asynchronous = asynchronous
+        self.asynchronous, self.image_at = asynchronous, image_at
         self.evidence: PointEvidence | None = None
         self.stats = BridgeStats()
         # one thread and one queue per kind: an association never waits behind inference
@@ -134,20 +137,23 @@ class BridgeWorker:
 
     # ------------------------------------------------------------------ the loop's hook
     def __call__(self, slam_map: Map, k: int, obs) -> None:
-        """Apply finished jobs, then submit keyframe ``k``'s (module docstring)."""
+        """Apply finished jobs, then submit keyframe ``k``'s (module docstring); ``obs`` is its
+        :class:`~slam_bridge.frontend.base.KeyframeObservations`, or None (a start keyframe)."""
         t0 = time.perf_counter()
         if self.evidence is None:
             self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
         self._apply(slam_map, k, wait=False)
-        has_image = obs is not None and obs.image is not None
-        if self.network is not None and has_image and 0 <= k < slam_map.num_keyframes:
+        image = None if obs is None else obs.image
+        if image is None and self.image_at is not None:
+            image = self.image_at(float(slam_map.timestamps[k]))
+        if self.network is not None and image is not None and 0 <= k < slam_map.num_keyframes:
             waiting = sum(not f.done() for _, _, f in self._pending["infer"])
             if waiting >= self.max_pending:
                 self.stats.dropped += 1
             else:
                 idx = slam_map.keyframe_observations(k)
                 idx = idx[slam_map.obs_active[idx]]
-                job = (obs.image, slam_map.obs_uv[idx].copy(), slam_map.R_wc[k].copy())
+                job = (image, slam_map.obs_uv[idx].copy(), slam_map.R_wc[k].copy())
                 self._submit("infer", k, slam_map.obs_point[idx].copy(), self._infer, job)
         if k % self.associate_every == 0:
             self._submit("associate", k, None, self._associate, self._snapshot(slam_map, k))

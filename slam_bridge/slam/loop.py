@@ -295,9 +295,9 @@ def run_slam(
             keyframe (default: the last motion's speed).
         max_keyframes: stop after this many keyframes (default: the whole stream).
         on_keyframe: called with ``(map, k, observations)`` after each keyframe the loop
-            processes (not those the start-up takes): the network bridge's hook
-            (:class:`slam_bridge.bridge.worker.BridgeWorker`); its time counts in the
-            keyframe's.
+            processes, and with ``(map, k, None)`` for those the start-up placed: the network
+            bridge's hook (:class:`slam_bridge.bridge.worker.BridgeWorker`); its time counts in
+            the keyframe's.
 
     Returns:
         A :class:`SlamResult`.
@@ -373,8 +373,11 @@ class _Loop:
         )
 
     def _start_records(self, first: int, state: str) -> None:
+        """Records (and the hook's calls, without observations) of the start-up's keyframes."""
         for j in range(first, self.map.num_keyframes):
             self.records.append(KeyframeRecord(j, tracking=state, segment=int(self.map.segment[j])))
+            if self.on_keyframe is not None:
+                self.on_keyframe(self.map, j, None)
 
     def _refine_segment(self, end_observation: int | None) -> None:
         """Re-triangulate the points that left a hybrid window during the ending segment."""
