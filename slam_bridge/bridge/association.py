@@ -85,15 +85,11 @@ def nearest_facades(
     check_shape("points", points, (None, 3))
     facade = np.full(points.shape[0], -1, np.int64)
     dist = np.full(points.shape[0], np.inf)
-    ok = np.isfinite(points).all(axis=1)
-    if ok.any():
-        D = facades.distances(points[ok])
-        best = D.argmin(axis=1)
-        d = D[np.arange(best.size), best]
-        near = d <= radius_m
-        idx = np.flatnonzero(ok)
-        facade[idx[near]] = best[near]
-        dist[idx[near]] = d[near]
+    pt, fc, d = facades.near(points, radius_m)
+    order = np.lexsort((fc, d, pt))  # per point, nearest first (ties: lower facade id)
+    first = order[np.r_[True, pt[order][1:] != pt[order][:-1]]] if pt.size else order
+    facade[pt[first]] = fc[first]
+    dist[pt[first]] = d[first]
     return facade, dist
 
 
@@ -212,17 +208,15 @@ def associate_bayes(
     facade = np.full(P, -1, np.int64)
     weight = np.zeros(P)
     use = (labels == building_class) & np.isfinite(points).all(1) & np.isfinite(normals).all(1)
-    idx = np.flatnonzero(use)
-    if idx.size == 0:
-        return Association(facade, weight, "bayes")
-    D = facades.distances(points[idx])
-    for row, q in enumerate(idx):
-        cand = np.flatnonzero(D[row] <= radius_m)
-        if cand.size == 0:
+    pt, fc, d = facades.near(np.where(use[:, None], points, np.nan), radius_m)
+    bounds = np.searchsorted(pt, np.flatnonzero(use), side="left")
+    ends = np.searchsorted(pt, np.flatnonzero(use), side="right")
+    for q, a, b in zip(np.flatnonzero(use), bounds, ends, strict=True):
+        if a == b:
             continue
-        post = plane_posterior(normals[q], facades.normal[cand], D[row, cand])
+        post = plane_posterior(normals[q], facades.normal[fc[a:b]], d[a:b])
         best = int(post.argmax())
         if post[best] > 0:
-            facade[q] = cand[best]
+            facade[q] = fc[a + best]
             weight[q] = post[best]
     return Association(facade, weight, "bayes")

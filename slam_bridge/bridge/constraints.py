@@ -40,6 +40,10 @@ class BuildingConstraints:
         sigma_m: Geman-McClure scale, metres (a point farther from its plane than a few
             ``sigma_m`` pulls little: a wrong association or a model error).
         weight: multiplies every point's association weight.
+        window_weight: the building rows of one fused window weigh together at most this much
+            (their weights are scaled down to it; None: no cap). Hundreds of points on a model
+            with errors would otherwise outvote the window's single GPS fix and pull the
+            trajectory onto the model's errors.
         association: the first association (None: none yet).
     """
 
@@ -52,10 +56,14 @@ class BuildingConstraints:
         *,
         sigma_m: float = 0.5,
         weight: float = 1.0,
+        window_weight: float | None = None,
         association: Association | None = None,
     ) -> None:
         check_positive("sigma_m", sigma_m)
         check_positive("weight", weight)
+        if window_weight is not None:
+            check_positive("window_weight", window_weight)
+        self.window_weight = window_weight
         self.facades = facades
         self.sigma_m = float(sigma_m)
         self.weight = float(weight)
@@ -99,13 +107,10 @@ class BuildingConstraints:
         if rows.size == 0:
             return []
         f = facade[rows]
+        w = self.weight * weight[rows]
+        if self.window_weight is not None and w.sum() > self.window_weight:
+            w *= self.window_weight / w.sum()
         logger.debug("keyframe %d: %d points on facades", k, rows.size)
         return [
-            BuildingFactor(
-                rows,
-                self.facades.normal[f],
-                self.facades.d[f],
-                self.weight * weight[rows],
-                sigma=self.sigma_m,
-            )
+            BuildingFactor(rows, self.facades.normal[f], self.facades.d[f], w, sigma=self.sigma_m)
         ]

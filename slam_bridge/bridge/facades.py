@@ -11,9 +11,11 @@ GIS model can be exported to the same columns.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from geoseg.errors import check_shape
 from slam_bridge.errors import SlamError
@@ -106,6 +108,49 @@ class Facades:
             )
         except SlamError as err:
             raise SlamError(f"{path}: {err}") from None
+
+    @cached_property
+    def _index(self) -> tuple[cKDTree, float]:
+        """A k-d tree of the bottom edges' midpoints and the longest half edge."""
+        half = 0.5 * np.linalg.norm(self.p1 - self.p0, axis=1)
+        return cKDTree(0.5 * (self.p0 + self.p1)), float(half.max())
+
+    def near(
+        self, points: np.ndarray, radius_m: float
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The (point, facade) pairs closer than ``radius_m``, through a k-d tree of the facades
+        (a facade lies within its half length of its midpoint), not the full ``(N, F)`` table.
+
+        Args:
+            points: ``(N, 3)`` world points (NaN rows: none).
+            radius_m: the largest distance.
+
+        Returns:
+            ``(point (K,), facade (K,), distance (K,))``, sorted by point.
+        """
+        points = np.asarray(points, dtype=np.float64)
+        check_shape("points", points, (None, 3))
+        ok = np.flatnonzero(np.isfinite(points).all(axis=1))
+        tree, half = self._index
+        lists = tree.query_ball_point(points[ok, :2], radius_m + half)
+        counts = np.fromiter((len(c) for c in lists), np.int64, ok.size)
+        pt = np.repeat(ok, counts)
+        fc = np.fromiter((f for c in lists for f in c), np.int64, int(counts.sum()))
+        if pt.size == 0:
+            return pt, fc, np.zeros(0)
+        d = self._pair_distances(points[pt], fc)
+        keep = d <= radius_m
+        return pt[keep], fc[keep], d[keep]
+
+    def _pair_distances(self, X: np.ndarray, facade: np.ndarray) -> np.ndarray:
+        """``(K,)`` distance of each point ``X (K, 3)`` to its facade ``(K,)``."""
+        p0, edge = self.p0[facade], self.p1[facade] - self.p0[facade]
+        rel = X[:, :2] - p0
+        s = np.clip(np.einsum("ki,ki->k", rel, edge) / np.einsum("ki,ki->k", edge, edge), 0, 1)
+        h = rel - s[:, None] * edge
+        z = X[:, 2]
+        dz = np.maximum(np.maximum(self.z_min[facade] - z, z - self.z_max[facade]), 0.0)
+        return np.sqrt(np.einsum("ki,ki->k", h, h) + dz**2)
 
     def distances(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
         """Euclidean distance of each point to each facade rectangle.

@@ -170,3 +170,27 @@ def test_bayes_uses_labels_and_normals(facades):
     assert associate_bayes(facades, POINTS, labels, normals, BUILDING).facade[0] == -1
     with pytest.raises(SlamError, match="unit"):
         associate_bayes(facades, POINTS, labels, 2 * np.tile([-1.0, 0, 0], (5, 1)), BUILDING)
+
+
+def test_near_pairs_equal_the_full_table(tmp_path):
+    """The k-d tree's candidate pairs are exactly the (point, facade) pairs of the full distance
+    table within the radius, on a GIS model of a rendered city and random points."""
+    from geoseg.synth import build_world
+    from geoseg.synth.buildings import build_building_model
+    from geoseg.synth.world import WorldConfig
+
+    world = build_world(WorldConfig(seed=2, blocks_x=2, blocks_y=2))
+    model = build_building_model(world.buildings, seed=2, streets=world.streets)
+    facades = Facades.read_csv(model.planes.write_csv(tmp_path / "facades.csv"))
+    rng = np.random.default_rng(0)
+    lo, hi = facades.p0.min(axis=0) - 10, facades.p0.max(axis=0) + 10
+    points = np.column_stack([rng.uniform(lo, hi, (3000, 2)), rng.uniform(-2, 30, 3000)])
+    points[::50] = np.nan
+    for radius in (0.5, 3.0):
+        pt, fc, d = facades.near(points, radius)
+        D = facades.distances(np.nan_to_num(points, nan=1e9))
+        want_pt, want_fc = np.nonzero(D <= radius)
+        got = sorted(zip(pt.tolist(), fc.tolist(), strict=True))
+        assert got == sorted(zip(want_pt.tolist(), want_fc.tolist(), strict=True))
+        np.testing.assert_allclose(d, D[pt, fc])
+        assert np.all(np.diff(pt) >= 0)

@@ -42,6 +42,11 @@ def test_rows_of_the_window_points():
     np.testing.assert_allclose(f.weights, [4.0, 1.0])
     assert c.factors(None, SimpleNamespace(point_ids=np.array([1, 3])), 0) == []
     assert BuildingConstraints(_two_facades()).factors(None, problem, 0) == []  # none yet
+    capped = BuildingConstraints(_two_facades(), weight=2.0, window_weight=2.5, association=a)
+    (f,) = capped.factors(None, problem, 0)
+    np.testing.assert_allclose(f.weights, [2.0, 0.5])  # 4 : 1, summing to 2.5
+    loose = BuildingConstraints(_two_facades(), weight=2.0, window_weight=50.0, association=a)
+    np.testing.assert_allclose(loose.factors(None, problem, 0)[0].weights, [4.0, 1.0])
 
 
 @pytest.mark.parametrize(
