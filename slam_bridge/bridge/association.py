@@ -209,14 +209,21 @@ def associate_bayes(
     weight = np.zeros(P)
     use = (labels == building_class) & np.isfinite(points).all(1) & np.isfinite(normals).all(1)
     pt, fc, d = facades.near(np.where(use[:, None], points, np.nan), radius_m)
-    bounds = np.searchsorted(pt, np.flatnonzero(use), side="left")
-    ends = np.searchsorted(pt, np.flatnonzero(use), side="right")
-    for q, a, b in zip(np.flatnonzero(use), bounds, ends, strict=True):
-        if a == b:
-            continue
-        post = plane_posterior(normals[q], facades.normal[fc[a:b]], d[a:b])
-        best = int(post.argmax())
-        if post[best] > 0:
-            facade[q] = fc[a + best]
-            weight[q] = post[best]
+    if pt.size == 0:
+        return Association(facade, weight, "bayes")
+    # eq. 4.14 for every point at once: its candidates are a run of the sorted pairs
+    starts = np.r_[0, np.flatnonzero(np.diff(pt)) + 1]
+    counts = np.diff(np.r_[starts, pt.size])
+    e = np.exp(-(d - np.repeat(np.minimum.reduceat(d, starts), counts)))
+    soft = e / np.repeat(np.add.reduceat(e, starts), counts)
+    cos = np.einsum("ki,ki->k", normals[pt], facades.normal[fc])
+    prior = np.where(cos >= 0, beta_distribution.pdf(np.clip(cos, 0.0, 1.0), BETA_A, BETA_B), 0)
+    post = prior * soft
+    total = np.repeat(np.add.reduceat(post, starts), counts)
+    post = np.divide(post, total, out=np.zeros_like(post), where=total > 0)
+    order = np.lexsort((-post, pt))  # per point, the most probable facade first
+    best = order[starts]
+    win = post[best] > 0
+    facade[pt[best[win]]] = fc[best[win]]
+    weight[pt[best[win]]] = post[best[win]]
     return Association(facade, weight, "bayes")
