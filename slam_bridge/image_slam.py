@@ -340,10 +340,12 @@ def run_on_images(
             source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry,
             on_keyframe=bridge,
         )  # fmt: skip
+        if bridge is not None:
+            bridge.finish(result.map)
     finally:
         source.bar.close()
-    if bridge is not None:
-        bridge.finish(result.map)
+        if bridge is not None:
+            bridge.close()
     return result, tracks
 
 

@@ -168,10 +168,14 @@ class BridgeWorker:
         self._apply(slam_map, k, wait=True)
         final = self.associate(self._snapshot(slam_map, k))
         self.constraints.update(final)
+        self.close()
+        return final
+
+    def close(self) -> None:
+        """Stop the threads, dropping the jobs not started (after a failed run, say)."""
         if self._pools is not None:
             for pool in self._pools.values():
-                pool.shutdown(wait=True)
-        return final
+                pool.shutdown(wait=True, cancel_futures=True)
 
     # ------------------------------------------------------------------ jobs
     def _submit(self, kind: str, k: int, payload, fn, arg) -> None:

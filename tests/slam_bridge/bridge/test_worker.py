@@ -178,3 +178,18 @@ def test_geometry_only_worker_runs_no_network(scene):
     res = _run(scene, worker, [constraints])
     final = worker.finish(res.map)
     assert worker.stats.inference_seconds == [] and not final.associated.any()
+
+
+@pytest.mark.parametrize("asynchronous", [False, True])
+def test_a_failing_network_stops_the_run_with_its_error(scene, asynchronous):
+    """A network that fails (wrong class count here) raises in the main thread, named."""
+
+    def wrong(image):
+        probs, normals = scene[4](image)
+        return probs[..., :1], normals
+
+    worker, constraints = _worker(scene, network=wrong, asynchronous=asynchronous)
+    with pytest.raises(SlamError, match="probs"):  # during the run, or at the latest in finish
+        res = _run(scene, worker, [constraints])
+        worker.finish(res.map)
+    worker.close()
