@@ -69,7 +69,8 @@ def sample_outputs(
             it (pixel ``u`` of the image is ``(u + 0.5) w / W - 0.5`` of the map).
         normals: ``(h, w, 3)`` camera-frame unit normals (zero rows: none), or None.
         uv: ``(N, 2)`` observation pixels of the image.
-        R_wc: ``(3, 3)`` the keyframe's rotation, to turn normals into the world frame.
+        R_wc: ``(3, 3)`` the keyframe's rotation, to turn normals into the world frame (not
+            finite: a keyframe the SLAM could not place, whose normals are left out).
         image_size: ``(W, H)`` of the image.
         num_classes: ``K``.
         smooth: applied to ``probs`` first (None: as given).
@@ -95,7 +96,8 @@ def sample_outputs(
     p = probs[rows, cols]
     if np.any(np.abs(p.sum(axis=1) - 1.0) > SUM_TOL) or np.any(p < 0):
         raise SlamError("probs: probability vectors must be >= 0 and sum to 1")
-    if normals is None:
+    R_wc = np.asarray(R_wc, dtype=np.float64)
+    if normals is None or not np.isfinite(R_wc).all():  # a keyframe the SLAM could not place
         return OutputSamples(p, None, np.zeros(p.shape[0], bool))
     normals = np.asarray(normals, dtype=np.float64)
     if normals.shape != (h, w, 3):
@@ -106,7 +108,7 @@ def sample_outputs(
     norm = np.linalg.norm(n_c, axis=1)
     ok = norm > 0.5  # zero rows: no normal there
     n_w = np.zeros_like(n_c)
-    n_w[ok] = (n_c[ok] / norm[ok, None]) @ np.asarray(R_wc, dtype=np.float64).T
+    n_w[ok] = (n_c[ok] / norm[ok, None]) @ R_wc.T
     return OutputSamples(p, n_w, ok)
 
 

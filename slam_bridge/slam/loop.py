@@ -281,7 +281,7 @@ def run_slam(
     *,
     distance: Callable[[float, float], float] | None = None,
     max_keyframes: int | None = None,
-    on_keyframe: Callable[[Map, int, KeyframeObservations], None] | None = None,
+    on_keyframe: Callable[[Map, int, KeyframeObservations | None], None] | None = None,
 ) -> SlamResult:
     """Run the SLAM over ``source`` (module docstring).
 
@@ -335,7 +335,7 @@ class _Loop:
         self.segment_start = 0
         self.first_observation = 0
         self.records: list[KeyframeRecord] = []
-        self.on_keyframe: Callable[[Map, int, KeyframeObservations], None] | None = None
+        self.on_keyframe: Callable[[Map, int, KeyframeObservations | None], None] | None = None
 
     def run(self) -> SlamResult:
         t_start = time.perf_counter()

@@ -85,6 +85,20 @@ def test_points_added_later_and_smoothing():
     assert np.isnan(ev.normals()).all()  # no normal map given
 
 
+def test_a_keyframe_without_a_pose_gives_no_normals():
+    m = _map()
+    m.set_pose(1, np.full((3, 3), np.nan), np.full(3, np.nan))  # lost, not placed
+    ev = PointEvidence(m, K_CLASSES)
+    W, H = SIZE
+    normals = np.zeros((H, W, 3))
+    normals[..., 2] = -1.0
+    ev.add_keyframe(1, _probs(True), normals)
+    ev.add_keyframe(0, _probs(True), normals)
+    np.testing.assert_array_equal(ev.samples, [2, 2, 1])  # probabilities from both
+    np.testing.assert_allclose(ev.normals()[0], [0, 0, -1])  # normals from keyframe 0 only
+    assert np.isnan(ev.normals()[2]).all()
+
+
 def test_rejected_observations_are_not_sampled():
     m = _map()
     m.obs_active[m.keyframe_observations(1)[0]] = False  # point 0 in keyframe 1
