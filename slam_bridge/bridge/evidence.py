@@ -159,8 +159,6 @@ class PointEvidence:
         m = self.map
         if not 0 <= k < m.num_keyframes:
             raise SlamError(f"keyframe {k}: the map has {m.num_keyframes} keyframes")
-        if k in self.added:
-            raise SlamError(f"keyframe {k}: its network outputs were added already")
         obs = m.keyframe_observations(k)
         obs = obs[m.obs_active[obs]]
         samples = sample_outputs(

@@ -152,8 +152,9 @@ class Facades:
         dz = np.maximum(np.maximum(self.z_min[facade] - z, z - self.z_max[facade]), 0.0)
         return np.sqrt(np.einsum("ki,ki->k", h, h) + dz**2)
 
-    def distances(self, points: np.ndarray, chunk: int = 4096) -> np.ndarray:
-        """Euclidean distance of each point to each facade rectangle.
+    def distances(self, points: np.ndarray, chunk: int = 512) -> np.ndarray:
+        """Euclidean distance of each point to each facade rectangle (the full table; the
+        association uses :meth:`near`).
 
         Args:
             points: ``(N, 3)`` world points.
@@ -163,15 +164,10 @@ class Facades:
         """
         points = np.asarray(points, dtype=np.float64)
         check_shape("points", points, (None, 3))
-        edge = self.p1 - self.p0
-        length2 = np.einsum("fi,fi->f", edge, edge)
-        out = np.empty((points.shape[0], len(self)))
+        F = len(self)
+        out = np.empty((points.shape[0], F))
         for a in range(0, points.shape[0], chunk):
             X = points[a : a + chunk]
-            rel = X[:, None, :2] - self.p0[None]
-            s = np.clip(np.einsum("nfi,fi->nf", rel, edge) / length2, 0.0, 1.0)
-            h = rel - s[..., None] * edge[None]
-            z = X[:, 2:3]
-            dz = np.maximum(np.maximum(self.z_min[None] - z, z - self.z_max[None]), 0.0)
-            out[a : a + chunk] = np.sqrt(np.einsum("nfi,nfi->nf", h, h) + dz**2)
+            pairs = self._pair_distances(np.repeat(X, F, axis=0), np.tile(np.arange(F), len(X)))
+            out[a : a + chunk] = pairs.reshape(len(X), F)
         return out
