@@ -39,9 +39,9 @@ RIG_DEFAULTS: dict[str, dict[str, float]] = {
 
 LATERAL_ACCEL = 2.5  # m/s^2, the most a curve may ask
 LONGITUDINAL_ACCEL = 1.5  # m/s^2
-MIN_SPEED_SHARE = 0.35  # speeds never drop below this share of the cruise speed
+MIN_SPEED_SHARE = 0.25  # speeds never drop below this share of the cruise speed
 PATH_STEP = 0.5  # m, resampling of the route
-CORNER_SMOOTHING = 4.0  # m, Gaussian sigma applied to the route polyline
+CORNER_SMOOTHING = 6.0  # m, Gaussian sigma applied to the lane path
 
 
 @dataclass
@@ -253,7 +253,7 @@ def _route(world: World, rng: np.random.Generator, length_m: float) -> tuple[np.
     first_len = world.streets[edge].length
     s_start = rng.uniform(0.2, 0.6) * first_len
     total = -s_start
-    margin = 60.0
+    margin = 60.0 + 0.05 * length_m  # the smoothed lane path cuts the corners short
     while total < length_m + margin:
         street = world.streets[edge]
         line = street.centerline if forward else street.centerline[::-1]
@@ -270,7 +270,11 @@ def _route(world: World, rng: np.random.Generator, length_m: float) -> tuple[np.
 
 
 def _lane_path(path_xy: np.ndarray, lane_offset: float):
-    """Resample, smooth the corners and shift into the right-hand lane.
+    """Shift into the right-hand lane, resample and smooth the corners.
+
+    The raw polyline is offset first (mitre joins) and the lane is smoothed after: offsetting
+    the smoothed centreline instead puts a cusp on the inside of every turn whose smoothed
+    radius is below the lane offset (the car spun through tens of degrees in a frame there).
 
     Args:
         path_xy: `(P, 2)` centreline polyline.
@@ -281,16 +285,39 @@ def _lane_path(path_xy: np.ndarray, lane_offset: float):
     """
     steps = np.linalg.norm(np.diff(path_xy, axis=0), axis=1)
     keep = np.concatenate([[True], steps > 1e-6])
-    path_xy = path_xy[keep]
-    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path_xy, axis=0), axis=1))])
+    lane = _offset_polyline(path_xy[keep], lane_offset)
+    arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(lane, axis=0), axis=1))])
     s = np.arange(0.0, arc[-1], PATH_STEP)
-    xy = np.stack([np.interp(s, arc, path_xy[:, 0]), np.interp(s, arc, path_xy[:, 1])], 1)
-    sigma = CORNER_SMOOTHING / PATH_STEP
-    xy = gaussian_filter1d(xy, sigma, axis=0, mode="nearest")
+    xy = np.stack([np.interp(s, arc, lane[:, 0]), np.interp(s, arc, lane[:, 1])], 1)
+    xy = gaussian_filter1d(xy, CORNER_SMOOTHING / PATH_STEP, axis=0, mode="nearest")
     d = np.gradient(xy, axis=0)
     heading = np.arctan2(d[:, 1], d[:, 0])
-    right = np.stack([np.sin(heading), -np.cos(heading)], axis=1)
-    lane_xy = xy + lane_offset * right
-    lane_steps = np.linalg.norm(np.diff(lane_xy, axis=0), axis=1)
-    lane_arc = np.concatenate([[0.0], np.cumsum(lane_steps)])
-    return lane_xy, heading, lane_arc
+    lane_arc = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(xy, axis=0), axis=1))])
+    return xy, heading, lane_arc
+
+
+def _offset_polyline(path_xy: np.ndarray, offset: float) -> np.ndarray:
+    """The polyline shifted ``offset`` metres to its right: mitre joins, except a bevel (the two
+    segment ends) on the outside of a turn sharper than 120 degrees, where a mitre runs away.
+
+    Args:
+        path_xy: `(P, 2)` polyline without repeated points, `P >= 2`.
+        offset: metres to the right (negative: left).
+
+    Returns:
+        `(Q, 2)` shifted polyline, `Q >= P`.
+    """
+    u = np.diff(path_xy, axis=0)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    right = np.stack([u[:, 1], -u[:, 0]], axis=1)
+    points = [path_xy[0] + offset * right[0]]
+    for i in range(1, len(path_xy) - 1):
+        n0, n1 = right[i - 1], right[i]
+        turns_right = u[i - 1, 0] * u[i, 1] - u[i - 1, 1] * u[i, 0] < 0
+        outside = turns_right != (offset > 0)
+        if float(u[i - 1] @ u[i]) > -0.5 or not outside:
+            points.append(path_xy[i] + offset * (n0 + n1) / (1.0 + float(n0 @ n1)))
+        else:
+            points += [path_xy[i] + offset * n0, path_xy[i] + offset * n1]
+    points.append(path_xy[-1] + offset * right[-1])
+    return np.asarray(points)

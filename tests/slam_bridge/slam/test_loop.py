@@ -119,7 +119,7 @@ def test_gps_dropout_is_skipped_not_nan(noisy):
 
 
 @pytest.mark.parametrize("kind", ["dpc", "mpc"])
-def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, kind, caplog):
+def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, noiseless, kind, caplog):
     """A hybrid window failing the consistency check runs that keyframe as n = 0: with a check
     every window fails (any row over 1e-3 px) and the fallback's iterations equal to the k-BA's,
     the hybrid's trajectory is the plain barrier BA's, keyframe by keyframe."""
@@ -145,7 +145,9 @@ def test_inconsistent_hybrid_window_falls_back_to_the_plain_kba(noisy, kind, cap
     assert summary.fallbacks == len(fell_back)
     np.testing.assert_allclose(hybrid.t_wc, plain.t_wc, atol=1e-9)
     np.testing.assert_allclose(hybrid.R_wc, plain.R_wc, atol=1e-9)
-    # the default check: a consistent tiny drive never falls back
+    # the default check: a consistent (noise-free) tiny drive never falls back
+    cfg, seq = noiseless
+    gps = gps_for_setting(cfg, seq, "sigma=0.75")
     default = run_method(cfg, seq, kind, gps, max_keyframes=16)
     assert not any(r.fallback for r in default.records)
     assert any(r.n_pose_graph > 0 for r in default.records)
