@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.errors import check_finite
+from slam_bridge.bridge.builder import BridgeConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import ImageFolder
@@ -77,6 +78,7 @@ class ImageSlamConfig:
             this far apart (None: not).
         gps_weight: weight of a GPS fix in the fusion (per square metre).
         dem_weight: weight of the terrain-elevation term (per square metre).
+        bridge: the network bridge, when a building model is given (``--buildings``).
     """
 
     method: str = "ba"
@@ -87,6 +89,7 @@ class ImageSlamConfig:
     gps_interpolate_gap_s: float | None = 1.5
     gps_weight: float = 1.0
     dem_weight: float = 1.0
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -190,8 +193,13 @@ def run_image_slam(
     *,
     overwrite: bool = False,
     progress: bool = True,
+    bridge=None,
 ) -> Path:
     """Run the SLAM over ``inputs`` and write its outputs (module docstring).
+
+    Args:
+        bridge: a :class:`slam_bridge.bridge.worker.BridgeWorker` (building constraints chosen
+            by a network, :func:`slam_bridge.bridge.builder.build_bridge`), or None.
 
     Returns:
         ``out_dir``.
@@ -207,7 +215,7 @@ def run_image_slam(
     remove_outputs(out, ["summary.json"])  # unfinished until written again (only our own)
     record_outputs(out, OUTPUTS)
     t0 = time.perf_counter()
-    result, tracks = run_on_images(inputs, cfg, progress)
+    result, tracks = run_on_images(inputs, cfg, progress, bridge=bridge)
     seconds = time.perf_counter() - t0
     frame_of = np.searchsorted(inputs.frames.timestamps, result.map.timestamps)
     summary = {
@@ -225,6 +233,18 @@ def run_image_slam(
         "frames_per_second": (int(frame_of[-1]) + 1) / seconds,
         "frontend_seconds": float(tracks.timings.get("total", 0.0)),
     }
+    if bridge is not None:
+        a = bridge.constraints.association
+        summary.update(
+            association=cfg.bridge.association,
+            building_keyframes=sum("building" in r.constraints for r in result.records),
+            associated_points=0 if a is None else int(a.associated.sum()),
+        )
+        if summary["associated_points"] == 0:  # documented fallback: no building constraint
+            logger.warning(
+                "no map point was associated with a facade: is the building model in the "
+                "images' world frame, and does it cover the route? (no building constraint)"
+            )
     if inputs.truth is not None:
         summary.update(evaluate_run(result, inputs))
     from slam_bridge import slam_outputs as so
@@ -287,6 +307,7 @@ def run_on_images(
     cfg: ImageSlamConfig | None = None,
     progress: bool = True,
     bridge=None,
+    start=None,
 ) -> tuple[SlamResult, ImageTracks]:
     """The run itself, for programs and benchmarks (no file written).
 
@@ -297,6 +318,9 @@ def run_on_images(
         bridge: a :class:`slam_bridge.bridge.worker.BridgeWorker`: its building constraints join
             the fusion and it sees every keyframe (given the images of the start-up's keyframes
             when it has no ``image_at``); finished (every job applied) at the end.
+        start: the start-up (default: :class:`TwoViewStart`, georeferenced by the GPS); an
+            experiment with a known first pose gives a
+            :class:`slam_bridge.slam.loop.KnownStartPoses`.
 
     Returns:
         ``(the SLAM's result, the front end with its timings and counters)``.
@@ -313,7 +337,7 @@ def run_on_images(
             antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
         )
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
-    start = TwoViewStart(
+    start = start or TwoViewStart(
         cfg.init,
         inputs.rig,
         mapping=cfg.slam.mapping,

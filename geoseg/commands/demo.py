@@ -1,18 +1,21 @@
-"""``geoseg demo``: the end-to-end demonstration on the synthetic world (first version).
+"""``geoseg demo``: the end-to-end demonstration on the synthetic world.
 
 Renders one short route with both rigs (car: forward camera; tram: side camera) under two
-appearance conditions, then writes a contact sheet of the four sequences and a top-down map of
+appearance conditions, writes a contact sheet of the four sequences and a top-down map of
 the world with its GIS products (true buildings, the erroneous building model, DEM segments,
-true trajectories, GPS fixes), and prints where everything is.
+true trajectories, GPS fixes), segments the frames with the shipped network, then runs the
+chapter-4 chain on a short occluded drive (the image SLAM with GPS + DEM, without building
+constraints, with the ray-cast baseline's and with the network's), and prints where
+everything is.
 
 The demo is a list of steps (:data:`STEPS`), each a function of a shared :class:`DemoContext`
-that records what it wrote in ``context.outputs``; later issues append steps (training,
-inference, SLAM) to the list.
+that records what it wrote in ``context.outputs``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import time
 from collections.abc import Callable
@@ -24,6 +27,7 @@ logger = logging.getLogger(__name__)
 
 DEFAULT_CONFIG = Path("configs/world_default.yaml")
 RIGS = ("car", "tram")
+DRIVE_M = 150.0  # the buildings step's drive: long enough to start and fuse, about a minute
 
 
 @dataclass
@@ -40,6 +44,7 @@ class DemoContext:
         fps: frame rate of the sequences (low by default: few frames, a long enough route
             for the map to show the GPS error).
         seed: seed of the routes and GIS errors.
+        drive_m: length of the drive of the buildings step (0: no such step).
         force: redo steps whose outputs exist.
         overwrite: write into sequence folders that hold files no render wrote.
         world: the built world (set by the first step that needs it).
@@ -55,6 +60,7 @@ class DemoContext:
     image_size: tuple[int, int] = (320, 240)
     fps: float = 1.0
     seed: int = 0
+    drive_m: float = 0.0
     force: bool = False
     overwrite: bool = False
     world: Any = None
@@ -216,12 +222,52 @@ def step_segment(ctx: DemoContext) -> None:
     ctx.outputs["segmentation"] = path
 
 
+def step_buildings(ctx: DemoContext) -> None:
+    """The whole chain of chapter 4 on a short drive through an occluded street: the image SLAM
+    with GPS + DEM + odometry, without building constraints, with the ray-cast baseline's and
+    with the joint network + eq. 4.14's (:mod:`slam_bridge.experiments.buildings_ch4`, the GIS
+    model with its errors). Writes ``buildings/``: the report ``buildings_ch4.md``, the
+    trajectories, the map points by association and the model reprojected into keyframes."""
+    import dataclasses
+
+    from geoseg.config import default_config_file, load_config
+    from slam_bridge.experiments.buildings_ch4 import BuildingsConfig, run_experiment
+
+    if ctx.drive_m <= 0:
+        return
+    source = default_config_file("buildings_ch4.yaml")
+    cfg = load_config(BuildingsConfig, source) if source else BuildingsConfig()
+    cfg = dataclasses.replace(
+        cfg.quick(), methods=["nobuild", "raycast", "bayes"], models=["gis"],
+        drive=dataclasses.replace(cfg.drive, length_m=ctx.drive_m),
+    )  # fmt: skip
+    out = run_experiment(cfg, ctx.out / "buildings", overwrite=ctx.overwrite, force=ctx.force)
+    runs = json.loads((out / "buildings_ch4.json").read_text())["runs"]
+    for method in cfg.methods:
+        r = runs[f"{method}_gis"]
+        line = f"slam on images, {method:8s}: " + (
+            f"failed ({r['error']})" if "error" in r else
+            f"{r['translation_error_m']:.2f} m, {r['rotation_error_deg']:.2f} deg mean error "
+            f"(GPS fixes {r.get('gps_error_m', float('nan')):.2f} m)"
+        )  # fmt: skip
+        if r.get("association_precision") is not None:
+            line += (
+                f"; {r['associated_points']} points on facades, "
+                f"{100 * r['association_precision']:.0f} % on the right one"
+            )
+        print(line)
+    ctx.outputs["buildings report"] = out / "buildings_ch4.md"
+    for picture in sorted(out.glob("*.png")):
+        ctx.outputs[picture.stem.replace("_", " ")] = picture
+
+
 # The demo, in order; later issues append (name, step) pairs.
 STEPS: list[tuple[str, Callable[[DemoContext], None]]] = [
     ("render", step_render),
     ("contact sheet", step_contact_sheet),
     ("map", step_map),
     ("segment", step_segment),
+    ("buildings", step_buildings),
 ]
 
 
@@ -247,6 +293,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="two (or more) comma-separated conditions (default summer_day,winter)",
     )
     parser.add_argument("--seed", type=int, default=None, help="seed of the city, routes and GIS")
+    parser.add_argument(
+        "--drive-m", type=float, default=DRIVE_M,
+        help=f"length of the occluded drive the SLAM and the network bridge run on (default "
+        f"{DRIVE_M:g} m; 0: skip)",
+    )  # fmt: skip
     parser.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a world config key (repeatable)",
@@ -283,6 +334,8 @@ def run(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
+    if not args.drive_m >= 0:
+        raise GeosegError(f"--drive-m: expected a length >= 0, got {args.drive_m}")
     check_fps(args.fps, "--fps")
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
     if len(conditions) < 2 or len(set(conditions)) != len(conditions):
@@ -310,6 +363,7 @@ def run(args: argparse.Namespace) -> int:
         image_size=size,
         fps=args.fps,
         seed=world_config.seed,
+        drive_m=args.drive_m,
         force=args.force,
         overwrite=args.overwrite,
     )

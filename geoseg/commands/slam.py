@@ -1,10 +1,19 @@
-"""``geoseg slam run``: the SLAM on a folder of images, with GPS, odometry and DEM when given.
+"""``geoseg slam run``: the SLAM on a folder of images, with GPS, odometry, DEM and building
+constraints when given.
 
 Example (a rendered sequence is one such folder)::
 
     geoseg render --out out/drive --frames 300 --size 640x480
     geoseg slam run out/drive --out out/drive_slam --gps out/drive/gis/gps.csv \\
-        --odometry out/drive/gis/odometry.csv --dem out/drive/gis/dem.csv
+        --odometry out/drive/gis/odometry.csv --dem out/drive/gis/dem.csv \\
+        --buildings out/drive/gis/facades.csv
+
+With ``--buildings`` (a facade table, the columns of ``gis/facades.csv``) the network bridge
+runs beside the SLAM (thesis chapter 4): by default the shipped joint network labels the
+keyframes, eq. 4.14 associates the building points with the facades, and the fusion pulls them
+onto their planes (:mod:`slam_bridge.bridge`). ``--association dirichlet`` uses the naive CNN +
+Dirichlet filter instead; ``raycast`` the chapter-2 baseline (no network; needs the model's
+mesh, ``--buildings-mesh``, by default ``buildings_model.ply`` beside the table).
 
 ``FRAMES_DIR`` holds the images (PNG/JPEG, directly or in ``rgb/``, sorted by name) and a
 ``camera.json`` (``K``, ``image_size``; optionally ``fps``, ``camera_height_m``,
@@ -29,6 +38,24 @@ def configure(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument("--gps", type=Path, help="GPS log CSV (timestamp, x, y or lat/lon)")
     run_p.add_argument("--odometry", type=Path, help="wheel odometry CSV (timestamp, speed_mps)")
     run_p.add_argument("--dem", type=Path, help="road DEM CSV (x0, y0, z0, x1, y1, z1)")
+    run_p.add_argument(
+        "--buildings", type=Path,
+        help="building model's facade table CSV (x0, y0, x1, y1, z_min, z_max, nx, ny, nz, d): "
+        "building constraints chosen by the network bridge",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--association", choices=("bayes", "dirichlet", "raycast"), default=None,
+        help="how points are given facades: bayes (joint network + eq. 4.14), dirichlet "
+        "(naive CNN + Dirichlet filter), raycast (baseline); default from config (bayes)",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--network", type=Path,
+        help="the association's network (.onnx/.pt file or weights folder; default: shipped)",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--buildings-mesh", type=Path,
+        help="raycast: the model's mesh (default: buildings_model.ply beside --buildings)",
+    )  # fmt: skip
     run_p.add_argument("--camera", type=Path, help="camera.json (default: FRAMES/camera.json)")
     run_p.add_argument("--timestamps", type=Path, help="timestamps CSV (image, timestamp)")
     run_p.add_argument("--georeference", type=Path, help="JSON of the world origin in WGS84")
@@ -54,10 +81,15 @@ def run(args: argparse.Namespace) -> int:
     import json
 
     from geoseg.config import default_config_file, load_config
+    from geoseg.errors import GeosegError
     from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_image_slam
 
     source = args.config or default_config_file(DEFAULT_CONFIG.name)
     overrides = list(args.overrides) + ([f"method={args.method}"] if args.method else [])
+    if args.association:
+        overrides.append(f"bridge.association={args.association}")
+    if args.buildings is None and (args.association or args.network or args.buildings_mesh):
+        raise GeosegError("--association, --network, --buildings-mesh: need --buildings")
     cfg = load_config(ImageSlamConfig, source, overrides=overrides)
     inputs = load_inputs(
         args.frames,
@@ -68,9 +100,11 @@ def run(args: argparse.Namespace) -> int:
         dem=args.dem,
         georeference=args.georeference,
     )
+    bridge = None if args.buildings is None else _bridge(args, cfg, inputs)
     out = run_image_slam(
-        inputs, args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress
-    )
+        inputs, args.out, cfg, overwrite=args.overwrite, progress=not args.no_progress,
+        bridge=bridge,
+    )  # fmt: skip
     s = json.loads((out / "summary.json").read_text())
     print(
         f"{s['keyframes']} keyframes of {s['frames']} frames, {s['tracking_failures']} tracking "
@@ -85,6 +119,44 @@ def run(args: argparse.Namespace) -> int:
         if "gps_error_m" in s:
             line += f" (GPS fixes: {s['gps_error_m']:.2f} m)"
         print(line)
+    if bridge is not None:
+        print(
+            f"buildings ({s['association']}): {s['associated_points']} map points on facades, "
+            f"fused at {s['building_keyframes']} of {s['keyframes']} keyframes"
+        )
     for name in ("trajectory.csv", "map_points.ply", "keyframes.csv", "trajectory.png"):
         print(f"  {name:15s} {out / name}")
     return 0
+
+
+def _bridge(args, cfg, inputs):
+    """The network bridge of ``--buildings`` (its inputs read and checked before the run)."""
+    from geoseg.errors import GeosegError
+    from slam_bridge.bridge.builder import build_bridge, load_network
+    from slam_bridge.bridge.facades import Facades
+
+    method = cfg.bridge.association
+    if method == "raycast" and args.network:
+        raise GeosegError("--network: the raycast association uses no network")
+    if method != "raycast" and args.buildings_mesh:
+        raise GeosegError("--buildings-mesh: only the raycast association uses a mesh")
+    facades = Facades.read_csv(args.buildings)
+    mesh = None
+    if method == "raycast":
+        import trimesh
+
+        path = args.buildings_mesh or args.buildings.parent / "buildings_model.ply"
+        if not path.is_file():
+            raise GeosegError(f"{path}: no such mesh (raycast needs --buildings-mesh)")
+        try:
+            mesh = trimesh.load(path, force="mesh")
+        except Exception as exc:  # trimesh raises many kinds on a file that is not a mesh
+            raise GeosegError(f"{path}: not a readable mesh ({exc})") from None
+        if len(mesh.faces) == 0:
+            raise GeosegError(f"{path}: a mesh without faces")
+    segmenter = None
+    if method != "raycast":
+        segmenter = load_network(method, args.network, cfg.bridge.network_threads)
+    return build_bridge(
+        cfg.bridge, facades, image_size=inputs.frames.image_size, mesh=mesh, segmenter=segmenter
+    )

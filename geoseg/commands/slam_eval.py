@@ -1,17 +1,26 @@
 """``geoseg slam-eval``: localisation experiments on the synthetic world.
 
-Example (the chapter-3 experiment, thesis §3.7)::
+Examples::
 
-    geoseg slam-eval fusion --config configs/slam_ch3.yaml --out out/fusion_ch3
-    geoseg slam-eval fusion --config configs/slam_ch3.yaml --full
-    geoseg slam-eval fusion --set slam.window.n=20 --set quick_length_m=100
+    geoseg slam-eval fusion --out out/fusion_ch3            # chapter 3, short run
+    geoseg slam-eval fusion --full                          # chapter 3, the whole grid
+    geoseg slam-eval buildings --out out/buildings_ch4      # chapter 4, short drive
+    geoseg slam-eval buildings --full --data data/ch4_drive # chapter 4, the 1.2 km drive
 
-``fusion`` runs :func:`slam_bridge.experiments.fusion_ch3.run_experiment`: by default the short run of the
-config (``quick_length_m``, ``quick_sigmas``, ``quick_bias``), with ``--full`` the whole grid
-(every method and GPS setting on the full sequence). It writes ``fusion_ch3.md`` (Tables
-3.1-3.3 beside the thesis's figures), ``fusion_ch3.json``, ``trajectory.png`` and ``memory.png``
-(fig. 3.7) to ``--out``, and prints the tables. A directory already holding the results of the
-same config is not recomputed (``--force`` recomputes).
+``fusion`` (thesis §3.7) runs :func:`slam_bridge.experiments.fusion_ch3.run_experiment`
+(``configs/slam_ch3.yaml``): the GPS fusion of the hybrid windows against the plain k-BA. It
+writes ``fusion_ch3.md`` (Tables 3.1-3.3 beside the thesis's figures), ``fusion_ch3.json``,
+``trajectory.png`` and ``memory.png`` (fig. 3.7).
+
+``buildings`` (thesis chapter 4) runs :func:`slam_bridge.experiments.buildings_ch4.
+run_experiment` (``configs/buildings_ch4.yaml``): the image SLAM on a rendered drive with
+building constraints chosen by the ray-cast baseline, the naive CNN + Dirichlet filter, the
+joint network + eq. 4.14 and the oracle, against the exact and the GIS building models. It
+writes ``buildings_ch4.md``, ``buildings_ch4.json``, ``runs/`` and the pictures.
+
+Without ``--full`` each runs the short version of its config (``quick_*`` keys); with it the
+whole experiment. A folder already holding the results of the same config is not recomputed
+(``--force`` recomputes).
 """
 
 from __future__ import annotations
@@ -19,24 +28,39 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-DEFAULT_CONFIG = Path("configs/slam_ch3.yaml")
-EXPERIMENTS = ("fusion",)
+#: experiment -> (default config file, default output folder, results file)
+EXPERIMENTS = {
+    "fusion": ("slam_ch3.yaml", "out/fusion_ch3", "fusion_ch3"),
+    "buildings": ("buildings_ch4.yaml", "out/buildings_ch4", "buildings_ch4"),
+}
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("experiment", choices=EXPERIMENTS, help="which experiment (fusion: ch. 3)")
+    parser.add_argument(
+        "experiment", choices=sorted(EXPERIMENTS),
+        help="fusion: chapter 3 (GPS fusion, hybrid windows); buildings: chapter 4 (networks "
+        "choose building constraints)",
+    )  # fmt: skip
     parser.add_argument(
         "--config",
         type=Path,
         default=None,
-        help=f"experiment YAML (default: the repository's {DEFAULT_CONFIG}, else built-in defaults)",
+        help="experiment YAML (default: the repository's configs/slam_ch3.yaml or "
+        "configs/buildings_ch4.yaml, else built-in defaults)",
     )
-    parser.add_argument("--out", type=Path, default=Path("out/fusion_ch3"), help="output directory")
+    parser.add_argument(
+        "--out", type=Path, default=None, help="output directory (default: out/<experiment>)"
+    )
+    parser.add_argument(
+        "--data", type=Path, default=None,
+        help="buildings: where the drive is rendered (default: OUT/drive); reused when it "
+        "holds the same rendering",
+    )  # fmt: skip
     parser.add_argument(
         "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a config key, e.g. slam.window.n=20 (repeatable)",
     )  # fmt: skip
-    parser.add_argument("--full", action="store_true", help="the whole grid on the full sequence")
+    parser.add_argument("--full", action="store_true", help="the whole experiment")
     parser.add_argument("--force", action="store_true", help="recompute even if up to date")
     parser.add_argument(
         "--overwrite", action="store_true", help="write into a folder holding other files"
@@ -45,14 +69,30 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from geoseg.config import default_config_file, load_config
-    from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
+    from geoseg.errors import GeosegError
 
-    source = args.config or default_config_file(DEFAULT_CONFIG.name)
-    cfg = load_config(ExperimentConfig, source, overrides=args.overrides)
-    if not args.full:
-        cfg = cfg.quick()
-    out = run_experiment(cfg, args.out, force=args.force, overwrite=args.overwrite)
-    print((out / "fusion_ch3.md").read_text())
-    print(f"results: {out / 'fusion_ch3.json'}")
-    print(f"plots:   {out / 'trajectory.png'}, {out / 'memory.png'}")
+    config_name, default_out, results = EXPERIMENTS[args.experiment]
+    if args.data is not None and args.experiment != "buildings":
+        raise GeosegError("--data: only the buildings experiment renders a drive")
+    out_dir = args.out or Path(default_out)
+    source = args.config or default_config_file(config_name)
+    if args.experiment == "fusion":
+        from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
+
+        cfg = load_config(ExperimentConfig, source, overrides=args.overrides)
+        cfg = cfg if args.full else cfg.quick()
+        out = run_experiment(cfg, out_dir, force=args.force, overwrite=args.overwrite)
+        plots = [out / "trajectory.png", out / "memory.png"]
+    else:
+        from slam_bridge.experiments.buildings_ch4 import BuildingsConfig, run_experiment
+
+        cfg = load_config(BuildingsConfig, source, overrides=args.overrides)
+        cfg = cfg if args.full else cfg.quick()
+        out = run_experiment(
+            cfg, out_dir, data_dir=args.data, force=args.force, overwrite=args.overwrite
+        )
+        plots = sorted(out.glob("*.png"))
+    print((out / f"{results}.md").read_text())
+    print(f"results: {out / f'{results}.json'}")
+    print("plots:   " + ", ".join(str(p) for p in plots))
     return 0

@@ -7,7 +7,8 @@ At each keyframe it
    since: the network outputs sampled at a keyframe's observations (added to the points'
    evidence, :class:`~slam_bridge.bridge.evidence.PointEvidence`) and new associations (handed
    to the fusion's :class:`~slam_bridge.bridge.constraints.BuildingConstraints`);
-2. submits the keyframe's image with a copy of its observations and rotation (inference);
+2. submits the keyframe's image with a copy of its observations and rotation (inference;
+   every ``infer_every``-th keyframe, for a network too slow to label them all);
 3. every ``associate_every`` keyframes, submits a snapshot of the points (positions, evidence,
    the camera centre each is seen from) to the association.
 
@@ -97,6 +98,9 @@ class BridgeWorker:
         constraints: the fusion's building provider, given each new association.
         smooth: applied to each probability map before sampling (the Dirichlet filter's).
         associate_every: keyframes between associations.
+        infer_every: keyframes between inferences (1: every keyframe). A map point is seen in
+            many keyframes, so a slow network labelling every few still reaches most points,
+            deterministically (where dropping jobs depends on the machine's load).
         max_pending: most inference jobs waiting; more are dropped.
         asynchronous: run the jobs in a worker thread (False: inline, deterministic).
         image_at: ``timestamp -> (H, W, 3) uint8`` image of a keyframe the hook gets without
@@ -112,15 +116,17 @@ class BridgeWorker:
         *,
         smooth: Callable[[np.ndarray], np.ndarray] | None = None,
         associate_every: int = 5,
+        infer_every: int = 1,
         max_pending: int = 4,
         asynchronous: bool = True,
         image_at: Callable[[float], np.ndarray] | None = None,
     ) -> None:
-        if associate_every < 1 or max_pending < 1:
-            raise SlamError("associate_every and max_pending must be >= 1")
+        if min(associate_every, infer_every, max_pending) < 1:
+            raise SlamError("associate_every, infer_every and max_pending must be >= 1")
         self.network, self.num_classes = network, num_classes
         self.associate, self.constraints, self.smooth = associate, constraints, smooth
         self.associate_every, self.max_pending = associate_every, max_pending
+        self.infer_every = infer_every
         self.asynchronous, self.image_at = asynchronous, image_at
         self.evidence: PointEvidence | None = None
         self.stats = BridgeStats()
@@ -143,10 +149,11 @@ class BridgeWorker:
         if self.evidence is None:
             self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
         self._apply(slam_map, k, wait=False)
-        image = None if obs is None else obs.image
-        if image is None and self.image_at is not None:
+        infer = self.network is not None and k % self.infer_every == 0
+        image = None if obs is None or not infer else obs.image
+        if infer and image is None and self.image_at is not None:
             image = self.image_at(float(slam_map.timestamps[k]))
-        if self.network is not None and image is not None and 0 <= k < slam_map.num_keyframes:
+        if infer and image is not None and 0 <= k < slam_map.num_keyframes:
             waiting = sum(not f.done() for _, _, f in self._pending["infer"])
             if waiting >= self.max_pending:
                 self.stats.dropped += 1

@@ -133,6 +133,12 @@ def build_env(root: Path, enet_files: tuple[Path, Path]) -> Env:
     (inputs / "gps_other.csv").write_text("image,x,y\nother.png,10.0,0.5\n")
     (inputs / "gps_twice.csv").write_text("image,x,y\nimg_1.png,10.0,0.5\nimg_1.png,90.0,0.5\n")
     (inputs / "notes.txt").write_text("a user's notes\n")
+    facades = "x0,y0,x1,y1,z_min,z_max,nx,ny,nz,d\n"
+    (inputs / "facades.csv").write_text(facades + "0,0,10,0,0,8,0,-1,0,0\n")
+    (inputs / "facades_long_normal.csv").write_text(facades + "0,0,10,0,0,8,0,-2,0,0\n")
+    (inputs / "facades_nan_normal.csv").write_text(facades + "0,0,10,0,0,8,nan,-1,0,0\n")
+    (inputs / "facades_off_plane.csv").write_text(facades + "0,0,10,0,0,8,0,-1,0,3\n")
+    (inputs / "facades_empty.csv").write_text(facades)
     (inputs / "empty_dir").mkdir()
     (inputs / "list.yaml").write_text("- 1\n- 2\n")
     (inputs / "broken.yaml").write_text("seed: [1, 2\n")
@@ -289,6 +295,13 @@ def rendered(env: Env) -> Path:
         argv = ["render", "--config", str(env.world), "--out", str(out), "--frames", "3"]
         assert main([*argv, "--size", "64x48"]) == 0
     return out
+
+
+def slam_buildings(env: Env, facades: str = "facades.csv") -> list[str]:
+    """``slam run`` on the rendered sequence with the facade table ``inputs/<facades>``."""
+    folder = rendered(env)
+    return ["slam", "run", str(folder), "--out", str(env.out("slam")), "--buildings",
+            str(env.inputs / facades)]  # fmt: skip
 
 
 def earlier_run(env: Env) -> Path:

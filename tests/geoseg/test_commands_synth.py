@@ -82,7 +82,7 @@ def test_render_command_bad_config_file(tmp_path, capsys) -> None:
 def test_demo_command_on_a_tiny_world(tmp_path, tiny_config, capsys) -> None:
     out = tmp_path / "demo"
     argv = ["demo", "--config", str(tiny_config), "--out", str(out), "--frames", "2"]
-    assert main(argv + ["--size", "48x36"]) == 0
+    assert main(argv + ["--size", "48x36", "--drive-m", "0"]) == 0
     printed = capsys.readouterr().out
     for name in ("contact_sheet.png", "map.png", "segmentation.png"):
         assert (out / name).is_file() and str(out / name) in printed
@@ -95,6 +95,24 @@ def test_demo_command_on_a_tiny_world(tmp_path, tiny_config, capsys) -> None:
     assert (car_a / "rgb" / "000000.png").read_bytes() != (
         car_b / "rgb" / "000000.png"
     ).read_bytes()
+
+
+@pytest.mark.slow
+def test_demo_runs_the_chapter_4_chain(tmp_path, tiny_config, capsys) -> None:
+    """The buildings step on a short drive: the SLAM without buildings, with the ray-cast
+    baseline's and with the network's, its report and pictures."""
+    out = tmp_path / "demo"
+    argv = ["demo", "--config", str(tiny_config), "--out", str(out), "--frames", "1"]
+    assert main(argv + ["--size", "48x36", "--drive-m", "45"]) == 0
+    printed = capsys.readouterr().out
+    for method in ("nobuild", "raycast", "bayes"):
+        assert f"slam on images, {method}" in printed
+    assert "% on the right one" in printed
+    report = out / "buildings" / "buildings_ch4.md"
+    assert "| bayes |" in report.read_text() and str(report) in printed
+    for name in ("trajectories_gis", "association_gis", "reprojection_gis"):
+        assert (out / "buildings" / f"{name}.png").is_file()
+    assert main(argv + ["--drive-m", "-1"]) == 2
 
 
 def test_demo_command_bad_inputs(tmp_path, capsys) -> None:

@@ -4,11 +4,13 @@ uses them, beside the image SLAM's GPS, DEM and odometry."""
 
 from __future__ import annotations
 
-import cv2
+import json
+
 import numpy as np
 import pytest
 
 from geoseg.classes import BUILDING, NUM_CLASSES
+from geoseg.cli import main
 from geoseg.infer import Segmenter
 from geoseg.pretrained import pretrained_file
 from geoseg.synth.export import render_sequence
@@ -16,6 +18,7 @@ from slam_bridge.bridge.association import associate_bayes
 from slam_bridge.bridge.constraints import BuildingConstraints
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import BridgeWorker, segmenter_outputs
+from slam_bridge.experiments.facade_truth import FacadeTruth
 from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_on_images
 
 
@@ -40,25 +43,6 @@ def drive(tmp_path_factory, make_tiny_world):
     return folder
 
 
-def _true_facades(folder, result, inputs, facades) -> np.ndarray:
-    """``(P,)`` the model facade under each point's first observation (renderer instance ids),
-    -1 where it is not on a modelled facade."""
-    m = result.map
-    frame_of = np.searchsorted(inputs.frames.timestamps, m.timestamps)
-    truth = np.full(m.num_points, -1)
-    points, first = np.unique(m.obs_point, return_index=True)  # observations are in order
-    for f in np.unique(frame_of[m.obs_keyframe[first]]):
-        here = first[frame_of[m.obs_keyframe[first]] == f]
-        instance = np.load(folder / "geometry" / f"{f:06d}.npz")["instance"]
-        label = cv2.imread(str(folder / "labels" / f"{f:06d}.png"), cv2.IMREAD_GRAYSCALE)
-        u, v = np.rint(m.obs_uv[here]).astype(int).T
-        for o, inst, lab in zip(here, instance[v, u], label[v, u], strict=True):
-            rows = np.flatnonzero(facades.true_facade_id == inst)
-            if lab == BUILDING and rows.size:
-                truth[m.obs_point[o]] = rows[0]
-    return truth
-
-
 def test_joint_network_bridge_on_images(drive):
     """A 120-frame drive, the GIS model with its errors (shifted, rotated, missing, extra
     buildings). Measured: 723 points associated at precision 0.91 against the renderer's facade
@@ -80,10 +64,56 @@ def test_joint_network_bridge_on_images(drive):
     fused = sum("building" in r.constraints for r in result.records)
     final = worker.constraints.association
     got = np.flatnonzero(final.associated)
-    truth = _true_facades(drive, result, inputs, facades)
+    truth = FacadeTruth(drive, inputs.frames.timestamps).observe_all(result.map)
+    truth = truth.model_rows(facades, result.map.num_points)
     precision = np.mean(final.facade[got] == truth[got])
     print(f"{got.size} associated, precision {precision:.3f}, fused {fused}/{len(result.records)}")
     assert result.tracking_failures == 0
     assert len(worker.stats.inference_seconds) >= 0.8 * len(result.records)
     assert got.size >= 200 and precision >= 0.8
     assert fused >= 0.4 * len(result.records)
+
+
+def _slam_run(drive, out, *extra) -> list[str]:
+    return [
+        "slam", "run", str(drive), "--out", str(out), "--gps", str(drive / "gps.csv"),
+        "--odometry", str(drive / "gis" / "odometry.csv"), "--dem", str(drive / "gis" / "dem.csv"),
+        "--no-progress", *extra,
+    ]  # fmt: skip
+
+
+def test_slam_run_command_with_buildings(drive, tmp_path, capsys, caplog):
+    facades = drive / "gis" / "facades.csv"
+    args = _slam_run(
+        drive, tmp_path / "run", "--buildings", str(facades), "--association", "raycast"
+    )
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["association"] == "raycast"
+    assert summary["associated_points"] > 100 and summary["building_keyframes"] > 0
+    assert "map points on facades" in capsys.readouterr().out
+    # a model far from the route (another frame, say): the run goes on without building rows
+    table = np.genfromtxt(facades, delimiter=",", names=True)
+    for c in ("x0", "x1"):
+        table[c] += 10_000.0
+    table["d"] += 10_000.0 * table["nx"]
+    far = tmp_path / "far.csv"
+    np.savetxt(far, table, delimiter=",", header=",".join(table.dtype.names), comments="")
+    mesh = ["--buildings-mesh", str(drive / "gis" / "buildings_model.ply")]
+    assert main(_slam_run(drive, tmp_path / "far", "--buildings", str(far), "--association",
+                          "raycast", *mesh)) == 0  # fmt: skip
+    summary = json.loads((tmp_path / "far" / "summary.json").read_text())
+    assert summary["associated_points"] == 0 and summary["building_keyframes"] == 0
+    assert "no map point was associated with a facade" in caplog.text
+
+
+def test_slam_run_refuses_bridge_options_without_a_building_model(drive, tmp_path, capsys):
+    assert main(_slam_run(drive, tmp_path / "a", "--association", "bayes")) == 2
+    assert "need --buildings" in capsys.readouterr().err
+    facades = str(drive / "gis" / "facades.csv")
+    mesh = str(drive / "gis" / "buildings_model.ply")
+    assert (
+        main(_slam_run(drive, tmp_path / "b", "--buildings", facades, "--buildings-mesh", mesh))
+        == 2
+    )
+    assert "only the raycast association" in capsys.readouterr().err

@@ -136,9 +136,29 @@ def test_the_loop_never_waits_for_a_slow_network(scene):
     assert np.isfinite(res.map.t_wc).all()
 
 
+def test_a_slow_network_labels_every_few_keyframes(scene):
+    """``infer_every=3``: the network sees keyframes 0, 3, 6, ... only; the points still gather
+    evidence from them (each is seen in several keyframes) and get associated."""
+    stand_in = scene[4]
+    seen = []
+
+    def counted(image):
+        seen.append(image.shape)
+        return stand_in(image)
+
+    worker, constraints = _worker(scene, network=counted, asynchronous=False, infer_every=3)
+    res = _run(scene, worker, [constraints])
+    final = worker.finish(res.map)
+    # keyframe 0 is a start keyframe, with no image from this source
+    assert len(seen) == len(range(3, res.map.num_keyframes, 3))
+    assert final.associated.sum() > 50
+
+
 def test_bad_worker_settings(scene):
     with pytest.raises(SlamError, match="associate_every"):
         _worker(scene, associate_every=0)
+    with pytest.raises(SlamError, match="infer_every"):
+        _worker(scene, infer_every=0)
 
 
 def test_segmenter_outputs_resizes_and_transposes():

@@ -1,0 +1,592 @@
+"""The chapter-4 experiment (thesis §4.2.4.2, §4.3.4): building constraints chosen by networks.
+
+A drive with loops through a ``dense_occlusion`` city (trees, parked and moving vehicles,
+poles and shelters in front of the facades) is rendered once, then run through the image SLAM
+(:func:`slam_bridge.image_slam.run_on_images`, same front end for every run) with each way of
+choosing building constraints (``methods``):
+
+* ``nobuild``: no building constraint;
+* ``raycast``: the chapter-2 baseline (a point whose ray from the camera hits the building
+  model is a building point; nearest facade);
+* ``dirichlet``: the naive CNN + the shipped Dirichlet filter (2015, ``D(P_Z) > t_D``);
+* ``bayes``: the joint network (labels + normals) and eq. 4.14 (2016);
+* ``oracle``: every map point on the facade it really lies on (the renderer's instance ids):
+  the upper bound,
+
+against two building models (``models``):
+
+* ``exact``: the true facades, wheel odometry + the road DEM, no GPS; the first keyframes
+  take their true poses (:class:`~slam_bridge.slam.loop.KnownStartPoses`), as the thesis's
+  synthetic run starts from a known pose. Buildings constrain some axes, odometry and the DEM
+  the rest (§4.2.4.2).
+* ``gis``: the GIS model ``geoseg render`` writes (shifted and rotated footprints, missing and
+  extra buildings) with a GPS of ``sigma_b = gps_sigma_m`` + the DEM + odometry, started as a
+  user starts it (two views, georeferenced by the GPS; no ground truth).
+
+Each run is evaluated against the truth (errors of the keyframes, tracking failures, the
+association's precision and recall against :class:`~slam_bridge.experiments.facade_truth.
+FacadeTruth`) and saved as it finishes (``runs/<method>_<model>.json`` + ``.npz``): an
+interrupted experiment resumes where it stopped. :func:`run_experiment` writes the flat
+figures (``buildings_ch4.json``), their tables (``buildings_ch4.md``) and the pictures
+(:mod:`slam_bridge.experiments.buildings_ch4_plots`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge, load_network
+from slam_bridge.bridge.worker import BridgeWorker
+from slam_bridge.errors import SlamError
+from slam_bridge.image_slam import ImageSlamConfig
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "METHODS",
+    "MODELS",
+    "DriveConfig",
+    "BuildingsConfig",
+    "prepare_drive",
+    "run_one",
+    "run_experiment",
+]
+
+METHODS = ("nobuild", "raycast", "dirichlet", "bayes", "oracle")
+MODELS = ("exact", "gis")
+
+
+@dataclass
+class DriveConfig:
+    """The rendered drive.
+
+    Attributes:
+        preset: world preset (``dense_occlusion``: occluders everywhere).
+        world_seed: the city.
+        blocks: ``(x, y)`` blocks of the city; a small city makes a long route loop back.
+        rig: ``car`` or ``tram``.
+        condition: appearance condition.
+        route_seed: the route.
+        length_m: distance driven.
+        fps: frame rate.
+        image_size: ``(W, H)`` of the rendered images.
+    """
+
+    preset: str = "dense_occlusion"
+    world_seed: int = 7
+    blocks: tuple[int, int] = (2, 2)
+    rig: str = "car"
+    condition: str = "summer_day"
+    route_seed: int = 7
+    length_m: float = 1200.0
+    fps: float = 10.0
+    image_size: tuple[int, int] = (640, 480)
+
+    def world_config(self):
+        from geoseg.synth.world import WorldConfig
+
+        bx, by = self.blocks
+        return WorldConfig(seed=self.world_seed, preset=self.preset, blocks_x=bx, blocks_y=by)
+
+
+def _default_slam() -> ImageSlamConfig:
+    from geoseg.config import default_config_file, load_config
+
+    source = default_config_file("slam_images.yaml")
+    return load_config(ImageSlamConfig, source) if source else ImageSlamConfig()
+
+
+@dataclass
+class BuildingsConfig:
+    """The chapter-4 experiment (``configs/buildings_ch4.yaml``).
+
+    Attributes:
+        drive: the rendered drive.
+        bridge: the bridge's settings (its ``association`` is each method's; its
+            ``window_weight`` is the GIS model's cap, whose errors must not outvote the GPS).
+        window_weight_exact: the cap with the exact model (None: none: the model is right).
+        naive_infer_every: the naive CNN labels every this many keyframes (its dense
+            prediction costs ~40x the joint network's on a CPU; a point is seen in several
+            keyframes, so most still gather its evidence).
+        async_run: one more run of ``bayes`` on the ``gis`` model (or the first model) with the
+            worker asynchronous (``bayes_<model>_async``), for the timing figures; the others
+            follow ``bridge.asynchronous`` (false in the config: deterministic figures that do
+            not depend on the machine's load).
+        slam: the image SLAM (default: ``configs/slam_images.yaml``).
+        methods: among :data:`METHODS`.
+        models: among :data:`MODELS`.
+        gps_sigma_m: the GPS of the ``gis`` model, ``N(0, sigma^2)`` per axis at every frame.
+        start_keyframes: keyframes placed at their true poses (``exact`` model).
+        quick_length_m: drive length of the default (non ``--full``) run.
+        seed: seed of the GPS noise.
+    """
+
+    drive: DriveConfig = field(default_factory=DriveConfig)
+    bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    window_weight_exact: float | None = None
+    naive_infer_every: int = 3
+    async_run: bool = True
+    slam: ImageSlamConfig = field(default_factory=_default_slam)
+    methods: list[str] = field(default_factory=lambda: list(METHODS))
+    models: list[str] = field(default_factory=lambda: list(MODELS))
+    gps_sigma_m: float = 0.75
+    start_keyframes: int = 3
+    quick_length_m: float = 250.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name, given, known in (
+            ("methods", self.methods, METHODS),
+            ("models", self.models, MODELS),
+        ):
+            if not given or set(given) - set(known):
+                raise SlamError(f"{name}: expected some of {list(known)}, got {given}")
+        if self.gps_sigma_m < 0:
+            raise SlamError(f"gps_sigma_m: expected >= 0, got {self.gps_sigma_m}")
+        if self.start_keyframes < 2:
+            raise SlamError(f"start_keyframes: expected >= 2, got {self.start_keyframes}")
+        if self.naive_infer_every < 1:
+            raise SlamError(f"naive_infer_every: expected >= 1, got {self.naive_infer_every}")
+
+    def timing_model(self) -> str:
+        """The model of the asynchronous timing run."""
+        return "gis" if "gis" in self.models else self.models[0]
+
+    def quick(self) -> BuildingsConfig:
+        """The default (short) run: the same city and route, ``quick_length_m`` long."""
+        drive = dataclasses.replace(self.drive, length_m=self.quick_length_m)
+        return dataclasses.replace(self, drive=drive)
+
+
+# ------------------------------------------------------------------------------- the drive
+def prepare_drive(cfg: BuildingsConfig, folder: str | Path) -> Path:
+    """Render the drive into ``folder`` (skipped when it holds the same render) and write its
+    GPS log (``gps_sigma<s>.csv``) and the exact building model (``gis/exact/``).
+
+    Returns:
+        ``folder``.
+    """
+    from geoseg.synth.export import drive_frames, render_sequence
+    from geoseg.synth.gps import GpsConfig, simulate_gps
+    from geoseg.synth.world import build_world
+
+    d = cfg.drive
+    world_cfg = d.world_config()
+    world = build_world(world_cfg)
+    guess = int(d.length_m / 4.0 * d.fps)  # frames at 4 m/s, grown until the route is long enough
+    while True:
+        traj = drive_frames(
+            world, guess, rig=d.rig, fps=d.fps, seed=d.route_seed, image_size=d.image_size
+        )
+        arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(traj.t_wc, axis=0), axis=1))]
+        if arc[-1] >= d.length_m:
+            frames = int(np.searchsorted(arc, d.length_m)) + 1
+            break
+        guess = int(guess * 1.5)
+    folder = render_sequence(
+        world_cfg, folder, frames=frames, condition=d.condition, rig=d.rig,
+        image_size=d.image_size, fps=d.fps, seed=d.route_seed, world=world,
+        allow_other_files=True,
+    )  # fmt: skip
+    from slam_bridge.sensor_logs import read_columns
+
+    poses = read_columns(folder / "poses.csv", ["timestamp", "vehicle_x", "vehicle_y", "vehicle_z"])
+    antenna = np.column_stack([poses["vehicle_x"], poses["vehicle_y"], poses["vehicle_z"]])
+    gps = GpsConfig(
+        rate_hz=d.fps, bias_max_m=0.0, bias_std_m=0.0, noise_std_m=cfg.gps_sigma_m,
+        dropout_share=0.0,
+    )  # fmt: skip
+    simulate_gps(poses["timestamp"], antenna, gps, seed=cfg.seed).write_csv(_gps_path(cfg, folder))
+    _write_exact_model(world, folder / "gis" / "exact")
+    return folder
+
+
+def _gps_path(cfg: BuildingsConfig, folder: Path) -> Path:
+    return folder / f"gps_sigma{cfg.gps_sigma_m:g}.csv"
+
+
+def _write_exact_model(world, directory: Path) -> None:
+    """The true buildings as a GIS model without errors (``facades.csv``, ``buildings_model.ply``,
+    the layout of the render's ``gis/``; every facade its own truth)."""
+    from geoseg.synth.buildings import BuildingErrorConfig, build_building_model
+
+    exact = BuildingErrorConfig(
+        max_horizontal_error_m=0.0, horizontal_error_std_m=0.0, max_rotation_deg=0.0,
+        height_error="scale", height_scale_range=(1.0, 1.0), min_height_m=1e-3,
+        missing_share=0.0, extra_count=0,
+    )  # fmt: skip
+    directory.mkdir(parents=True, exist_ok=True)
+    build_building_model(world.buildings, exact).write(directory)
+
+
+# ------------------------------------------------------------------------------- one run
+@dataclass
+class RunAssets:
+    """What the runs of one drive share (read once)."""
+
+    folder: Path
+    image_size: tuple[int, int]
+    facades: dict  # model -> Facades
+    meshes: dict  # model -> trimesh.Trimesh
+    world: object = None  # the true facades (the exact model), for the evaluation
+    segmenters: dict = field(default_factory=dict)  # association -> Segmenter
+
+
+def load_assets(cfg: BuildingsConfig, folder: Path) -> RunAssets:
+    """The building models and the shipped networks."""
+    import trimesh
+
+    from slam_bridge.bridge.facades import Facades
+
+    facades, meshes = {}, {}
+    for model in cfg.models:
+        gis = folder / "gis" / ("exact" if model == "exact" else "")
+        facades[model] = Facades.read_csv(gis / "facades.csv")
+        meshes[model] = trimesh.load(gis / "buildings_model.ply", force="mesh")
+    assets = RunAssets(folder, tuple(cfg.drive.image_size), facades, meshes)
+    assets.world = Facades.read_csv(folder / "gis" / "exact" / "facades.csv")
+    for method in ("dirichlet", "bayes"):
+        if method in cfg.methods:
+            assets.segmenters[method] = load_network(method, threads=cfg.bridge.network_threads)
+    return assets
+
+
+def _worker(
+    cfg: BuildingsConfig, assets: RunAssets, method: str, model: str, truth, asynchronous: bool
+):
+    """The bridge of ``method`` against ``model`` (None for ``nobuild``)."""
+    from geoseg.classes import NUM_CLASSES
+    from slam_bridge.bridge.constraints import BuildingConstraints
+
+    if method == "nobuild":
+        return None
+    facades = assets.facades[model]
+    settings = dataclasses.replace(cfg.bridge, asynchronous=asynchronous)
+    if model == "exact":
+        settings = dataclasses.replace(settings, window_weight=cfg.window_weight_exact)
+    if method == "dirichlet":
+        settings = dataclasses.replace(settings, infer_every=cfg.naive_infer_every)
+    if method != "oracle":
+        return build_bridge(
+            dataclasses.replace(settings, association=method), facades,
+            image_size=assets.image_size, mesh=assets.meshes[model],
+            segmenter=assets.segmenters.get(method),
+        )  # fmt: skip
+    # the oracle: the truth gathered beside the SLAM, keyframe by keyframe
+    constraints = BuildingConstraints(
+        facades, sigma_m=settings.sigma_m, window_weight=settings.window_weight
+    )
+    return _OracleWorker(
+        truth, None, NUM_CLASSES, lambda s: truth.oracle(facades, s.points, settings.radius_m),
+        constraints, associate_every=settings.associate_every,
+        asynchronous=settings.asynchronous,
+    )  # fmt: skip
+
+
+class _OracleWorker(BridgeWorker):
+    """A bridge whose association is the truth: it gathers each keyframe's votes first."""
+
+    def __init__(self, truth, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.truth = truth
+
+    def __call__(self, slam_map, k, obs) -> None:
+        self.truth.observe(slam_map, k)
+        super().__call__(slam_map, k, obs)
+
+
+def run_one(
+    cfg: BuildingsConfig, assets: RunAssets, method: str, model: str, asynchronous: bool
+) -> tuple[dict, dict]:
+    """One (method, model) run, its bridge asynchronous or not.
+
+    Returns:
+        ``(figures, arrays)``: the figures (errors, tracking failures, association precision
+        and recall, timings) and the arrays the pictures need (keyframe poses and timestamps,
+        map points, their association and true facade).
+    """
+    from slam_bridge.experiments.facade_truth import FacadeTruth
+    from slam_bridge.image_slam import evaluate_run, load_inputs, run_on_images
+    from slam_bridge.slam.loop import KnownStartPoses
+
+    folder = assets.folder
+    inputs = load_inputs(
+        folder,
+        gps=_gps_path(cfg, folder) if model == "gis" else None,
+        odometry=folder / "gis" / "odometry.csv",
+        dem=folder / "gis" / "dem.csv",
+    )
+    start = None
+    if model == "exact":  # a known first pose (evaluation truth used for the start only)
+        _, R_true, t_true = inputs.truth
+        start = KnownStartPoses(
+            R_true, t_true, cfg.slam.slam.tracking.outlier_gate_px, cfg.start_keyframes,
+            cfg.slam.slam.mapping,
+        )  # fmt: skip
+    truth = FacadeTruth(folder, inputs.frames.timestamps)
+    worker = _worker(cfg, assets, method, model, truth, asynchronous)
+    t0 = time.perf_counter()
+    result, _ = run_on_images(inputs, cfg.slam, progress=False, bridge=worker, start=start)
+    wall = time.perf_counter() - t0
+    m = result.map
+    figures = {"method": method, "model": model, "asynchronous": asynchronous}
+    figures["keyframes"] = m.num_keyframes
+    figures.update(evaluate_run(result, inputs))
+    figures["tracking_failures"] = int(result.tracking_failures)
+    lost = [r.keyframe for r in result.records if r.tracking == "lost"]
+    figures["first_lost_keyframe"] = lost[0] if lost else None
+    figures["wall_seconds"] = wall
+    figures["loop_ms_per_keyframe"] = 1e3 * float(np.mean([r.seconds for r in result.records]))
+    figures["building_keyframes"] = sum("building" in r.constraints for r in result.records)
+    # the truth of every point, from all its observations (the oracle's own votes included)
+    _, R_true, t_true = inputs.truth
+    evaluation = FacadeTruth(folder, inputs.frames.timestamps, (R_true, t_true, m.K))
+    evaluation.observe_all(m)
+    rows = evaluation.model_rows(assets.facades[model], m.num_points)
+    facade = np.full(m.num_points, -1, np.int64)
+    if worker is not None and worker.constraints.association is not None:
+        a = worker.constraints.association.facade
+        facade[: a.size] = a[: m.num_points]
+        right = (facade >= 0) & (
+            (facade == rows) | evaluation.lies_on(assets.world, facade, assets.facades[model])
+        )
+        figures.update(_association_figures(facade, rows, right, m.triangulated))
+        figures.update(_worker_figures(worker, m.num_keyframes))
+    e_h = _horizontal_errors(result, inputs)
+    arrays = dict(
+        timestamps=m.timestamps, t_wc=m.t_wc, R_wc=m.R_wc, K=m.K, in_world=result.in_world,
+        error_m=e_h, points=np.where(m.triangulated[:, None], m.X_w, np.nan), facade=facade,
+        true_facade=rows, true_points=evaluation.true_positions(m.num_points),
+    )  # fmt: skip
+    return figures, arrays
+
+
+def _association_figures(
+    facade: np.ndarray, truth: np.ndarray, right: np.ndarray, triangulated: np.ndarray
+) -> dict:
+    """Precision: associated points on a facade they really lie on (``right``: the facade their
+    pixels show, or one their true position lies on, as at a corner); recall: triangulated
+    points on a facade of the model that are associated with one they lie on. Beside them, the
+    precision by the pixels' facade alone (``association_precision_pixels``)."""
+    got = (facade >= 0) & triangulated
+    real = (truth >= 0) & triangulated
+    share = lambda mask, of: float(np.mean(mask[of])) if of.any() else None  # noqa: E731
+    return {
+        "associated_points": int(got.sum()),
+        "facade_points": int(real.sum()),
+        "association_precision": share(right, got),
+        "association_recall": share(right, real),
+        "association_precision_pixels": share(facade == truth, got),
+    }
+
+
+def _worker_figures(worker, keyframes: int) -> dict:
+    s = worker.stats
+    out = {
+        "association_ms_per_keyframe": 1e3 * sum(s.association_seconds) / max(keyframes, 1),
+        "association_ms_per_run": 1e3 * float(np.mean(s.association_seconds)),
+        "hook_ms_per_keyframe": 1e3 * float(np.mean(s.main_seconds)),
+        "inference_dropped": s.dropped,
+    }
+    if s.inference_seconds:
+        out["inference_ms_per_keyframe"] = 1e3 * float(np.mean(s.inference_seconds))
+    if s.lags:
+        out["constraint_lag_keyframes_median"] = float(np.median(s.lags))
+        out["constraint_lag_keyframes_max"] = int(max(s.lags))
+    return out
+
+
+def _horizontal_errors(result, inputs) -> np.ndarray:
+    """``(C,)`` each keyframe's horizontal error (NaN outside the world frame)."""
+    t_true, _, T_true = inputs.truth
+    m = result.map
+    idx = np.clip(np.searchsorted(t_true, m.timestamps), 0, t_true.size - 1)
+    e = np.linalg.norm(m.t_wc[:, :2] - T_true[idx, :2], axis=1)
+    return np.where(result.in_world, e, np.nan)
+
+
+# ------------------------------------------------------------------------------- the stage
+def run_experiment(
+    cfg: BuildingsConfig,
+    out_dir: str | Path,
+    *,
+    data_dir: str | Path | None = None,
+    force: bool = False,
+    overwrite: bool = False,
+) -> Path:
+    """Every (method, model) run, the flat figures, tables and pictures (module docstring).
+
+    Args:
+        cfg: the experiment.
+        out_dir: output directory (refused when it holds other files, unless ``overwrite``).
+        data_dir: where the drive is rendered (default: ``out_dir/drive``; a rendering of the
+            same request there is reused).
+        force: rerun the runs already saved.
+        overwrite: write into a folder holding files this stage did not write.
+
+    Returns:
+        ``out_dir`` with ``buildings_ch4.json``, ``buildings_ch4.md``, ``runs/`` and the
+        pictures.
+    """
+    from geoseg.config import to_dict
+    from geoseg.output_dir import prepare_output_dir
+    from slam_bridge.experiments import buildings_ch4_plots as plots
+
+    out = prepare_output_dir(
+        out_dir,
+        producer="slam-eval buildings",
+        overwrite=overwrite,
+        adopt=lambda d: (d / "runs").is_dir() and (d / "config.json").is_file(),
+    )
+    cfg_json = json.dumps(to_dict(cfg), sort_keys=True, default=str)
+    runs_dir = out / "runs"
+    if (out / "config.json").is_file() and (out / "config.json").read_text() != cfg_json:
+        force = True  # runs of another config are not reused
+    runs_dir.mkdir(exist_ok=True)
+    (out / "config.json").write_text(cfg_json)
+    t0 = time.perf_counter()
+    folder = prepare_drive(cfg, Path(data_dir) if data_dir else out / "drive")
+    assets = load_assets(cfg, folder)
+    figures: dict[str, dict] = {}  # run name -> figures
+    for method, model, asynchronous, name in _plan(cfg):
+        saved = runs_dir / f"{name}.json"
+        if saved.is_file() and not force:
+            figures[name] = json.loads(saved.read_text())
+            continue
+        try:
+            fig, arrays = run_one(cfg, assets, method, model, asynchronous)
+        except SlamError as exc:  # one failed run does not sink the others: reported
+            logger.error("%s failed: %s", name, exc)
+            fig, arrays = {"method": method, "model": model, "error": str(exc)}, None
+        if arrays is not None:
+            np.savez_compressed(runs_dir / f"{name}.npz", **arrays)
+        saved.write_text(json.dumps(fig, indent=1))
+        figures[name] = fig
+        logger.info("%s: %s", name, _short(fig))
+    summary = summarize(cfg, figures)
+    summary["drive_length_m"] = _drive_length(folder)
+    summary["wall_seconds"] = time.perf_counter() - t0
+    (out / "buildings_ch4.json").write_text(json.dumps(summary, indent=1, sort_keys=True))
+    (out / "buildings_ch4.md").write_text(markdown(cfg, summary))
+    plots.write_pictures(out, folder, assets.facades, cfg.methods, cfg.models)
+    return out
+
+
+def _plan(cfg: BuildingsConfig) -> list[tuple[str, str, bool, str]]:
+    """``(method, model, asynchronous, run name)`` of every run, the timing run last."""
+    plan = [
+        (method, model, cfg.bridge.asynchronous, f"{method}_{model}")
+        for model in cfg.models
+        for method in cfg.methods
+    ]
+    if cfg.async_run and "bayes" in cfg.methods:
+        plan.append(("bayes", cfg.timing_model(), True, f"bayes_{cfg.timing_model()}_async"))
+    return plan
+
+
+def summarize(cfg: BuildingsConfig, figures: dict[str, dict]) -> dict:
+    """The flat keys of ``buildings_ch4.json`` (module docstring of ``bench/buildings_ch4.py``)
+    and every run's figures under ``runs``."""
+    out: dict = {"runs": figures}
+    primary = "exact" if "exact" in cfg.models else "gis"
+    for method, model, _, name in _plan(cfg):
+        f = figures.get(name, {})
+        if name.endswith("_async"):
+            continue
+        for key in ("translation_error_m", "rotation_error_deg", "tracking_failures"):
+            if key in f:
+                out[f"{key}_{method}_{model}"] = f[key]
+        # precision and recall against the exact model, where a facade's identity is the truth's
+        for key in ("association_precision", "association_recall"):
+            if f.get(key) is not None:
+                out[f"{key}_{method}" if model == primary else f"{key}_{method}_{model}"] = f[key]
+    timing = cfg.timing_model()
+    bayes = figures.get(f"bayes_{timing}", {})
+    for key in ("inference_ms_per_keyframe", "association_ms_per_keyframe"):
+        if key in bayes:
+            out[key] = bayes[key]
+    on, off = figures.get(f"bayes_{timing}_async", {}), figures.get(f"nobuild_{timing}", {})
+    for key in ("constraint_lag_keyframes_median", "constraint_lag_keyframes_max"):
+        if key in on:
+            out[key] = on[key]
+    if "loop_ms_per_keyframe" in on and "loop_ms_per_keyframe" in off:
+        # main-loop time per keyframe with the asynchronous worker on / off, same drive
+        out["async_time_ratio"] = on["loop_ms_per_keyframe"] / off["loop_ms_per_keyframe"]
+    if "loop_ms_per_keyframe" in bayes and "loop_ms_per_keyframe" in off:
+        out["sync_time_ratio"] = bayes["loop_ms_per_keyframe"] / off["loop_ms_per_keyframe"]
+    return out
+
+
+def _short(f: dict) -> str:
+    keys = ("translation_error_m", "rotation_error_deg", "tracking_failures",
+            "association_precision", "association_recall", "error")  # fmt: skip
+    return ", ".join(
+        f"{k}={f[k]:.3f}" if isinstance(f[k], float) else f"{k}={f[k]}"
+        for k in keys
+        if f.get(k) is not None
+    )
+
+
+def _drive_length(folder: Path) -> float:
+    from slam_bridge.sensor_logs import read_columns
+
+    p = read_columns(folder / "poses.csv", ["vehicle_x", "vehicle_y"])
+    xy = np.column_stack([p["vehicle_x"], p["vehicle_y"]])
+    return float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
+
+
+THESIS = {"exact": "1.3 cm, ~0.05 rad (bayes, 1.2 km)"}
+
+
+def markdown(cfg: BuildingsConfig, summary: dict) -> str:
+    """The tables: per model, a row per method."""
+    lines = [
+        f"# Building constraints (thesis chapter 4): {summary.get('drive_length_m', 0):.0f} m "
+        f"drive, {cfg.drive.preset} city",
+        "",
+    ]
+    for model in cfg.models:
+        lines += [
+            f"## Model `{model}`" + (f" (thesis: {THESIS[model]})" if model in THESIS else ""),
+            "",
+            "| method | translation error (m) | rotation error (deg) | tracking failures "
+            "| associated points | precision | recall |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for method in cfg.methods:
+            f = summary["runs"].get(f"{method}_{model}", {})
+            if "error" in f:
+                lines.append(f"| {method} | failed: {f['error']} ||||||")
+                continue
+            cells = [
+                _cell(f.get("translation_error_m"), 3),
+                _cell(f.get("rotation_error_deg"), 3),
+                str(f.get("tracking_failures", "")),
+                str(f.get("associated_points", "")),
+                _cell(f.get("association_precision"), 3),
+                _cell(f.get("association_recall"), 3),
+            ]
+            lines.append(f"| {method} | " + " | ".join(cells) + " |")
+        lines.append("")
+    for key in (
+        "inference_ms_per_keyframe",
+        "association_ms_per_keyframe",
+        "async_time_ratio",
+        "sync_time_ratio",
+        "constraint_lag_keyframes_median",
+        "constraint_lag_keyframes_max",
+    ):
+        if key in summary:
+            lines.append(f"- `{key}`: {_cell(summary[key], 3)}")
+    return "\n".join(lines) + "\n"
+
+
+def _cell(v, digits: int) -> str:
+    return "" if v is None else f"{v:.{digits}f}" if isinstance(v, float) else str(v)

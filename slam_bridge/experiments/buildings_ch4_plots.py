@@ -1,0 +1,176 @@
+"""Pictures of the chapter-4 experiment (thesis figs. 4.11, 4.13, 4.14), from its saved runs.
+
+* ``trajectories_<model>.png``: every method's keyframes over the building model, beside the
+  true path (figs. 4.11 / 4.13);
+* ``association_<model>.png``: the map points of each bridge method, gold where associated
+  with a facade, green elsewhere (the ray-cast baseline gilds the trees);
+* ``reprojection_<model>.png``: the building model drawn into a few keyframes with the poses
+  estimated without and with building constraints (fig. 4.14).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = ["write_pictures"]
+
+COLOURS = {
+    "nobuild": "tab:red",
+    "raycast": "tab:orange",
+    "dirichlet": "tab:purple",
+    "bayes": "tab:blue",
+    "oracle": "tab:green",
+}
+GOLD, GREEN = "#d4a017", "#3a9d4a"
+
+
+def write_pictures(out: Path, folder: Path, facades: dict, methods, models) -> list[Path]:
+    """Every picture of the module docstring whose runs exist in ``out/runs``.
+
+    Args:
+        out: the experiment's folder.
+        folder: the rendered drive (``poses.csv``, ``rgb/``).
+        facades: model name -> :class:`~slam_bridge.bridge.facades.Facades`.
+
+    Returns:
+        The files written.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from slam_bridge.sensor_logs import read_columns
+
+    poses = read_columns(folder / "poses.csv", ["timestamp", "tx", "ty"])
+    truth_xy = np.column_stack([poses["tx"], poses["ty"]])
+    written = []
+    for model in models:
+        runs = {m: _load(out / "runs" / f"{m}_{model}.npz") for m in methods}
+        runs = {m: r for m, r in runs.items() if r is not None}
+        if not runs:
+            continue
+        written.append(_trajectories(out, model, runs, truth_xy, facades[model]))
+        bridged = {m: r for m, r in runs.items() if m != "nobuild"}
+        if bridged:
+            written.append(_associations(out, model, bridged, facades[model]))
+        pair = [m for m in ("nobuild", "bayes") if m in runs]
+        if pair:
+            written.append(_reprojections(out, model, {m: runs[m] for m in pair}, folder,
+                                          facades[model], poses["timestamp"]))  # fmt: skip
+    return written
+
+
+def _load(path: Path) -> dict | None:
+    if not path.is_file():
+        return None
+    with np.load(path) as z:
+        return {k: z[k] for k in z.files}
+
+
+def _draw_facades(ax, facades, colour="0.6") -> None:
+    for p0, p1 in zip(facades.p0, facades.p1, strict=True):
+        ax.plot([p0[0], p1[0]], [p0[1], p1[1]], color=colour, lw=0.6)
+
+
+def _trajectories(out: Path, model: str, runs: dict, truth_xy: np.ndarray, facades) -> Path:
+    """The keyframes over the model (left) and their horizontal error along the drive (right:
+    at the map's scale the methods' centimetres to decimetres do not show)."""
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax_err) = plt.subplots(1, 2, figsize=(16, 7.5), width_ratios=(1, 1.2))
+    _draw_facades(ax, facades)
+    ax.plot(truth_xy[:, 0], truth_xy[:, 1], "k-", lw=2.0, label="true path")
+    for method, r in runs.items():
+        xy = np.where(r["in_world"][:, None], r["t_wc"][:, :2], np.nan)
+        err = np.nanmean(r["error_m"]) if np.isfinite(r["error_m"]).any() else np.nan
+        label = f"{method} (mean error {err:.3f} m)"
+        ax.plot(xy[:, 0], xy[:, 1], "-", lw=1.0, color=COLOURS.get(method), label=label)
+        ax_err.plot(r["error_m"], "-", lw=1.0, color=COLOURS.get(method), label=label)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    ax.set_title(f"keyframe positions, {model} building model (grey: its facades)")
+    ax.legend(loc="best", fontsize=8)
+    ax_err.set_xlabel("keyframe")
+    ax_err.set_ylabel("horizontal error (m)")
+    ax_err.set_yscale("log")
+    ax_err.grid(True, which="both", alpha=0.3)
+    ax_err.set_title("horizontal error of each keyframe against the truth")
+    ax_err.legend(loc="best", fontsize=8)
+    path = out / f"trajectories_{model}.png"
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _associations(out: Path, model: str, runs: dict, facades) -> Path:
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(runs), figsize=(6 * len(runs), 6), squeeze=False)
+    for ax, (method, r) in zip(axes[0], runs.items(), strict=True):
+        pts, on = r["points"], r["facade"] >= 0
+        ok = np.isfinite(pts).all(1)
+        _draw_facades(ax, facades, "0.4")
+        ax.scatter(*pts[ok & ~on, :2].T, s=1, c=GREEN, label="not associated")
+        ax.scatter(*pts[ok & on, :2].T, s=2, c=GOLD, label="on a facade")
+        right = np.mean(r["facade"][ok & on] == r["true_facade"][ok & on]) if on.any() else 0
+        ax.set_title(f"{method}: {int((ok & on).sum())} of {int(ok.sum())} points on facades, "
+                     f"{100 * right:.0f} % right")  # fmt: skip
+        ax.set_aspect("equal")
+        ax.legend(loc="upper right", fontsize=7, markerscale=4)
+    fig.suptitle(f"map points and their association, {model} building model")
+    path = out / f"association_{model}.png"
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return path
+
+
+def _reprojections(out: Path, model: str, runs: dict, folder: Path, facades, frame_times,
+                   count: int = 3) -> Path:  # fmt: skip
+    """The facades' outlines projected with each run's pose into ``count`` keyframes spread
+    over the drive (the images under them)."""
+    first = next(iter(runs.values()))
+    common = np.flatnonzero(first["in_world"])
+    picks = common[np.linspace(len(common) // 6, len(common) - 1, count).astype(int)]
+    rows = []
+    for k in picks:
+        t = first["timestamps"][k]
+        frame = int(np.argmin(np.abs(frame_times - t)))
+        rgb = cv2.imread(str(folder / "rgb" / f"{frame:06d}.png"))
+        tiles = []
+        for method, r in runs.items():
+            j = int(np.argmin(np.abs(r["timestamps"] - t)))
+            tile = rgb.copy()
+            if abs(r["timestamps"][j] - t) < 1e-6 and np.isfinite(r["t_wc"][j]).all():
+                _draw_model(tile, facades, r["R_wc"][j], r["t_wc"][j], r["K"])
+            cv2.putText(tile, f"{method}, frame {frame}", (10, 28), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.8, (255, 255, 255), 2, cv2.LINE_AA)  # fmt: skip
+            tiles.append(tile)
+        rows.append(np.concatenate(tiles, axis=1))
+    path = out / f"reprojection_{model}.png"
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
+    return path
+
+
+def _draw_model(image: np.ndarray, facades, R_wc: np.ndarray, t_wc: np.ndarray, K) -> None:
+    """Each facade's rectangle (bottom edge, top edge, sides) in yellow where in front."""
+    corners = np.stack(
+        [
+            np.column_stack([facades.p0, facades.z_min]),
+            np.column_stack([facades.p1, facades.z_min]),
+            np.column_stack([facades.p1, facades.z_max]),
+            np.column_stack([facades.p0, facades.z_max]),
+        ],
+        axis=1,
+    )  # (F, 4, 3)
+    X_c = (corners - t_wc) @ R_wc  # R_cw X = R_wc^T X
+    near = (X_c[:, :, 2] > 0.5).all(1) & (np.linalg.norm(X_c, axis=2).min(1) < 60.0)
+    uv = X_c[near] @ np.asarray(K).T
+    uv = uv[:, :, :2] / uv[:, :, 2:]
+    h, w = image.shape[:2]
+    for quad in uv:
+        if np.all(np.abs(quad) < 4 * max(h, w)):
+            cv2.polylines(image, [np.round(quad).astype(np.int32)], True, (0, 215, 255), 2,
+                          cv2.LINE_AA)  # fmt: skip

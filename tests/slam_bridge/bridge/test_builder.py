@@ -1,0 +1,88 @@
+"""The bridge built from settings: the networks it accepts, the association it wires."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from geoseg.classes import NUM_CLASSES
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_network
+from slam_bridge.bridge.facades import Facades
+from slam_bridge.bridge.worker import segmenter_outputs
+from slam_bridge.errors import SlamError
+
+
+class FakeSegmenter:
+    """Uniform probabilities over ``classes`` at ``map_size``, normals facing the camera."""
+
+    def __init__(self, classes=NUM_CLASSES, map_size=(320, 240), normals=True):
+        self.classes, self.map_size, self.normals = classes, map_size, normals
+        self.seen = []
+
+    def __call__(self, image):
+        self.seen.append(image.shape)
+        w, h = self.map_size
+        probs = np.full((1, self.classes, h, w), 1.0 / self.classes, np.float32)
+        normals = np.zeros((1, 3, h, w), np.float32)
+        normals[:, 2] = -1.0
+        return SimpleNamespace(probabilities=probs, normals=normals if self.normals else None)
+
+
+@pytest.fixture
+def facades():
+    return Facades(
+        p0=np.array([[0.0, 0.0]]), p1=np.array([[10.0, 0.0]]), z_min=np.array([0.0]),
+        z_max=np.array([8.0]), normal=np.array([[0.0, -1.0, 0.0]]), d=np.array([0.0]),
+        true_facade_id=np.array([-1]),
+    )  # fmt: skip
+
+
+def test_config_refuses_an_unknown_association():
+    with pytest.raises(SlamError, match="association"):
+        BridgeConfig(association="guess")
+
+
+@pytest.mark.parametrize(
+    ("fake", "needs_normals", "message"),
+    [
+        (FakeSegmenter(classes=5), False, "5 classes.*building"),
+        (FakeSegmenter(map_size=(100, 100)), False, "another aspect ratio"),
+        (FakeSegmenter(normals=False), True, "no normals"),
+    ],
+)
+def test_a_network_the_bridge_cannot_use_is_refused(fake, needs_normals, message):
+    with pytest.raises(SlamError, match=message):
+        check_network(segmenter_outputs(fake, (320, 240)), (640, 480), needs_normals)
+
+
+def test_a_usable_network_passes_at_its_training_size():
+    fake = FakeSegmenter()
+    check_network(segmenter_outputs(fake, (320, 240)), (640, 480), needs_normals=True)
+    assert fake.seen == [(240, 320, 3)]  # resized to the network's size first
+
+
+def test_build_bridge_checks_before_the_run(facades):
+    with pytest.raises(SlamError, match="building"):
+        build_bridge(BridgeConfig(), facades, image_size=(640, 480), segmenter=FakeSegmenter(3))
+    with pytest.raises(SlamError, match="mesh"):
+        build_bridge(BridgeConfig(association="raycast"), facades, image_size=(640, 480))
+
+
+def test_build_bridge_wires_the_association_and_the_constraints(facades):
+    worker = build_bridge(
+        BridgeConfig(window_weight=3.0, asynchronous=False), facades, image_size=(640, 480),
+        segmenter=FakeSegmenter(),
+    )  # fmt: skip
+    assert worker.constraints.window_weight == 3.0 and worker.smooth is not None
+    probs, normals = worker.network(np.zeros((480, 640, 3), np.uint8))
+    assert probs.shape == (240, 320, NUM_CLASSES) and normals.shape == (240, 320, 3)
+    # a building-labelled point 1 m in front of the facade, its normal towards the street
+    snapshot = SimpleNamespace(
+        points=np.array([[5.0, -1.0, 2.0]]), labels=np.array([2]),
+        normals=np.array([[0.0, -1.0, 0.0]]), mean_probs=None, centres=None,
+    )  # fmt: skip
+    a = worker.associate(snapshot)
+    assert a.method == "bayes" and a.facade.tolist() == [0]
+    worker.close()
