@@ -111,7 +111,9 @@ class BuildingsConfig:
         drive: the rendered drive.
         bridge: the bridge's settings (its ``association`` is each method's; its
             ``window_weight`` is the GIS model's cap, whose errors must not outvote the GPS).
-        window_weight_exact: the cap with the exact model (None: none: the model is right).
+        exact_bridge: the bridge settings that differ with the exact model (``radius_m``: no
+            model error to cover, only the map's own drift; ``window_weight``: None, no cap:
+            the model is right, the more rows the better).
         naive_infer_every: the naive CNN labels every this many keyframes (its dense
             prediction costs ~40x the joint network's on a CPU; a point is seen in several
             keyframes, so most still gather its evidence).
@@ -130,7 +132,7 @@ class BuildingsConfig:
 
     drive: DriveConfig = field(default_factory=DriveConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
-    window_weight_exact: float | None = None
+    exact_bridge: dict = field(default_factory=lambda: {"radius_m": 1.5, "window_weight": None})
     naive_infer_every: int = 3
     async_run: bool = True
     slam: ImageSlamConfig = field(default_factory=_default_slam)
@@ -152,6 +154,12 @@ class BuildingsConfig:
             raise SlamError(f"gps_sigma_m: expected >= 0, got {self.gps_sigma_m}")
         if self.start_keyframes < 2:
             raise SlamError(f"start_keyframes: expected >= 2, got {self.start_keyframes}")
+        known = {f.name for f in dataclasses.fields(BridgeConfig)} - {"association"}
+        if set(self.exact_bridge) - known:
+            raise SlamError(
+                f"exact_bridge: unknown keys {sorted(set(self.exact_bridge) - known)}; "
+                f"expected some of {sorted(known)}"
+            )
         if self.naive_infer_every < 1:
             raise SlamError(f"naive_infer_every: expected >= 1, got {self.naive_infer_every}")
 
@@ -268,14 +276,10 @@ def _worker(
     if method == "nobuild":
         return None
     facades = assets.facades[model]
-    settings = dataclasses.replace(cfg.bridge, asynchronous=asynchronous)
-    if model == "exact":
-        settings = dataclasses.replace(settings, window_weight=cfg.window_weight_exact)
-    if method == "dirichlet":
-        settings = dataclasses.replace(settings, infer_every=cfg.naive_infer_every)
+    settings = _settings(cfg, method, model, asynchronous)
     if method != "oracle":
         return build_bridge(
-            dataclasses.replace(settings, association=method), facades,
+            settings, facades,
             image_size=assets.image_size, mesh=assets.meshes[model],
             segmenter=assets.segmenters.get(method),
         )  # fmt: skip
@@ -288,6 +292,33 @@ def _worker(
         constraints, associate_every=settings.associate_every,
         asynchronous=settings.asynchronous,
     )  # fmt: skip
+
+
+def _settings(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool) -> BridgeConfig:
+    """The bridge settings of one run."""
+    settings = dataclasses.replace(
+        cfg.bridge, asynchronous=asynchronous,
+        association=method if method in ("raycast", "dirichlet", "bayes") else "bayes",
+    )  # fmt: skip
+    if model == "exact":
+        settings = dataclasses.replace(settings, **cfg.exact_bridge)
+    if method == "dirichlet":
+        settings = dataclasses.replace(settings, infer_every=cfg.naive_infer_every)
+    return settings
+
+
+def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool) -> str:
+    """Everything a run's figures depend on: a saved run is reused only when it matches."""
+    from geoseg.config import to_dict
+
+    parts = {
+        "method": method, "model": model, "drive": to_dict(cfg.drive), "slam": to_dict(cfg.slam),
+        "gps_sigma_m": cfg.gps_sigma_m, "start_keyframes": cfg.start_keyframes,
+        "seed": cfg.seed,
+    }  # fmt: skip
+    if method != "nobuild":
+        parts["bridge"] = to_dict(_settings(cfg, method, model, asynchronous))
+    return json.dumps(parts, sort_keys=True, default=str)
 
 
 class _OracleWorker(BridgeWorker):
@@ -428,7 +459,8 @@ def run_experiment(
         out_dir: output directory (refused when it holds other files, unless ``overwrite``).
         data_dir: where the drive is rendered (default: ``out_dir/drive``; a rendering of the
             same request there is reused).
-        force: rerun the runs already saved.
+        force: rerun the runs already saved (a saved run whose settings differ from
+            ``cfg``'s is rerun anyway).
         overwrite: write into a folder holding files this stage did not write.
 
     Returns:
@@ -445,21 +477,21 @@ def run_experiment(
         overwrite=overwrite,
         adopt=lambda d: (d / "runs").is_dir() and (d / "config.json").is_file(),
     )
-    cfg_json = json.dumps(to_dict(cfg), sort_keys=True, default=str)
     runs_dir = out / "runs"
-    if (out / "config.json").is_file() and (out / "config.json").read_text() != cfg_json:
-        force = True  # runs of another config are not reused
     runs_dir.mkdir(exist_ok=True)
-    (out / "config.json").write_text(cfg_json)
+    (out / "config.json").write_text(json.dumps(to_dict(cfg), sort_keys=True, default=str))
     t0 = time.perf_counter()
     folder = prepare_drive(cfg, Path(data_dir) if data_dir else out / "drive")
     assets = load_assets(cfg, folder)
     figures: dict[str, dict] = {}  # run name -> figures
     for method, model, asynchronous, name in _plan(cfg):
         saved = runs_dir / f"{name}.json"
+        signature = _signature(cfg, method, model, asynchronous)
         if saved.is_file() and not force:
-            figures[name] = json.loads(saved.read_text())
-            continue
+            earlier = json.loads(saved.read_text())
+            if earlier.get("config") == signature:  # the same run: reused
+                figures[name] = earlier
+                continue
         try:
             fig, arrays = run_one(cfg, assets, method, model, asynchronous)
         except SlamError as exc:  # one failed run does not sink the others: reported
@@ -467,6 +499,7 @@ def run_experiment(
             fig, arrays = {"method": method, "model": model, "error": str(exc)}, None
         if arrays is not None:
             np.savez_compressed(runs_dir / f"{name}.npz", **arrays)
+        fig["config"] = signature
         saved.write_text(json.dumps(fig, indent=1))
         figures[name] = fig
         logger.info("%s: %s", name, _short(fig))

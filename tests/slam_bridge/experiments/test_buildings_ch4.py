@@ -3,6 +3,7 @@ drive (every method against both models, its figures, pictures, resume and comma
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -82,6 +83,8 @@ def test_config_refuses_unknown_methods_and_models():
         ch4.BuildingsConfig(methods=["bayes", "magic"])
     with pytest.raises(SlamError, match="models"):
         ch4.BuildingsConfig(models=[])
+    with pytest.raises(SlamError, match="exact_bridge.*radius"):
+        ch4.BuildingsConfig(exact_bridge={"radius": 1.0})
 
 
 def _short_config() -> ch4.BuildingsConfig:
@@ -123,3 +126,14 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
     monkeypatch.setattr(ch4, "run_one", no_rerun)
     again = ch4.run_experiment(cfg, tmp_path / "out", data_dir=data)
     assert json.loads((again / "buildings_ch4.json").read_text())["runs"] == summary["runs"]
+    # another setting of the exact model's bridge: only the exact model's bridge runs are redone
+    redone = []
+
+    def record(cfg, assets, method, model, asynchronous):
+        redone.append((method, model))
+        return {"method": method, "model": model, "translation_error_m": 0.0}, None
+
+    monkeypatch.setattr(ch4, "run_one", record)
+    other = dataclasses.replace(cfg, exact_bridge={"radius_m": 1.0})
+    ch4.run_experiment(other, tmp_path / "out", data_dir=data)
+    assert sorted(redone) == [("bayes", "exact"), ("oracle", "exact"), ("raycast", "exact")]
