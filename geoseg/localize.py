@@ -778,3 +778,12 @@ def fuse_gps_distance(
         w_g, w_d = np.where(np.isfinite(v_head), w_g, 1.0), np.where(np.isfinite(v_head), w_d, 0.0)
         fused = w_d * d + w_g * g
     return np.where(np.isfinite(d) & np.isfinite(g) & np.isfinite(fused), fused, np.inf)
+
+
+def __getattr__(name: str) -> Any:
+    # the library entry lives in geoseg.localizer (it imports this module); reachable here too
+    if name in ("Localizer", "LocalizerConfig"):
+        from geoseg import localizer
+
+        return getattr(localizer, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -270,8 +270,13 @@ def localize_argv(*extra: str, query: str = "{e.image}") -> Argv:
         query.format(e=e),
         "--base",
         str(e.base),
+        *PLACEHOLDER_LOCALIZE,
         *[x.format(e=e) for x in extra],
     ]
+
+
+# the networks-free placeholders (the shipped networks are localize's default)
+PLACEHOLDER_LOCALIZE = ("--embedding", "thumbnail", "--relative-pose", "essential")
 
 
 def infer_output(env: Env) -> Path:

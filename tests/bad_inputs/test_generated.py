@@ -97,6 +97,9 @@ NON_NUMERIC = {
     "localize": {
         "--base",
         "--gps",
+        "--embedding",
+        "--relative-pose",
+        "--network-size",
         "--model",
         "--reloc-head",
         "--relpose-head",
