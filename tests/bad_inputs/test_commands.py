@@ -199,6 +199,17 @@ CASES: list[Case] = [
     Case("slam", "set-nan", lambda e: ["slam", "run", str(rendered(e)), "--out", str(e.out("slam")), "--set", "slam.window.l=.nan"], "slam.window.l"),
     Case("slam", "method-unknown", lambda e: ["slam", "run", str(rendered(e)), "--out", str(e.out("slam")), "--method", "ekf"]),
     Case("slam", "no-action", lambda e: ["slam"]),
+    # ------------------------------------------------------------------ base
+    Case("base", "src-missing", lambda e: ["base", "build", str(e.inputs / "nothere"), "--out", str(e.out("base"))], "nothere"),
+    Case("base", "src-is-a-file", lambda e: ["base", "build", str(e.inputs / "notes.txt"), "--out", str(e.out("base"))], "notes.txt"),
+    Case("base", "src-without-poses", lambda e: ["base", "build", str(e.inputs / "empty_dir"), "--out", str(e.out("base"))], "positions"),
+    Case("base", "positions-missing", lambda e: ["base", "build", str(e.inputs / "empty_dir"), "--out", str(e.out("base")), "--positions", str(e.inputs / "no.csv")], "no.csv"),
+    Case("base", "positions-wrong-columns", lambda e: ["base", "build", str(e.inputs / "empty_dir"), "--out", str(e.out("base")), "--positions", str(e.inputs / "gps_cols.csv")], "column"),
+    Case("base", "out-is-the-source", lambda e: ["base", "build", str(rendered(e)), "--out", str(rendered(e))], "source folder"),
+    Case("base", "out-holds-user-files", lambda e: ["base", "build", str(rendered(e)), "--out", str(user_folder(e, "base_user"))], "--overwrite"),
+    Case("base", "camera-height-nan", lambda e: ["base", "build", str(rendered(e)), "--out", str(e.out("base")), "--positions", str(e.inputs / "gps.csv"), "--camera-height", "nan"], "--camera-height"),
+    Case("base", "camera-height-without-positions", lambda e: ["base", "build", str(rendered(e)), "--out", str(e.out("base")), "--camera-height", "2"], "--positions"),
+    Case("base", "no-action", lambda e: ["base"]),
     # ------------------------------------------------------------------ bench
     Case("bench", "unknown", lambda e: ["bench", "nope"], "nope"),
     Case("bench", "path-traversal", lambda e: ["bench", "../README"], "README"),

@@ -112,6 +112,7 @@ NON_NUMERIC = {
         "--out",
         "--overwrite",
     },
+    "base": set(),  # its options belong to its action (base build): the table covers them
     "slam": set(),  # its options belong to its action (slam run): the table covers them
     "bench": set(),
 }
