@@ -21,7 +21,7 @@ Two steps:
    candidates by the predicted baseline (the nearest base first); with a GPS fix,
    :func:`fuse_gps_distance` first fuses that baseline with the fix's distance to each base.
 
-Frames (DESIGN §4): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
+Frames (docs/architecture.md, conventions): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
 positions are in the world frame's ``(x, y)`` (projected), in metres.
 """
 

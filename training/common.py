@@ -1,7 +1,7 @@
 """What the segmentation-side trainers share: datasets and loaders from a config, weights from
 earlier runs, and the end of a run (model checkpoint, ONNX export, model card).
 
-Every trainer's run directory ends up holding (DESIGN §3.1)::
+Every trainer's run directory ends up holding (a stage with a path contract, docs/architecture.md)::
 
     config.yaml  last.pt  best.pt  metrics.csv  metrics.json  loss.png  metrics.png   (fit)
     model.pt     the best weights as a geoseg model checkpoint (geoseg.infer)
