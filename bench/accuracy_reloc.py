@@ -39,6 +39,13 @@ database image. Measured:
   p90 horizontal error over the non-degenerate queries and the degenerate share. Direction rays
   alone are reported beside (``..._rays_only``), and with the true directions (the geometric
   limit of a tram line, where base cameras are nearly collinear with the query);
+* queries at the base poses (``position_error_at_base_poses_m``, median and ``_p90_m``): a
+  winter drive along the base's very poses (no offset, no jitter), each query localised by the
+  library's :class:`geoseg.localizer.Localizer` (GPS window, the top ``--rerank-k`` re-ranked,
+  the best ``--top-k`` ranged rays: ``geoseg localize``'s settings), and as one drive through
+  the route filter without GPS (``..._sequence``); ``predicted_distance_at_base_poses_median_m``
+  is the head's distance for a query and the base image at its pose (truth: 0). The offset
+  queries through the same Localizer give ``position_error_localizer_m``;
 * figures: a t-SNE of the layer-21 features (adaptive-average-pooled to 8x10 before PCA) and of
   the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
   (query | top-3, green = correct).

@@ -97,9 +97,10 @@ def _expand(argv: list[str]) -> list[str]:
 
 def _make_own_data(folder: Path) -> None:
     """The inputs the walkthroughs name: my_images/, my_photos/ + positions.csv, new_photos/,
-    query_gps.csv (from a small tram render, so the positions are true ones)."""
+    query_gps.csv (from a small render of the forward-looking car camera, whose
+    heading is the track's, as the positions file assumes)."""
     src = folder / "_source"
-    argv = ["render", "--out", str(src), "--frames", "8", "--rig", "tram", "--size", "160x120"]
+    argv = ["render", "--out", str(src), "--frames", "8", "--rig", "car", "--size", "160x120"]
     assert main(argv) == 0
     import cv2
 
