@@ -500,6 +500,11 @@ def load_image_base(root: str | os.PathLike, *, rotation_tol: float = _ROTATION_
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise GeosegError(f"{poses_path}: unreadable ({err})") from None
     missing_cols = [c for c in POSE_COLUMNS if c not in header]
+    if missing_cols and "frame" in header:  # a `geoseg render` output, not yet a base
+        raise GeosegError(
+            f"{root}: a geoseg render output, not an image base; make one with "
+            f"`geoseg base build {root} --out BASE`"
+        )
     if missing_cols:
         raise GeosegError(
             f"{poses_path}: missing column(s) {missing_cols}; expected "

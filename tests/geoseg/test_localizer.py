@@ -202,3 +202,9 @@ def test_base_build_command_then_localize(tmp_path: Path, capsys) -> None:
     res = json.loads(out.read_text())
     assert res["queries"][0]["matches"][0]["image"] == "rgb/000002.png"
     assert res["intrinsics"] == "camera.json"
+
+
+def test_a_render_output_given_as_base_says_how_to_make_one(tmp_path: Path) -> None:
+    _render_like(tmp_path / "render")
+    with pytest.raises(GeosegError, match="geoseg base build"):
+        load_image_base(tmp_path / "render")
