@@ -33,7 +33,10 @@ logger = logging.getLogger(__name__)
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("queries", nargs="+", type=Path, metavar="QUERY_IMAGE", help="query images")
     parser.add_argument(
-        "--base", required=True, type=Path, help="image base directory (images + poses.csv)"
+        "--base",
+        required=True,
+        type=Path,
+        help="image base folder (made by geoseg base build: images + poses.csv)",
     )
     parser.add_argument(
         "--gps", type=Path, help="CSV of query positions: image, x, y (world frame, metres)"
