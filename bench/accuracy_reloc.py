@@ -39,6 +39,13 @@ database image. Measured:
   p90 horizontal error over the non-degenerate queries and the degenerate share. Direction rays
   alone are reported beside (``..._rays_only``), and with the true directions (the geometric
   limit of a tram line, where base cameras are nearly collinear with the query);
+* queries at the base poses (``position_error_at_base_poses_m``, median and ``_p90_m``): a
+  winter drive along the base's very poses (no offset, no jitter), each query localised by the
+  library's :class:`geoseg.localizer.Localizer` (GPS window, the top ``--rerank-k`` re-ranked,
+  the best ``--top-k`` ranged rays: ``geoseg localize``'s settings), and as one drive through
+  the route filter without GPS (``..._sequence``); ``predicted_distance_at_base_poses_median_m``
+  is the head's distance for a query and the base image at its pose (truth: 0). The offset
+  queries through the same Localizer give ``position_error_localizer_m``;
 * figures: a t-SNE of the layer-21 features (adaptive-average-pooled to 8x10 before PCA) and of
   the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
   (query | top-3, green = correct).
@@ -515,6 +522,92 @@ def measure_abs_position(res: dict, db, qr, f_db, f_q, head, retrieval: dict, ar
     )
 
 
+def bench_localizer(db, f_db, emb_db, f_q, emb_q, head, args) -> Any:
+    """The library's :class:`geoseg.localizer.Localizer` over the bench's features: queries are
+    row indices into ``f_q``/``emb_q``; GPS window, top ``--rerank-k`` re-ranked by predicted
+    distance, position from the best ``--top-k`` (the settings of ``geoseg localize``)."""
+    from geoseg.localize import RetrievalIndex
+    from geoseg.localizer import Localizer, LocalizerConfig, head_relative_poses
+
+    def relative_pose(idx: np.ndarray, q: int) -> list:
+        fa = f_db[torch.from_numpy(idx)].float()
+        return head_relative_poses(head, fa, f_q[q : q + 1].float().expand_as(fa))
+
+    return Localizer(
+        index=RetrievalIndex(emb_db, R_wc=db.R_wc, t_wc=db.t_wc),
+        embed=lambda qs: emb_q[np.asarray(qs, dtype=np.int64)],
+        relative_pose=relative_pose,
+        base_names=[str(i) for i in range(len(db))],
+        timestamps=db.timestamps,
+        config=LocalizerConfig(
+            k=args.rerank_k,
+            radius_m=args.gps_radius,
+            appearance_weight=args.appearance_weight,
+            position_k=args.top_k,
+        ),
+    )
+
+
+def _position_errors(results: list, truth_xy: np.ndarray) -> tuple[np.ndarray, int]:
+    """Horizontal errors (m) of the non-degenerate results, and the degenerate count."""
+    errors = [
+        float(np.linalg.norm(r.xyz[:2] - truth_xy[i]))
+        for i, r in enumerate(results)
+        if r.xyz is not None
+    ]
+    return np.asarray(errors), sum(r.xyz is None for r in results)
+
+
+def measure_at_base_poses(res: dict, spec, db, f_db, emb_db, qr, f_q, emb_q, head, extractor,
+                          args) -> None:  # fmt: skip
+    """Queries taken exactly at the base poses (``winter``, the base's route with no offset
+    and no yaw jitter), localised by the library's Localizer, one by one (GPS window) and as a
+    drive (route filter, causal); and the bench's offset queries through the same Localizer."""
+    from geoseg.data.traversals import render_route, traversal_features
+    from training.reloc import embed_features
+
+    at_spec = dataclasses.replace(spec, conditions=[qr.condition], offset_m=0.0, yaw_jitter_deg=0.0)
+    (at,) = render_route(at_spec, cache_dir=args.cache_dir, progress=True)
+    if not np.allclose(at.t_wc, db.t_wc, atol=1e-6):
+        raise RuntimeError("the at-base-pose traversal does not follow the base's poses")
+    f_at = torch.from_numpy(traversal_features(at, extractor, cache_dir=args.cache_dir)).float()
+    emb_at = embed_features(args.reloc_head_module, f_at).numpy()
+    rng = np.random.default_rng(args.seed + 23)
+    n = len(at)
+    gps = at.t_wc[:, :2] + rng.normal(0.0, args.gps_sigma, size=(n, 2))
+    loc = bench_localizer(db, f_db, emb_db, f_at, emb_at, head, args)
+    queries = list(range(n))
+    window = loc.config
+    drive = dataclasses.replace(window, radius_m=None, sequence="filter")  # no GPS at all
+    for tail, config, fixes in (("", window, gps), ("_sequence", drive, None)):
+        loc.config = config
+        results = loc.localize(queries, gps=fixes)
+        errors, degenerate = _position_errors(results, at.t_wc[:, :2])
+        res[f"position_error_at_base_poses{tail}_m"] = _median(errors)
+        res[f"position_error_at_base_poses{tail}_p90_m"] = (
+            float(np.quantile(errors, 0.9)) if errors.size else float("nan")
+        )
+        res[f"position_degenerate_share_at_base_poses{tail}"] = degenerate / max(n, 1)
+    same = [  # the head's distance for a query and the base image at its very pose
+        head_d["distance_m"]
+        for q in range(n)
+        for head_d in loc.relative_pose(np.array([q]), q)
+        if head_d["distance_m"] is not None
+    ]
+    res["predicted_distance_at_base_poses_median_m"] = _median(np.asarray(same))
+    res["queries_at_base_poses"] = n
+    # the offset queries through the same library entry (compare abs_position_median_m)
+    loc_q = bench_localizer(db, f_db, emb_db, f_q, emb_q, head, args)
+    gps_q = qr.t_wc[:, :2] + np.random.default_rng(args.seed + 29).normal(
+        0.0, args.gps_sigma, size=(len(qr), 2)
+    )
+    errors, _ = _position_errors(loc_q.localize(list(range(len(qr))), gps=gps_q), qr.t_wc[:, :2])
+    res["position_error_localizer_m"] = _median(errors)
+    res["position_error_localizer_p90_m"] = (
+        float(np.quantile(errors, 0.9)) if errors.size else float("nan")
+    )
+
+
 # ----------------------------------------------------------------------------- figures
 def plot_tsne(path: Path, raw: tuple, learned: tuple, conditions: list[str], seed: int) -> None:
     """Two t-SNE panels (layer-21 features | learned embeddings), coloured by traversal."""
@@ -664,6 +757,10 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
     res["relpose_eval_s"] = time.perf_counter() - t0
     measure_abs_position(res, db, qr, f_db, f_q, relpose, retrieval, args)
     measure_sequence(res, db, qr, retrieval, args)
+    args.reloc_head_module = reloc
+    measure_at_base_poses(
+        res, spec, db, f_db, learned["db"], qr, f_q, learned["q"], relpose, extractor, args
+    )
 
     args.out.mkdir(parents=True, exist_ok=True)
     pooled = torch.nn.functional.adaptive_avg_pool2d

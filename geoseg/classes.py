@@ -1,6 +1,6 @@
 """The 8 semantic classes shared by the synthetic world, the networks and the SLAM bridge.
 
-The order matches the naive CNN's 8 outputs (thesis fig. 4.5) and DESIGN §4.
+The order matches the naive CNN's 8 outputs (thesis fig. 4.5); docs/architecture.md lists them.
 """
 
 from __future__ import annotations

@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "export": ("geoseg.commands.export", "export a trained network to ONNX"),
     "infer": ("geoseg.commands.infer", "segment images and predict normals with a trained network"),
+    "base": ("geoseg.commands.base", "build an image base from geotagged images (base build)"),
     "localize": (
         "geoseg.commands.localize",
         "relocalise query images against a georeferenced image base",

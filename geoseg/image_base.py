@@ -15,7 +15,7 @@ Layout of a base directory::
 * ``image``: the image path relative to ``BASE_DIR`` (POSIX separators);
 * ``timestamp``: seconds (may be empty: NaN);
 * ``tx, ty, tz``: the camera centre ``t_wc`` in the world frame (metres; x east, y north,
-  z up, DESIGN §4);
+  z up, docs/architecture.md);
 * ``r00, r01, r02, r10, ..., r22``: the camera-to-world rotation ``R_wc`` row by row
   (``X_w = R_wc X_c + t_wc``, OpenCV camera frame);
 * optional ``lat, lon``: WGS84 degrees, kept for display (the GPS window works on ``tx, ty``).
@@ -35,7 +35,7 @@ cache. Provided here:
 
 * :class:`ThumbnailEmbedder`: a **placeholder baseline, not the learned embedding**: the image
   in grey, area-averaged to a small thumbnail (pure NumPy), zero-mean and unit L2 norm. It
-  lets ``geoseg localize`` run end to end without trained weights and matches near-duplicates
+  lets ``geoseg localize --embedding thumbnail`` run without trained weights (tests) and matches near-duplicates
   well, but it has no invariance to season, illumination or viewpoint.
 * :func:`raw_layer21_embedder`: the §5.1.1 baseline over anything that returns layer-21
   ``features`` (e.g. :class:`geoseg.infer.Segmenter`);
@@ -500,6 +500,11 @@ def load_image_base(root: str | os.PathLike, *, rotation_tol: float = _ROTATION_
     except (OSError, UnicodeDecodeError, csv.Error) as err:
         raise GeosegError(f"{poses_path}: unreadable ({err})") from None
     missing_cols = [c for c in POSE_COLUMNS if c not in header]
+    if missing_cols and "frame" in header:  # a `geoseg render` output, not yet a base
+        raise GeosegError(
+            f"{root}: a geoseg render output, not an image base; make one with "
+            f"`geoseg base build {root} --out BASE`"
+        )
     if missing_cols:
         raise GeosegError(
             f"{poses_path}: missing column(s) {missing_cols}; expected "
@@ -565,7 +570,7 @@ class ThumbnailEmbedder:
 
     Each image is converted to grey, area-averaged to ``size = (w, h)`` cells (pure NumPy:
     exact block means over a ``w x h`` grid), made zero-mean and scaled to unit L2 norm, and
-    flattened to ``D = w * h``. It needs no weights, so ``geoseg localize`` works end to end
+    flattened to ``D = w * h``. It needs no weights, so ``geoseg localize --embedding thumbnail`` runs end to end
     before the networks are trained; it finds near-duplicates, not the same place in another
     season. The thesis's raw layer-21 matching (:func:`raw_layer21_embedder`) and the learned
     head (:class:`HeadEmbedder`) replace it once a model is available.

@@ -95,13 +95,82 @@ def save_model_checkpoint(
     return path
 
 
+MODEL_FILE = "model.pt"
+# A run directory's weight files, in the order they are preferred (training/checkpoint.py
+# writes best.pt and last.pt).
+RUN_WEIGHT_FILES = (MODEL_FILE, "best.pt", "last.pt")
+
+
+def resolve_weights_file(path: str | os.PathLike) -> Path:
+    """A weights file from a path: a file as is; a run directory's ``model.pt``, else
+    ``best.pt``, else ``last.pt``.
+
+    Raises:
+        GeosegError: nothing usable at ``path``.
+    """
+    path = Path(path)
+    if path.is_file():
+        return path
+    if path.is_dir():
+        for name in RUN_WEIGHT_FILES:
+            if (path / name).is_file():
+                return path / name
+        raise GeosegError(f"{path}: no {', '.join(RUN_WEIGHT_FILES)} in this run directory")
+    raise GeosegError(f"{path}: no such checkpoint file or run directory")
+
+
+def read_model_state(
+    path: str | os.PathLike,
+    *,
+    expected_model: str | None = None,
+    map_location: str | torch.device = "cpu",
+) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """The one reader of model weights: a model checkpoint (``model.pt``, written by
+    :func:`save_model_checkpoint`) or a training checkpoint (``best.pt``/``last.pt``), or a run
+    directory holding one. Inference (:func:`load_model_checkpoint`) and the trainers
+    (``training.common.load_state``) both read through it.
+
+    Args:
+        path: file or run directory (:func:`resolve_weights_file`).
+        expected_model: registry name the checkpoint must hold (e.g. ``"enet"``).
+        map_location: where to load the tensors.
+
+    Returns:
+        ``(state_dict, checkpoint)``.
+
+    Raises:
+        GeosegError: unreadable or corrupt file (SHA-256 mismatch), not a geoseg checkpoint,
+            or another architecture than ``expected_model`` (the message names the file).
+    """
+    file = resolve_weights_file(path)
+    ckpt = read_torch_file(file, map_location=map_location)
+    if "state_dict" in ckpt:
+        state = ckpt["state_dict"]
+    elif "model" in ckpt and ckpt.get("format") is not None:
+        from training.checkpoint import validate_checkpoint
+
+        ckpt = validate_checkpoint(ckpt, file)
+        state = ckpt["model"]
+    else:
+        raise GeosegError(
+            f"{file}: not a geoseg model or training checkpoint (missing 'state_dict', or "
+            f"'model' and 'format'; found {sorted(map(str, ckpt))[:8]})"
+        )
+    name = ckpt.get("model_name")
+    if expected_model is not None and name != expected_model:
+        raise GeosegError(
+            f"{file}: holds a {name!r} model, expected {expected_model!r} (another architecture)"
+        )
+    return dict(state), ckpt
+
+
 def load_model_checkpoint(
     path: str | os.PathLike, *, map_location: str | torch.device = "cpu"
 ) -> tuple[nn.Module, dict[str, Any]]:
-    """Rebuild a model from a checkpoint written by :func:`save_model_checkpoint`.
+    """Rebuild a model from a checkpoint (:func:`read_model_state`).
 
     Args:
-        path: the checkpoint file.
+        path: the checkpoint file (or a run directory).
         map_location: where to load the tensors.
 
     Returns:
@@ -115,16 +184,15 @@ def load_model_checkpoint(
     from geoseg.models.registry import get_model
 
     path = Path(path)
-    ckpt = read_torch_file(path, map_location=map_location)
-    missing = [k for k in ("model_name", "state_dict") if k not in ckpt]
-    if missing:
-        raise GeosegError(f"{path}: not a geoseg model checkpoint (missing {missing})")
+    state, ckpt = read_model_state(path, map_location=map_location)
+    if "model_name" not in ckpt:
+        raise GeosegError(f"{path}: not a geoseg model checkpoint (missing ['model_name'])")
     try:
         model = get_model(ckpt["model_name"], **dict(ckpt.get("model_config") or {}))
     except GeosegError as err:
         raise GeosegError(f"{path}: {err}") from None
     try:
-        model.load_state_dict(ckpt["state_dict"], strict=True)
+        model.load_state_dict(state, strict=True)
     except RuntimeError as err:
         first = str(err).strip().splitlines()
         raise GeosegError(

@@ -21,7 +21,7 @@ Two steps:
    candidates by the predicted baseline (the nearest base first); with a GPS fix,
    :func:`fuse_gps_distance` first fuses that baseline with the fix's distance to each base.
 
-Frames (DESIGN §4): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
+Frames (docs/architecture.md, conventions): world metric, z up; camera-to-world poses ``X_w = R_wc X_c + t_wc``; GPS
 positions are in the world frame's ``(x, y)`` (projected), in metres.
 """
 
@@ -778,3 +778,12 @@ def fuse_gps_distance(
         w_g, w_d = np.where(np.isfinite(v_head), w_g, 1.0), np.where(np.isfinite(v_head), w_d, 0.0)
         fused = w_d * d + w_g * g
     return np.where(np.isfinite(d) & np.isfinite(g) & np.isfinite(fused), fused, np.inf)
+
+
+def __getattr__(name: str) -> Any:
+    # the library entry lives in geoseg.localizer (it imports this module); reachable here too
+    if name in ("Localizer", "LocalizerConfig"):
+        from geoseg import localizer
+
+        return getattr(localizer, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

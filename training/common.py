@@ -1,7 +1,7 @@
 """What the segmentation-side trainers share: datasets and loaders from a config, weights from
 earlier runs, and the end of a run (model checkpoint, ONNX export, model card).
 
-Every trainer's run directory ends up holding (DESIGN §3.1)::
+Every trainer's run directory ends up holding (a stage with a path contract, docs/architecture.md)::
 
     config.yaml  last.pt  best.pt  metrics.csv  metrics.json  loss.png  metrics.png   (fit)
     model.pt     the best weights as a geoseg model checkpoint (geoseg.infer)
@@ -30,16 +30,21 @@ from torch.utils.data import Dataset
 
 from geoseg.atomic import atomic_write
 from geoseg.errors import ConfigError, GeosegError
-from geoseg.infer import DEFAULT_NORMALIZATION, save_model_checkpoint
-from geoseg.integrity import file_sha256, read_torch_file
+from geoseg.infer import (
+    DEFAULT_NORMALIZATION,
+    MODEL_FILE,
+    read_model_state,
+    save_model_checkpoint,
+)
+from geoseg.infer import resolve_weights_file as resolve_weights_file  # re-exported
+from geoseg.integrity import file_sha256
 from training import distributed as dd
-from training.checkpoint import BEST, LAST, restore_checkpoint, validate_checkpoint
+from training.checkpoint import BEST, LAST, restore_checkpoint
 from training.config import DataConfig, TrainConfig
 
 logger = logging.getLogger(__name__)
 
 NORMALIZATION: dict[str, list[float]] = {k: list(v) for k, v in DEFAULT_NORMALIZATION.items()}
-MODEL_FILE = "model.pt"
 ONNX_FILE = "model.onnx"
 CARD_JSON = "model_card.json"
 CARD_MD = "model_card.md"
@@ -234,29 +239,11 @@ def describe_data(data: DataConfig) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- weights
-def resolve_weights_file(path: str | os.PathLike) -> Path:
-    """A weights file from a path: a file as is; a run directory's ``model.pt``, else
-    ``best.pt``, else ``last.pt``.
-
-    Raises:
-        GeosegError: nothing usable at ``path``.
-    """
-    path = Path(path)
-    if path.is_file():
-        return path
-    if path.is_dir():
-        for name in (MODEL_FILE, BEST, LAST):
-            if (path / name).is_file():
-                return path / name
-        raise GeosegError(f"{path}: no {MODEL_FILE}, {BEST} or {LAST} in this run directory")
-    raise GeosegError(f"{path}: no such checkpoint file or run directory")
-
-
 def load_state(
     path: str | os.PathLike, *, expected_model: str | None = None, option: str | None = None
 ) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
-    """Weights and metadata from a geoseg model checkpoint (``model.pt``) or a training
-    checkpoint (``best.pt``/``last.pt``), or a run directory holding one.
+    """Weights and metadata of a model or training checkpoint, or a run directory holding one,
+    through the package's one reader (:func:`geoseg.infer.read_model_state`).
 
     Args:
         path: file or run directory (:func:`resolve_weights_file`).
@@ -270,26 +257,12 @@ def load_state(
     Raises:
         GeosegError: unreadable file, not a geoseg checkpoint, or another architecture.
     """
-    if option is not None:
-        try:
-            return load_state(path, expected_model=expected_model)
-        except GeosegError as err:
-            raise GeosegError(f"{option}: {err}") from None
-    file = resolve_weights_file(path)
-    ckpt = read_torch_file(file)
-    if "state_dict" in ckpt:
-        state = ckpt["state_dict"]
-    elif "model" in ckpt and ckpt.get("format") is not None:
-        ckpt = validate_checkpoint(ckpt, file)
-        state = ckpt["model"]
-    else:
-        raise GeosegError(f"{file}: not a geoseg model or training checkpoint")
-    name = ckpt.get("model_name")
-    if expected_model is not None and name != expected_model:
-        raise GeosegError(
-            f"{file}: holds a {name!r} model, expected {expected_model!r} (another architecture)"
-        )
-    return dict(state), ckpt
+    try:
+        return read_model_state(path, expected_model=expected_model)
+    except GeosegError as err:
+        if option is None:
+            raise
+        raise GeosegError(f"{option}: {err}") from None
 
 
 def seed_model_init(seed: int) -> None:

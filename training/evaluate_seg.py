@@ -1,4 +1,4 @@
-"""Accuracy of the segmentation side on a held-out synthetic city (issue 4, DESIGN §6).
+"""Accuracy of the segmentation side on a held-out synthetic city (figures: docs/results.md).
 
 Evaluation data: the ``test`` split of :func:`geoseg.data.synthetic.synthetic_config`, the
 evaluation city :data:`~geoseg.data.synthetic.EVAL_SEEDS` (never used for training or

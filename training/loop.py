@@ -14,7 +14,7 @@ Conventions every trainer follows:
 
 :func:`fit` writes into ``cfg.out_dir``: ``config.yaml``, ``last.pt`` / ``best.pt`` (atomic),
 ``metrics.csv`` / ``metrics.json`` (one row per epoch) and ``loss.png`` / ``metrics.png``, and
-returns that directory (DESIGN §3.1). With ``cfg.resume`` it continues from ``last.pt`` exactly:
+returns that directory (a stage with a path contract, docs/architecture.md). With ``cfg.resume`` it continues from ``last.pt`` exactly:
 weights, optimizer, scheduler, AMP scaler, epoch, step, history and every RNG, including the
 training loader's generators, are restored.
 """

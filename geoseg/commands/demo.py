@@ -104,6 +104,7 @@ def step_contact_sheet(ctx: DemoContext) -> None:
     import numpy as np
 
     from geoseg.image_base import read_rgb
+    from geoseg.legends import class_legend
     from geoseg.synth.maps import contact_sheet
 
     rows, labels = [], []
@@ -114,13 +115,16 @@ def step_contact_sheet(ctx: DemoContext) -> None:
         mid = picks[len(picks) // 2]
         row.append(read_rgb(seq / "labels_color" / f"{mid:06d}.png"))
         rows.append(row)
-        labels.append(f"{rig} / {condition}")
+        labels.append(f"{rig} camera\n{condition}")
+    rows.append([class_legend()])
+    labels.append("class colours")
     path = contact_sheet(
         rows,
         ctx.out / "contact_sheet.png",
         row_labels=labels,
-        col_labels=[f"frame {i}" for i in picks] + [f"labels, frame {picks[len(picks) // 2]}"],
-        title="geoseg demo: the same routes under two conditions",
+        col_labels=[f"RGB, frame {i}" for i in picks]
+        + [f"true labels, frame {picks[len(picks) // 2]}"],
+        title="rendered frames: each route with both rigs under two conditions (rows)",
     )
     ctx.outputs["contact sheet"] = path
 
@@ -148,7 +152,8 @@ def step_map(ctx: DemoContext) -> None:
         streets=world.streets,
         tracks=tracks,
         gps=gps,
-        title=f"world seed {ctx.world_config.seed}: buildings, GIS model, DEM, routes, GPS",
+        title=f"world seed {ctx.world_config.seed} from above: true buildings, the GIS building "
+        "model (with its errors), DEM road segments, the routes driven, GPS fixes",
     )
     ctx.outputs["map"] = path
 
@@ -169,6 +174,7 @@ def step_segment(ctx: DemoContext) -> None:
     from geoseg.errors import GeosegError
     from geoseg.image_base import read_rgb
     from geoseg.infer import normals_to_rgb
+    from geoseg.legends import class_legend, normal_key
     from geoseg.pretrained import pretrained_segmenter
     from geoseg.synth.maps import contact_sheet
     from training.metrics import confusion_matrix, segmentation_scores
@@ -199,16 +205,19 @@ def step_segment(ctx: DemoContext) -> None:
                 row.append(normals_to_rgb(np.where(pred == SKY, 0.0, result.normals[0])))
             row.append(normals_to_rgb(true_normals))
             rows.append(row)
-            row_labels.append(f"{rig} / {condition}")
+            row_labels.append(f"{rig} / {condition}\nframe {i}")
     scores = segmentation_scores(cm)
     miou, accuracy = scores["miou"], scores["pixel_acc"]
     columns = ["RGB", "true labels", "predicted labels", "predicted normals", "true normals"]
+    rows.append([class_legend(), normal_key()])
+    row_labels.append("keys:\nclasses, normals")
     path = contact_sheet(
         rows,
         ctx.out / "segmentation.png",
         row_labels=row_labels,
         col_labels=columns if len(rows[0]) == 5 else columns[:3] + columns[4:],
-        title=f"shipped network on the demo frames: mIoU {miou:.2f}, pixel accuracy {accuracy:.2f}",
+        title=f"shipped labels + normals network on the demo frames (all frames: mIoU {miou:.2f}, "
+        f"pixel accuracy {accuracy:.2f}); normals in the camera frame, grey = no surface (sky)",
     )
     per_class = ", ".join(
         f"{name} {scores[f'iou_{name}']:.2f}"

@@ -2,12 +2,23 @@
 
 Without ``--model`` it uses the shipped joint labels + normals network (:mod:`geoseg.pretrained`).
 
-For each input image ``NAME.ext`` it writes to ``--out``: ``NAME_labels.png`` (colour label map),
-``NAME_overlay.png`` (labels blended over the image) and, when the model predicts normals,
-``NAME_normals.png`` (RGB = ``(n + 1) / 2 * 255``, camera frame). Inputs from several folders
-keep their folders below the inputs' common folder (``a/x.png`` and ``b/x.png`` give
-``OUT/a/x_*.png`` and ``OUT/b/x_*.png``), so no result overwrites another; two inputs that would
-still write the same names (``x.png`` and ``x.jpg``) are refused before any work.
+For each input image ``NAME.ext`` it writes to ``--out``:
+
+* ``NAME_classes.png``: class ids (uint8, one channel, :data:`geoseg.classes.CLASS_NAMES`
+  order: 0 road ... 7 terrain), the file to compute with;
+* ``NAME_labels.png``: the class ids coloured with :data:`geoseg.classes.PALETTE`;
+* ``NAME_overlay.png``: those colours blended over the image (``--alpha``);
+* when the model predicts normals: ``NAME_normals.npy`` (``(3, H, W)`` float32 unit vectors in
+  the camera frame, x right, y down, z forward; NaN where invalid: the pixels labelled sky)
+  and ``NAME_normals.png`` (RGB = ``(n + 1) / 2 * 255``; black where invalid);
+* with ``--probabilities``: ``NAME_probabilities.npy`` (``(8, H, W)`` float16 class
+  probabilities).
+
+``legend.json`` (class ids, names and colours, and the normal-colour code) sits beside them.
+Inputs from several folders keep their folders below the inputs' common folder (``a/x.png``
+and ``b/x.png`` give ``OUT/a/x_*`` and ``OUT/b/x_*``), so no result overwrites another; two
+inputs that would still write the same names (``x.png`` and ``x.jpg``) are refused before any
+work.
 
 An unreadable input does not stop the batch: every other image is processed, then the command
 lists every input it could not process and exits with status 2.
@@ -16,6 +27,7 @@ lists every input it could not process and exits with status 2.
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 from pathlib import Path
@@ -23,7 +35,15 @@ from pathlib import Path
 logger = logging.getLogger(__name__)
 
 PRODUCER = "infer"
-SUFFIXES = ("_labels.png", "_overlay.png", "_normals.png")
+SUFFIXES = (
+    "_classes.png",
+    "_labels.png",
+    "_overlay.png",
+    "_normals.png",
+    "_normals.npy",
+    "_probabilities.npy",
+)
+LEGEND = "legend.json"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -41,6 +61,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--alpha", type=float, default=0.5, help="overlay opacity of the label colours"
+    )
+    parser.add_argument(
+        "--probabilities",
+        action="store_true",
+        help="also write the class probabilities (NAME_probabilities.npy, (8, H, W) float16)",
     )
     parser.add_argument(
         "--overwrite",
@@ -88,14 +113,41 @@ def output_stems(images: list[Path]) -> dict[Path, str]:
 def _earlier_infer(folder: Path) -> bool:
     """True when ``folder`` only holds outputs of an older ``geoseg infer`` (no marker)."""
     files = [p for p in folder.rglob("*") if p.is_file()]
-    return bool(files) and all(p.name.endswith(SUFFIXES) for p in files)
+    return bool(files) and all(p.name.endswith(SUFFIXES) or p.name == LEGEND for p in files)
+
+
+def legend() -> dict:
+    """What the output files' values and colours mean (written as ``legend.json``)."""
+    from geoseg.classes import CLASS_NAMES, PALETTE
+
+    return {
+        "classes": [
+            {"id": i, "name": name, "rgb": PALETTE[i].tolist()}
+            for i, name in enumerate(CLASS_NAMES)
+        ],
+        "normals": "unit vectors in the camera frame (x right, y down, z forward); PNG colour "
+        "= (n + 1) / 2 * 255 per axis (red x, green y, blue z): a surface facing the camera "
+        "(normal -z) is olive (128, 128, 0), the road (normal up, -y) purple (128, 0, 128), a "
+        "wall on the right facing left (-x) teal (0, 128, 128); black = invalid (sky)",
+    }
+
+
+def masked_normals(normals, labels):
+    """Normals ``(3, H, W)`` with NaN where ``labels`` ``(H, W)`` is sky (no surface)."""
+    import numpy as np
+
+    from geoseg.classes import SKY
+
+    out = np.asarray(normals, dtype=np.float32).copy()
+    out[:, np.asarray(labels) == SKY] = np.nan
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
 
-    from geoseg.atomic import atomic_imwrite
+    from geoseg.atomic import atomic_imwrite, atomic_output, atomic_write
     from geoseg.classes import colorize
     from geoseg.errors import GeosegError
     from geoseg.export import available_providers
@@ -117,7 +169,10 @@ def run(args: argparse.Namespace) -> int:
         args.out, producer=PRODUCER, overwrite=args.overwrite, adopt=_earlier_infer
     )
     # recorded once, up front (the normals file only exists for a model predicting normals)
-    record_outputs(out, [stem + suffix for stem in stems.values() for suffix in SUFFIXES])
+    record_outputs(
+        out, [LEGEND] + [stem + suffix for stem in stems.values() for suffix in SUFFIXES]
+    )
+    atomic_write(out / LEGEND, json.dumps(legend(), indent=1) + "\n")
 
     failed: list[str] = []
     for image_path, stem in stems.items():
@@ -134,16 +189,28 @@ def run(args: argparse.Namespace) -> int:
             failed.append(f"{image_path} ({err})")
             logger.error("%s: %s; skipped", image_path, err)
             continue
-        colours = colorize(result.labels[0])
+        labels = result.labels[0].astype(np.uint8)
+        colours = colorize(labels)
         overlay = (args.alpha * colours + (1.0 - args.alpha) * rgb).round().astype(np.uint8)
         images = {"labels": colours, "overlay": overlay}
+        arrays = {}
         if result.normals is not None:
-            images["normals"] = normals_to_rgb(result.normals[0])
-        names = {kind: f"{stem}_{kind}.png" for kind in images}
+            normals = masked_normals(result.normals[0], labels)
+            picture = normals_to_rgb(np.nan_to_num(normals, nan=0.0))
+            picture[np.isnan(normals[0])] = 0
+            images["normals"] = picture
+            arrays["normals"] = normals
+        if args.probabilities:
+            arrays["probabilities"] = result.probabilities[0].astype(np.float16)
+        (out / stem).parent.mkdir(parents=True, exist_ok=True)
+        atomic_imwrite(out / f"{stem}_classes.png", labels)
         for kind, picture in images.items():
-            (out / names[kind]).parent.mkdir(parents=True, exist_ok=True)
-            atomic_imwrite(out / names[kind], cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
-        print(f"{image_path}: {'/'.join(images)} → {out / Path(stem).parent}")
+            atomic_imwrite(out / f"{stem}_{kind}.png", cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+        for kind, array in arrays.items():
+            with atomic_output(out / f"{stem}_{kind}.npy", "wb") as f:
+                np.save(f, array)
+        written = ["classes", *images, *(f"{k}.npy" for k in arrays)]
+        print(f"{image_path}: {'/'.join(written)} → {out / Path(stem).parent}")
     if failed:
         raise GeosegError(
             f"{len(failed)} of {len(stems)} input(s) could not be processed (the others were "

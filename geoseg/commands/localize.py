@@ -1,44 +1,20 @@
 """``geoseg localize``: relocalise query images against a georeferenced image base (§5.1).
 
-For each query image: the ``k`` nearest base images (optionally only within ``--radius`` metres
-of the query's GPS position), the relative pose to each of them (the relative-pose head when
-``--relpose-head`` is given, else the ORB/SIFT essential-matrix baseline), and the query's
-absolute position triangulated from the rays base -> query (:func:`geoseg.localize.absolute_position`)
-with its degeneracy flag. Prints a table; ``--out`` writes the same as JSON.
+A thin command over :class:`geoseg.localizer.Localizer` (the algorithm, its options and its
+outputs are documented there). By default it uses the shipped networks: the learned embedding
+(``geoseg/weights/reloc`` on the ``seg`` trunk) for retrieval and the relative-pose head
+(``geoseg/weights/relpose``) for the relative poses, their distances and the position.
+``--embedding layer21`` gives the raw layer-21 matching of §5.1.1, ``--embedding thumbnail`` a
+grey-thumbnail placeholder (tests, no weights); ``--relative-pose essential`` the ORB/SIFT
+essential-matrix baseline (intrinsics from ``BASE/camera.json``, else ``--focal``, else an
+assumed focal length of ``max(W, H)`` pixels; queries must have the intrinsics' image size).
 
-A relative-pose head that predicts baselines (``predict_distance``) also gives each match its
-distance from the query: the matches are then re-ranked nearest first (``--no-rerank`` keeps
-the appearance order; with ``--gps-sigma`` the distance is first fused with the GPS fix's
-distance to each match, :func:`geoseg.localize.fuse_gps_distance`; with the learned embedding
-``--appearance-weight`` adds the retrieval distance to the log-distance key as a tie-break,
-:func:`geoseg.localize.rerank_by_distance`) and the position comes from ranged rays
-(:func:`geoseg.localize.locate_from_ranged_rays`), which one match already determines and which
-stay determined when the bases are collinear with the query.
+The base is a folder made by ``geoseg base build`` (or any folder with ``poses.csv``, see
+:mod:`geoseg.image_base`). Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame
+of the base, metres; ``image`` is the query's file name or the path as given).
 
-Sequence (``--sequence filter|smooth``): the queries are one drive, in the order given, along the
-base's route (:mod:`geoseg.route_filter`): each query's matches are the most probable base
-images under the route HMM (appearance, motion by ``--step-m`` metres between consecutive
-queries, the GPS window when given, and with ``--gps-sigma`` a Gaussian of each fix's distance),
-causal (``filter``, what a vehicle knows at that query) or using the whole drive (``smooth``). Each match then carries its ``sequence_probability``; the
-posterior already separates neighbouring base images, so the matches keep its order (the
-relative-pose head still gives their poses, distances and the position).
-
-Embeddings: ``--model`` (a segmentation checkpoint or ONNX file exposing layer-21 features)
-gives the raw layer-21 matching of §5.1.1, ``--model`` + ``--reloc-head`` the learned embedding;
-without ``--model`` a normalised grey thumbnail is used, a placeholder baseline that only
-finds near-duplicates (see :class:`geoseg.image_base.ThumbnailEmbedder`).
-
-Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame of the base, metres;
-``image`` is the query's file name or the path as given on the command line).
-
-Intrinsics for the essential-matrix baseline: ``BASE_DIR/camera.json``, else ``--focal``, else
-an assumed focal length of ``max(W, H)`` pixels (flagged in the output). Base and query images
-are assumed taken with the same camera: every query must have the size the intrinsics hold for
-(``camera.json``'s ``image_size``, else the base images' size); a resized query is refused
-rather than given confidently wrong poses.
-
-``--out FILE`` is written atomically; an existing file is replaced only when an earlier
-``geoseg localize`` wrote it (``--overwrite`` replaces any file).
+Prints a table; ``--out FILE`` writes the same as JSON, atomically; an existing file is replaced
+only when an earlier ``geoseg localize`` wrote it (``--overwrite`` replaces any file).
 """
 
 from __future__ import annotations
@@ -57,7 +33,10 @@ logger = logging.getLogger(__name__)
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("queries", nargs="+", type=Path, metavar="QUERY_IMAGE", help="query images")
     parser.add_argument(
-        "--base", required=True, type=Path, help="image base directory (images + poses.csv)"
+        "--base",
+        required=True,
+        type=Path,
+        help="image base folder (made by geoseg base build: images + poses.csv)",
     )
     parser.add_argument(
         "--gps", type=Path, help="CSV of query positions: image, x, y (world frame, metres)"
@@ -65,16 +44,37 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--radius", type=float, help="GPS window radius in metres (needs --gps)")
     parser.add_argument("--k", type=int, default=3, help="matches per query (default 3)")
     parser.add_argument(
+        "--embedding",
+        choices=["learned", "layer21", "thumbnail"],
+        default="learned",
+        help="retrieval embedding: the shipped learned one (default), raw layer-21 features, or "
+        "a grey-thumbnail placeholder for tests (finds near-duplicates only)",
+    )
+    parser.add_argument(
+        "--relative-pose",
+        choices=["head", "essential"],
+        default="head",
+        help="relative poses: the shipped relative-pose head (default) or the essential-matrix "
+        "baseline",
+    )
+    parser.add_argument(
         "--model",
         type=Path,
-        help="segmentation network (.onnx or checkpoint) giving layer-21 features; without it, "
-        "a placeholder thumbnail embedding is used",
+        help="trunk giving layer-21 features (.onnx or checkpoint; default: shipped seg)",
     )
     parser.add_argument(
-        "--reloc-head", type=Path, help="trained embedding head checkpoint (needs --model)"
+        "--reloc-head", type=Path, help="embedding head checkpoint (default: shipped reloc)"
     )
     parser.add_argument(
-        "--relpose-head", type=Path, help="trained relative-pose head checkpoint (needs --model)"
+        "--relpose-head",
+        type=Path,
+        help="relative-pose head checkpoint (default: shipped relpose)",
+    )
+    parser.add_argument(
+        "--network-size",
+        default="320x240",
+        help="resize every image to WxH before the networks (default 320x240, the shipped "
+        "networks' size); 'none' keeps the images' size",
     )
     parser.add_argument(
         "--gps-sigma",
@@ -200,51 +200,6 @@ def _read_query_gps(path: Path, queries: list[Path]) -> list[tuple[float, float]
     return out
 
 
-def _load_head(path: Path, kind: str, device: str):
-    from geoseg.errors import GeosegError
-    from geoseg.infer import load_model_checkpoint
-    from geoseg.models.reloc import RelocHead
-    from geoseg.models.relpose import RelPoseHead
-
-    model, _ = load_model_checkpoint(path, map_location=device)
-    expected = {"reloc": RelocHead, "relpose": RelPoseHead}[kind]
-    if not isinstance(model, expected):
-        raise GeosegError(
-            f"--{kind}-head: {path} holds a {type(model).__name__}, expected a {expected.__name__}"
-        )
-    return model.to(device).eval()
-
-
-def _intrinsics(base, args, image_shape: tuple[int, ...]):
-    """``(K, where K comes from, (W, H) it holds for, where that size comes from)``."""
-    import numpy as np
-
-    from geoseg.errors import GeosegError, check_positive
-    from geoseg.image_base import CAMERA_FILE
-
-    h, w = image_shape[:2]
-    if base.K is not None:
-        if args.focal is not None:
-            raise GeosegError(
-                f"--focal: {args.base / CAMERA_FILE} gives the intrinsics; drop --focal (or the file)"
-            )
-        if base.image_size is not None:
-            return base.K, "camera.json", base.image_size, str(args.base / CAMERA_FILE)
-        return base.K, "camera.json", (w, h), f"{args.base / CAMERA_FILE} (base image size)"
-    if args.focal is not None:
-        check_positive("--focal", args.focal)
-        f, source = float(args.focal), "--focal"
-    else:
-        f, source = float(max(w, h)), "assumed"
-        logger.warning(
-            "no camera.json in the base and no --focal: assuming a focal length of %.0f px "
-            "(relative poses of the essential-matrix baseline are approximate)",
-            f,
-        )
-    K = np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
-    return K, source, (w, h), f"{source} focal on the base images' size"
-
-
 def _is_localize_output(path: Path) -> bool:
     """True when ``path`` is a JSON result an earlier ``geoseg localize`` wrote."""
     try:
@@ -322,23 +277,25 @@ def _print_table(result: dict[str, Any]) -> None:
 # ============================================================================ run
 
 
-def run(args: argparse.Namespace) -> int:
-    import numpy as np
+def _parse_size(text: str) -> tuple[int, int] | None:
+    from geoseg.errors import GeosegError
 
+    if text.lower() == "none":
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise GeosegError(f"--network-size: expected WxH or none, got {text!r}") from None
+    if w < 8 or h < 8:
+        raise GeosegError(f"--network-size: expected sides >= 8, got {text!r}")
+    return w, h
+
+
+def _config(args: argparse.Namespace):
+    """The :class:`LocalizerConfig` of the arguments, with the errors naming the flags."""
     from geoseg.errors import GeosegError, check_positive
-    from geoseg.essential_baseline import estimate_relative_pose, rotation_error_deg
-    from geoseg.image_base import (
-        HeadEmbedder,
-        ThumbnailEmbedder,
-        check_image_size,
-        layer21_features,
-        load_image_base,
-        raw_layer21_embedder,
-        read_rgb,
-    )
-    from geoseg.localize import absolute_position, fuse_gps_distance, rerank_by_distance
+    from geoseg.localizer import LocalizerConfig
 
-    # ---- arguments
     if isinstance(args.k, bool) or args.k < 1:
         raise GeosegError(f"--k: expected an int >= 1, got {args.k}")
     gps_likelihood = args.sequence is not None and args.gps_sigma is not None
@@ -356,23 +313,19 @@ def run(args: argparse.Namespace) -> int:
                 "distances with the GPS (not with --sequence)"
             )
         check_positive("--distance-rel-sigma", args.distance_rel_sigma)
-    else:
-        args.distance_rel_sigma = 0.3
     if args.gps_sigma is not None:
         if args.gps is None:
             raise GeosegError("--gps-sigma: needs --gps (the query positions)")
         check_positive("--gps-sigma", args.gps_sigma)
-    appearance_weight = args.appearance_weight
-    if appearance_weight is None:
-        appearance_weight = 0.5 if args.reloc_head is not None else 0.0
+    weight = args.appearance_weight
+    if weight is None:
+        weight = 0.5 if args.embedding == "learned" else 0.0
     else:
-        check_positive("--appearance-weight", appearance_weight, strict=False)
-    if args.model is None and (args.reloc_head is not None or args.relpose_head is not None):
-        raise GeosegError("--reloc-head/--relpose-head: need --model (the layer-21 trunk)")
+        check_positive("--appearance-weight", weight, strict=False)
     if args.position_k is not None and (isinstance(args.position_k, bool) or args.position_k < 1):
         raise GeosegError(f"--position-k: expected an int >= 1, got {args.position_k}")
-    if args.pool is not None and (args.model is None or min(args.pool) < 1):
-        raise GeosegError("--pool: needs --model and two sizes >= 1")
+    if args.pool is not None and (args.embedding != "layer21" or min(args.pool) < 1):
+        raise GeosegError("--pool: needs --embedding layer21 and two sizes >= 1")
     if args.sequence is None and (args.step_m is not None or args.appearance_scale is not None):
         raise GeosegError("--step-m/--appearance-scale: only with --sequence")
     if args.sequence is not None and args.appearance_weight is not None:
@@ -381,14 +334,40 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.step_m is not None:
         check_positive("--step-m", args.step_m, strict=False)
-    route_cfg = None
-    if args.sequence is not None:
-        from geoseg.route_filter import RouteFilterConfig
+    if args.appearance_scale is not None:
+        check_positive("--appearance-scale", args.appearance_scale)
+    if args.focal is not None:
+        check_positive("--focal", args.focal)
+        if args.relative_pose != "essential":
+            raise GeosegError("--focal: only with --relative-pose essential")
+    for flag, value, needs in (
+        ("--model", args.model, args.embedding != "thumbnail" or args.relative_pose == "head"),
+        ("--reloc-head", args.reloc_head, args.embedding == "learned"),
+        ("--relpose-head", args.relpose_head, args.relative_pose == "head"),
+    ):
+        if value is not None and not needs:
+            raise GeosegError(f"{flag}: not used with these --embedding/--relative-pose choices")
+    return LocalizerConfig(
+        k=args.k,
+        radius_m=args.radius,
+        gps_sigma_m=args.gps_sigma,
+        distance_rel_sigma=0.3 if args.distance_rel_sigma is None else args.distance_rel_sigma,
+        appearance_weight=weight,
+        rerank=not args.no_rerank,
+        position_k=args.position_k,
+        sequence=args.sequence,
+        step_m=args.step_m,
+        appearance_scale=args.appearance_scale,
+    )
 
-        route_cfg = RouteFilterConfig(
-            **({} if args.appearance_scale is None else {"appearance_scale": args.appearance_scale})
-        )
 
+def run(args: argparse.Namespace) -> int:
+    from geoseg.errors import GeosegError
+    from geoseg.image_base import load_image_base, read_rgb
+    from geoseg.localizer import Localizer
+
+    config = _config(args)
+    network_size = _parse_size(args.network_size)
     if args.out is not None:
         from geoseg.output_dir import prepare_output_file
 
@@ -396,227 +375,42 @@ def run(args: argparse.Namespace) -> int:
     base = load_image_base(args.base)
     queries: list[Path] = list(args.queries)
     gps = _read_query_gps(args.gps, queries) if args.gps is not None else None
-    query_images = [read_rgb(q) for q in queries]
-    K, k_source = None, None
-    if args.relpose_head is None:  # the essential matrix: one K for base and query images
-        K, k_source, camera_size, size_source = _intrinsics(base, args, base.load_image(0).shape)
-        for q, img in zip(queries, query_images):
-            check_image_size(f"query {q}", img, camera_size, size_source)
-
-    # ---- models (all loaded before any work, so that a bad file fails fast)
-    segmenter = None
-    relpose_head = None
-    if args.relpose_head is not None:
-        relpose_head = _load_head(args.relpose_head, "relpose", args.device)
+    images = [read_rgb(q) for q in queries]
+    try:
+        localizer = Localizer.from_base(
+            base,
+            embedding=args.embedding,
+            relative_pose=args.relative_pose,
+            trunk=args.model,
+            reloc_head=args.reloc_head,
+            relpose_head=args.relpose_head,
+            network_size=network_size,
+            pool=None if args.pool is None else tuple(args.pool),
+            features=args.features,
+            focal=args.focal,
+            device=args.device,
+            cache=not args.no_cache,
+            config=config,
+        )
+    except GeosegError as err:
+        msg = str(err)
+        for name, flag in (
+            ("reloc_head:", "--reloc-head:"),
+            ("relpose_head:", "--relpose-head:"),
+            ("focal:", "--focal:"),
+        ):
+            msg = msg.replace(name, flag, 1) if msg.startswith(name) else msg
+        raise GeosegError(msg) from None
     if (
         args.gps_sigma is not None
         and args.sequence is None
-        and not getattr(relpose_head, "predict_distance", False)
+        and args.relative_pose == "head"
+        and not _predicts_distance(localizer)
     ):
         raise GeosegError("--gps-sigma: needs a --relpose-head that predicts distances")
-    if args.model is not None:
-        from geoseg.export import available_providers
-        from geoseg.infer import Segmenter
-
-        if str(args.model).lower().endswith(".onnx"):
-            segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
-        else:
-            segmenter = Segmenter.from_checkpoint(args.model, device=args.device)
-        if args.reloc_head is not None:
-            head = _load_head(args.reloc_head, "reloc", args.device)
-            st = args.reloc_head.stat()
-            name = f"reloc-{args.model.stem}-{args.reloc_head.stem}-{st.st_size}-{st.st_mtime_ns}"
-            embedder: Any = HeadEmbedder(segmenter, head, name=name)
-            embedding_name = f"learned ({args.reloc_head.name})"
-        else:
-            embedder = raw_layer21_embedder(
-                segmenter, output_size=None if args.pool is None else tuple(args.pool)
-            )
-            embedding_name = "raw layer-21 features"
-    else:
-        embedder = ThumbnailEmbedder()
-        embedding_name = f"{embedder.name} (placeholder, not the learned embedding)"
-    index = base.build_index(embedder, cache=not args.no_cache)
-    q_emb = []
-    for q, img in zip(queries, query_images):
-        try:
-            e = np.asarray(embedder([img]), dtype=np.float64)
-        except GeosegError as err:
-            raise GeosegError(f"query {q}: {err}") from None
-        if e.shape != (1, index.dim):
-            raise GeosegError(
-                f"query {q}: embedding of size {e.shape[-1]} but the base's is {index.dim} "
-                "(feature maps of mismatched sizes: query and base images of different sizes?)"
-            )
-        q_emb.append(e[0])
-    sequence_prob = None
-    if route_cfg is not None:
-        from geoseg.route_filter import RouteFilter
-
-        stamps = base.timestamps if np.isfinite(base.timestamps).all() else None
-        if stamps is None:
-            logger.info("the base has no timestamps: its route is the order of poses.csv")
-        route = RouteFilter(base.t_wc, timestamps=stamps, config=route_cfg)
-        all_dist = index.distances(np.stack(q_emb))
-        steps = None if args.step_m is None else np.full(len(queries) - 1, args.step_m)
-        run_filter = route.filter if args.sequence == "filter" else route.smooth
-        post = run_filter(
-            all_dist,
-            steps,
-            gps=None if gps is None else np.asarray(gps),
-            radius_m=args.radius,
-            gps_sigma_m=args.gps_sigma,
-        )
-        ranked, sequence_prob = post.top(min(args.k, len(base)))
-        dists = np.take_along_axis(all_dist, ranked, axis=1)
-        if args.radius is not None:  # the window's outside has probability 0: not a match
-            ranked = np.where(sequence_prob > 0, ranked, -1)
-    else:
-        ranked, dists = index.query(
-            np.stack(q_emb),
-            k=min(args.k, len(base)),  # no more matches than base images
-            gps=None if gps is None else np.asarray(gps),
-            radius_m=args.radius,
-        )
-
-    # ---- relative poses
-    if relpose_head is not None:
-        features = layer21_features(segmenter)
-        method = f"relative-pose head ({args.relpose_head.name})"
-    else:
-        method = f"essential matrix ({args.features.upper()} + MAGSAC)"
-
-    def relative_pose(i_base: int, q_img: np.ndarray, q_name: Path) -> dict[str, Any]:
-        base_img = base.load_image(i_base)
-        if relpose_head is not None:
-            import torch
-
-            from geoseg.models.relpose import so3_exp
-
-            fa = torch.from_numpy(features(base_img))[None].to(args.device)
-            fb = torch.from_numpy(features(q_img))[None].to(args.device)
-            if fa.shape != fb.shape:
-                raise GeosegError(
-                    f"query {q_name}, base image {base.images[i_base]}: feature maps of "
-                    f"mismatched sizes {tuple(fb.shape[1:])} vs {tuple(fa.shape[1:])} "
-                    "(the relative-pose head needs images of the same size)"
-                )
-            with torch.no_grad():
-                out = relpose_head(fa, fb)
-            R_ab = so3_exp(out["rotation"].double())[0].cpu().numpy()
-            t_dir = out["direction"][0].double().cpu().numpy()
-            dist = out.get("log_distance")
-            return {
-                "ok": True,
-                "reason": "",
-                "R_ab": R_ab,
-                "t_dir_ab": t_dir,
-                "distance_m": None if dist is None else float(dist[0].double().exp()),
-                "n_inliers": None,
-            }
-        est = estimate_relative_pose(base_img, q_img, K, method=args.features)
-        return {
-            "ok": est.ok,
-            "reason": est.reason,
-            "R_ab": est.R_ab,
-            "t_dir_ab": est.t_dir_ab,
-            "distance_m": None,  # an essential matrix has no scale
-            "n_inliers": est.n_inliers,
-        }
-
-    results = []
-    for j, (q, img) in enumerate(zip(queries, query_images)):
-        matches = []
-        for r in range(ranked.shape[1]):
-            i = int(ranked[j, r])
-            if i < 0:
-                continue
-            rp = relative_pose(i, img, q)
-            rp["rotation_deg"] = (
-                float(rotation_error_deg(rp["R_ab"], np.eye(3))) if rp["ok"] else None
-            )
-            rp["query_R_wc"] = base.R_wc[i] @ rp["R_ab"] if rp["ok"] else None
-            matches.append(
-                {
-                    "rank": r + 1,
-                    "index": i,
-                    "image": base.images[i],
-                    "distance": float(dists[j, r]),
-                    "base_t_wc": base.t_wc[i],
-                    "relative_pose": rp,
-                    **(
-                        {}
-                        if sequence_prob is None
-                        else {"sequence_probability": float(sequence_prob[j, r])}
-                    ),
-                }
-            )
-        ranged = bool(matches) and all(
-            m["relative_pose"]["distance_m"] is not None for m in matches
-        )
-        if ranged and not args.no_rerank and args.sequence is None:
-            dist = np.array([[m["relative_pose"]["distance_m"] for m in matches]])
-            if args.gps_sigma is not None:
-                gps_m = np.array(
-                    [[np.linalg.norm(m["base_t_wc"][:2] - np.asarray(gps[j])) for m in matches]]
-                )
-                dist = fuse_gps_distance(
-                    dist,
-                    gps_m,
-                    relative_sigma=args.distance_rel_sigma,
-                    gps_sigma_m=args.gps_sigma,
-                )
-                for m, d in zip(matches, dist[0]):
-                    m["gps_fused_distance_m"] = float(d)
-            order = rerank_by_distance(
-                np.arange(len(matches))[None],
-                dist,
-                appearance=np.array([[m["distance"] for m in matches]]),
-                appearance_weight=appearance_weight,
-            )[2][0]
-            matches = [matches[i] for i in order]
-        for r, m in enumerate(matches, start=1):
-            m["appearance_rank"], m["rank"] = m["rank"], r
-        ok = [m for m in matches if m["relative_pose"]["ok"]][: args.position_k]
-        position: dict[str, Any] = {
-            "method": "ranged rays" if ranged else "rays",
-            "xyz": None,
-            "degenerate": True,
-            "n_rays": len(ok),
-            "n_inliers": 0,
-            "inlier_ranks": [],
-            "reason": "",
-        }
-        if not matches:
-            position["reason"] = (
-                f"no base image within {args.radius} m of the query's GPS"
-                if args.radius is not None
-                else "no match"
-            )
-        elif len(ok) < (need := 1 if ranged else 2):
-            position["reason"] = f"{len(ok)} relative pose(s), at least {need} needed"
-        else:
-            idx = [m["index"] for m in ok]
-            dirs = np.stack([m["relative_pose"]["t_dir_ab"] for m in ok])
-            ranges = [m["relative_pose"]["distance_m"] for m in ok] if ranged else None
-            ray = absolute_position(base.R_wc[idx], base.t_wc[idx], dirs, ranges)
-            position.update(
-                xyz=None if ray.degenerate else ray.point,
-                degenerate=ray.degenerate,
-                n_inliers=int(ray.inliers.sum()),
-                inlier_ranks=[m["rank"] for m, inl in zip(ok, ray.inliers) if inl],
-                residuals_m=ray.residuals,
-                reason="near-parallel or inconsistent rays" if ray.degenerate else "",
-            )
-        results.append(
-            {
-                "image": str(q),
-                "gps": None if gps is None else list(gps[j]),
-                "matches": matches,
-                "position": position,
-            }
-        )
-
+    if args.gps_sigma is not None and args.sequence is None and args.relative_pose != "head":
+        raise GeosegError("--gps-sigma: needs a --relpose-head that predicts distances")
+    results = localizer.localize(images, gps=gps, names=[str(q) for q in queries])
     result = _clean(
         {
             "base": str(args.base),
@@ -624,10 +418,10 @@ def run(args: argparse.Namespace) -> int:
             "k": args.k,
             "gps_window_m": args.radius,
             "sequence": args.sequence,
-            "embedding": embedding_name,
-            "relative_pose_method": method,
-            "intrinsics": k_source,
-            "queries": results,
+            "embedding": localizer.embedding_name,
+            "relative_pose_method": localizer.relative_pose_name,
+            "intrinsics": getattr(localizer.relative_pose, "k_source", None),
+            "queries": [r.to_dict() for r in results],
         }
     )
     _print_table(result)
@@ -640,3 +434,8 @@ def run(args: argparse.Namespace) -> int:
             raise write_error(args.out, err, what="--out") from None
         print(f"results written to {args.out}")
     return 0
+
+
+def _predicts_distance(localizer) -> bool:
+    head = getattr(localizer.relative_pose, "head", None)
+    return bool(getattr(head, "predict_distance", False))

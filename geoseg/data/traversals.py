@@ -21,7 +21,7 @@ The relocalisation data of thesis §5.1: the same route driven several times (th
 * :func:`route_specs`: the routes of a split (training cities, validation city, held-out
   evaluation city) with deterministic per-city condition draws.
 
-Frames (DESIGN §4): world metric, z up; ``X_w = R_wc X_c + t_wc``; OpenCV camera frame.
+Frames (docs/architecture.md, conventions): world metric, z up; ``X_w = R_wc X_c + t_wc``; OpenCV camera frame.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The render stage: a synthetic sequence and its GIS products, written to a directory.
 
-:func:`render_sequence` follows DESIGN §3.1 (stages with path contracts): it takes a world
+:func:`render_sequence` is a stage with a path contract (docs/architecture.md): it takes a world
 config and a request, writes everything under ``out_dir``, returns ``out_dir``, and skips the
 work when ``out_dir/meta.json`` records the very same request (``overwrite=True`` redoes it).
 ``meta.json`` is written last, so a directory without it is an unfinished render. Every file is

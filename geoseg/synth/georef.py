@@ -1,6 +1,6 @@
 """The georeference of a synthetic world: local metric frame <-> WGS84 (and Lambert-93).
 
-Synthetic worlds are born in a local metric frame (x east, y north, z up, metres; DESIGN §4).
+Synthetic worlds are born in a local metric frame (x east, y north, z up, metres; docs/architecture.md).
 This module pins that frame to the Earth so that GIS products can also be written in WGS84,
 as a real GPS delivers them (thesis §1.9.3):
 

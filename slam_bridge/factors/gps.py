@@ -1,7 +1,7 @@
 """GPS constraint on the horizontal position of cameras (thesis eq. 3.1, appendix B.3.1).
 
 ``C_gps = sum_i w_i ||P_gps T_i - x_gps,i||^2`` (eq. B.7) where ``T_i = t_wc[i]`` is the optical
-centre of camera ``i`` in the world (x east, y north, z up, DESIGN §4) and ``P_gps`` keeps ``(x,
+centre of camera ``i`` in the world (x east, y north, z up, docs/architecture.md) and ``P_gps`` keeps ``(x,
 y)``: the GPS altitude of low-cost receivers is ignored. (The thesis's ``B = diag(1, 0, 1)`` of
 eq. B.10 selects the same horizontal plane in its y-up frame.) Chapter 3 constrains only the most
 recent camera; the factor accepts any subset of cameras.

@@ -41,25 +41,13 @@ cameras), or when ``f`` does not decrease; otherwise it is accepted and ``lambda
 
 **Shortened steps** (``max_backtracks``, not in the thesis). The Newton model of the barrier is
 linear in ``zeta`` (``gamma / s^2`` times its change), so it does not see the wall at ``zeta = t``:
-from ``X*`` the first step typically moves the newest camera onto the fix and crosses the barrier
-several times over. Raising ``lambda`` does not cure it quickly: the Marquardt damping turns
-the step toward translations the points cannot follow, and ``zeta`` first *grows* with
-``lambda`` (measured on the chapter-3 windows, DPC: 3.4, 4.1, 8.0, 13, 4.2, 0.17 times the
-slack for ``lambda`` = 1e-4 ... 10), so a fusion spent five factorisations to take a step of a
-few centimetres, and 18 of 28 sampled fusions stopped at the iteration cap. Since ``grad zeta =
-0`` at ``X*``, ``zeta`` grows about quadratically along the step: half of it is feasible. So an
-infeasible trial is first retried halved (up to ``max_backtracks`` times; each retry costs one
-evaluation of the costs, no factorisation), and only then rejected. Measured on 28-32 windows
-of the bench drive (``n = 0`` / DPC / MPC, sigma_b = 0.75 m, every tenth keyframe, methods
-interleaved): total time -18 / -37 / -29 %, time per iteration -12 / -20 / -15 %, iterations
--7 / -22 / -17 %, fusions stopped by the iteration cap 4 / 18 / 13 -> 0 / 1 / 1, and a lower
-final constraint cost.
-Converged fusions follow the GPS more closely, which is not always closer to the truth: over
-seven drives of the chapter-3 grid (``bench/fusion_ch3.py --full --drives 3 4 6 7 8 9``, with
-and without) MPC's inlier loss in the biased-GPS runs rose on every drive (mean +1.3 %, 2.7 ->
-4.1 %) while DPC's at sigma_b = 1.5 m fell on every drive (-1.1 %, 1.7 -> 0.5 %); translation
-errors moved both ways by 0.0-0.3 m per run, and two chaotic runs (drive 7 DPC at 0.75 m, drive
-8 bias) ended 1.3-4.5 m worse (both kinds of run fail on those drives at other settings too).
+from ``X*`` the first step typically crosses the barrier several times over, and raising
+``lambda`` cures it slowly (the damping turns the step toward translations the points cannot
+follow, and ``zeta`` first grows with ``lambda``). Since ``grad zeta = 0`` at ``X*``, ``zeta``
+grows about quadratically along the step: half of it is feasible. So an infeasible trial is
+first retried halved (up to ``max_backtracks`` times; each retry costs one evaluation of the
+costs, no factorisation), and only then rejected. What this changed on the chapter-3 runs is
+recorded in ``docs/slam_loop_history.md``.
 
 **gamma.** The thesis does not fix it. By default ``gamma = gamma_rel * (t - zeta*) * C(X*)``:
 the barrier starts at ``gamma_rel`` times the constraint cost, so the result does not depend on
@@ -108,7 +96,7 @@ __all__ = [
 # ------------------------------------------------------------------------------------ config
 @dataclass
 class BarrierConfig:
-    """Parameters of the barrier fusion (defaults next to the code, DESIGN §3.2).
+    """Parameters of the barrier fusion (defaults next to the code, docs/architecture.md).
 
     Attributes:
         t_ratio: ``t = t_ratio * zeta(X*)`` (1.05 in the thesis, following Lhuillier).

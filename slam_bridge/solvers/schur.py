@@ -27,9 +27,8 @@ other pattern stays correct (``L`` just grows). ``S`` is factorised with
 banded enough but its first cameras form a chain coupled only to their neighbours (the
 pose-graph window of a hybrid, fig. 3.3) that the other cameras reach only through its last
 ones, the chain is factorised apart, banded, and only the rest densely (:class:`_ChainSplit`;
-measured on the ch. 3 fusion, 40 cameras with a chain of ~20: 0.19 ms instead of 0.31 ms for
-the factorisation and two solves; not used below a chain of a third of the cameras, where the
-extra LAPACK calls cost what the smaller dense part saves).
+not used below a chain of a third of the cameras, where the extra LAPACK calls cost what the
+smaller dense part saves; timings in ``docs/slam_loop_history.md``).
 :class:`SchurFactorization` keeps the factor so that several right-hand sides can be solved with
 one factorisation (the barrier solver needs two per step, eqs. B.14-B.17).
 
@@ -152,13 +151,9 @@ def _chunk_structure(
     In a keyframe window the cameras of a point are a short run of successive keyframes, so a
     chunk of points with nearby first and last cameras touches few cameras and its contribution
     ``A^T A`` is a small dense GEMM with little padding. Chunks with the same ``L`` share one
-    batched GEMM. Measured as padded over useful flops (``sum_p 3 (6 n_p)^2``): on the chapter-3
-    windows (bench drive, 40 cameras) 2.3x for ``n = 0`` and 2.5x for the hybrids, against 7.9x
-    and 3.9x when sorted by track length first (a chunk of same-length points then spans the
-    whole window); on the street scenes of ``bench/ba_speed.py`` 1.4-1.9x against 1.8-3.2x. The
-    reduced system of those windows then takes 1.1 instead of 2.9 ms (``n = 0``) and 0.36 instead
-    of 0.48 ms (hybrids). Any other pattern stays correct (``L`` just grows; the chunks shrink
-    when the padding gets large).
+    batched GEMM, with far less padding than chunks of same-length tracks (which span the
+    whole window; the figures are in ``docs/slam_loop_history.md``). Any other pattern stays
+    correct (``L`` just grows; the chunks shrink when the padding gets large).
     """
     last = _LAST_STRUCT[0] if _LAST_STRUCT else None
     if (

@@ -43,7 +43,7 @@ R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 OUTCOMES: dict[str, Counter] = defaultdict(Counter)  # table cases, per command
 GENERATED: dict[str, Counter] = defaultdict(Counter)  # generated bad values, per command
 # slam-eval is being rewritten (slam_bridge/experiments); its own tests cover its inputs.
-COVERED = ("render", "demo", "train", "export", "infer", "localize", "slam", "bench")
+COVERED = ("render", "demo", "train", "export", "infer", "base", "localize", "slam", "bench")
 REPORTED = (*COVERED, "python API")
 
 
@@ -276,8 +276,13 @@ def localize_argv(*extra: str, query: str = "{e.image}") -> Argv:
         query.format(e=e),
         "--base",
         str(e.base),
+        *PLACEHOLDER_LOCALIZE,
         *[x.format(e=e) for x in extra],
     ]
+
+
+# the networks-free placeholders (the shipped networks are localize's default)
+PLACEHOLDER_LOCALIZE = ("--embedding", "thumbnail", "--relative-pose", "essential")
 
 
 def infer_output(env: Env) -> Path:

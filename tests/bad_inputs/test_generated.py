@@ -93,10 +93,13 @@ NON_NUMERIC = {
     "demo": {"--out", "--config", "--size", "--conditions", "--set", "--force", "--overwrite"},
     "train": {"--config", "--resume", "--overwrite", "--device", "--out", "--set"},
     "export": {"--checkpoint", "--model", "--out", "--overwrite", "--config", "--static"},
-    "infer": {"--model", "--out", "--device", "--overwrite"},
+    "infer": {"--model", "--out", "--device", "--probabilities", "--overwrite"},
     "localize": {
         "--base",
         "--gps",
+        "--embedding",
+        "--relative-pose",
+        "--network-size",
         "--model",
         "--reloc-head",
         "--relpose-head",
@@ -109,6 +112,7 @@ NON_NUMERIC = {
         "--out",
         "--overwrite",
     },
+    "base": set(),  # its options belong to its action (base build): the table covers them
     "slam": set(),  # its options belong to its action (slam run): the table covers them
     "bench": set(),
 }

@@ -19,6 +19,8 @@ from geoseg.image_base import check_image_size, load_image_base, read_camera, wr
 
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
+PLACEHOLDER = ["--embedding", "thumbnail", "--relative-pose", "essential"]
+
 
 def _base(root: Path, size=(48, 64), camera: dict | None = None) -> list[np.ndarray]:
     rng = np.random.default_rng(0)
@@ -44,19 +46,19 @@ def test_localize_refuses_a_resized_query(tmp_path, capsys, scale) -> None:
     fx, fy = scale if isinstance(scale, tuple) else (scale, scale)
     query = tmp_path / "q.png"
     cv2.imwrite(str(query), cv2.resize(images[1], None, fx=fx, fy=fy))
-    assert main(["localize", str(query), "--base", str(tmp_path / "base")]) == 2
+    assert main(["localize", *PLACEHOLDER, str(query), "--base", str(tmp_path / "base")]) == 2
     err = capsys.readouterr().err
     assert "q.png" in err and "hold for 64x48" in err and "camera.json" in err
     # the same query at the camera's size is fine
     cv2.imwrite(str(query), images[1])
-    assert main(["localize", str(query), "--base", str(tmp_path / "base")]) == 0
+    assert main(["localize", *PLACEHOLDER, str(query), "--base", str(tmp_path / "base")]) == 0
 
 
 def test_without_camera_json_queries_must_match_the_base_images(tmp_path, capsys) -> None:
     images = _base(tmp_path / "base")
     query = tmp_path / "q.png"
     cv2.imwrite(str(query), cv2.resize(images[1], None, fx=2.0, fy=2.0))
-    assert main(["localize", str(query), "--base", str(tmp_path / "base")]) == 2
+    assert main(["localize", *PLACEHOLDER, str(query), "--base", str(tmp_path / "base")]) == 2
     assert "base images' size" in capsys.readouterr().err
 
 
@@ -71,7 +73,15 @@ def test_focal_and_camera_json_together_are_refused(tmp_path, capsys) -> None:
     images = _base(tmp_path / "base", camera=CAMERA)
     query = tmp_path / "q.png"
     cv2.imwrite(str(query), images[0])
-    argv = ["localize", str(query), "--base", str(tmp_path / "base"), "--focal", "500"]
+    argv = [
+        "localize",
+        *PLACEHOLDER,
+        str(query),
+        "--base",
+        str(tmp_path / "base"),
+        "--focal",
+        "500",
+    ]
     assert main(argv) == 2
     assert "--focal" in capsys.readouterr().err
 

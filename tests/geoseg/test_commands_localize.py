@@ -13,6 +13,9 @@ import pytest
 from geoseg.cli import main
 from geoseg.image_base import load_image_base, write_poses_csv
 
+# the networks-free placeholders (the shipped networks are the default)
+PLACEHOLDER = ["--embedding", "thumbnail", "--relative-pose", "essential"]
+
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
@@ -47,7 +50,19 @@ def test_end_to_end_placeholder_embedding(tmp_path: Path, capsys) -> None:
     q.parent.mkdir()
     _save(q, images[3])
     out = tmp_path / "out" / "res.json"
-    rc = main(["localize", str(q), "--base", str(tmp_path / "base"), "--k", "2", "--out", str(out)])
+    rc = main(
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            str(tmp_path / "base"),
+            "--k",
+            "2",
+            "--out",
+            str(out),
+        ]
+    )
     assert rc == 0
     text = capsys.readouterr().out
     assert "img_3.png" in text and "placeholder" in text and "position" in text
@@ -71,7 +86,7 @@ def test_gps_window(tmp_path: Path) -> None:
     gps = tmp_path / "gps.csv"
     gps.write_text("image,x,y\nq.png,0.0,0.0\n")  # ... but GPS says x = 0
     out = tmp_path / "res.json"
-    args = ["localize", str(q), "--base", str(tmp_path / "base"), "--out", str(out)]
+    args = ["localize", *PLACEHOLDER, str(q), "--base", str(tmp_path / "base"), "--out", str(out)]
     assert main([*args, "--gps", str(gps), "--radius", "15"]) == 0
     matches = json.loads(out.read_text())["queries"][0]["matches"]
     assert {m["image"] for m in matches} == {"img_0.png", "img_1.png"}
@@ -92,7 +107,7 @@ def test_sequence_overrules_an_aliased_query(tmp_path: Path) -> None:
         names.append(str(tmp_path / f"q{j}.png"))
         _save(Path(names[-1]), noisy)
     out = tmp_path / "res.json"
-    args = ["localize", *names, "--base", str(tmp_path / "base"), "--out", str(out)]
+    args = ["localize", *PLACEHOLDER, *names, "--base", str(tmp_path / "base"), "--out", str(out)]
     assert main(args) == 0
     single = json.loads(out.read_text())["queries"]
     assert [q["matches"][0]["image"] for q in single] == [f"img_{i}.png" for i in (2, 3, 7, 5)]
@@ -111,7 +126,7 @@ def test_sequence_overrules_an_aliased_query(tmp_path: Path) -> None:
     # --gps-sigma is the filter's GPS likelihood: the aliased view alone, its fix at image 4
     gps = tmp_path / "gps.csv"
     gps.write_text("image,x,y\nq2.png,40,0\n")
-    one = ["localize", names[2], "--base", str(tmp_path / "base"), "--out", str(out)]
+    one = ["localize", *PLACEHOLDER, names[2], "--base", str(tmp_path / "base"), "--out", str(out)]
     assert main([*one, "--sequence", "filter"]) == 0
     assert json.loads(out.read_text())["queries"][0]["matches"][0]["image"] == "img_7.png"
     assert main([*one, "--sequence", "filter", "--gps", str(gps), "--gps-sigma", "3"]) == 0
@@ -180,7 +195,10 @@ def test_end_to_end_absolute_position_from_essential_baseline(tmp_path: Path) ->
     q = tmp_path / "query.png"
     _save(q, _render(_rot("z", 1.0) @ R0, q_t, textures))
     out = tmp_path / "res.json"
-    assert main(["localize", str(q), "--base", str(base), "--k", "3", "--out", str(out)]) == 0
+    assert (
+        main(["localize", *PLACEHOLDER, str(q), "--base", str(base), "--k", "3", "--out", str(out)])
+        == 0
+    )
     res = json.loads(out.read_text())
     assert res["intrinsics"] == "camera.json" and "essential" in res["relative_pose_method"]
     query = res["queries"][0]
@@ -242,7 +260,9 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     _save(q, images[1])
     out = tmp_path / "res.json"
     args = ["localize", str(q), "--base", str(tmp_path / "base"), "--out", str(out)]
-    assert main([*args, "--model", str(checkpoints["seg"])]) == 0
+    args += ["--network-size", "none"]  # the tiny test images as they are
+    raw = ["--embedding", "layer21", "--relative-pose", "essential", "--network-size", "none"]
+    assert main([*args, *raw, "--model", str(checkpoints["seg"])]) == 0
     res = json.loads(out.read_text())
     assert res["embedding"] == "raw layer-21 features"
     assert res["queries"][0]["matches"][0]["image"] == "img_1.png"
@@ -325,16 +345,30 @@ def test_with_model_and_heads(tmp_path: Path, checkpoints, capsys) -> None:
     big = tmp_path / "big.png"
     _save(big, np.zeros((96, 64, 3), np.uint8))
     base = str(tmp_path / "base")
-    err = _error(capsys, ["localize", str(big), "--base", base, "--model", str(checkpoints["seg"])])
+    err = _error(
+        capsys,
+        ["localize", str(big), "--base", base, *raw, "--model", str(checkpoints["seg"])],
+    )
     assert "big.png: 64x96 pixels" in err and "hold for 64x48 images" in err  # the intrinsics
     with_head = ["--model", str(checkpoints["seg"]), "--relpose-head", str(checkpoints["relpose"])]
-    err = _error(capsys, ["localize", str(big), "--base", base, *with_head])
+    err = _error(
+        capsys, ["localize", str(big), "--base", base, "--network-size", "none", *with_head]
+    )
     assert "big.png" in err and "mismatched sizes" in err  # the features
     # ... or base images of different sizes
     _save(tmp_path / "base" / "img_2.png", np.zeros((96, 64, 3), np.uint8))
     err = _error(
         capsys,
-        ["localize", str(q), "--base", base, "--model", str(checkpoints["seg"]), "--no-cache"],
+        [
+            "localize",
+            str(q),
+            "--base",
+            base,
+            *raw,
+            "--model",
+            str(checkpoints["seg"]),
+            "--no-cache",
+        ],
     )
     assert "mismatched sizes" in err and "base image img_2.png" in err
 
@@ -354,44 +388,109 @@ def test_bad_inputs_exit_2_with_a_message(tmp_path: Path, capsys) -> None:
     base = str(tmp_path / "base")
     empty = tmp_path / "empty"
     empty.mkdir()
-    assert "empty image base" in _error(capsys, ["localize", str(q), "--base", str(empty)])
+    assert "empty image base" in _error(
+        capsys, ["localize", *PLACEHOLDER, str(q), "--base", str(empty)]
+    )
     # base images without poses
     orphan = tmp_path / "orphan"
     shutil.copytree(tmp_path / "base", orphan)
     _save(orphan / "stray.png", images[1])
-    err = _error(capsys, ["localize", str(q), "--base", str(orphan)])
+    err = _error(capsys, ["localize", *PLACEHOLDER, str(q), "--base", str(orphan)])
     assert "without poses" in err and "stray.png" in err
     # GPS window without GPS, or a query missing from the GPS file
-    assert "--gps" in _error(capsys, ["localize", str(q), "--base", base, "--radius", "10"])
+    assert "--gps" in _error(
+        capsys, ["localize", *PLACEHOLDER, str(q), "--base", base, "--radius", "10"]
+    )
     gps = tmp_path / "gps.csv"
     gps.write_text("image,x,y\nother.png,0,0\n")
-    err = _error(capsys, ["localize", str(q), "--base", base, "--gps", str(gps), "--radius", "5"])
+    err = _error(
+        capsys,
+        ["localize", *PLACEHOLDER, str(q), "--base", base, "--gps", str(gps), "--radius", "5"],
+    )
     assert "q.png" in err and "no row" in err
     assert "no such file" in _error(
         capsys,
-        ["localize", str(q), "--base", base, "--gps", str(tmp_path / "x.csv"), "--radius", "5"],
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            base,
+            "--gps",
+            str(tmp_path / "x.csv"),
+            "--radius",
+            "5",
+        ],
     )
-    # unreadable query, bad k, heads without a model
+    # unreadable query, bad k, a head the chosen method does not use
     assert "missing.png" in _error(
-        capsys, ["localize", str(tmp_path / "missing.png"), "--base", base]
+        capsys, ["localize", *PLACEHOLDER, str(tmp_path / "missing.png"), "--base", base]
     )
-    assert "--k" in _error(capsys, ["localize", str(q), "--base", base, "--k", "0"])
-    assert "--model" in _error(
+    assert "--k" in _error(capsys, ["localize", *PLACEHOLDER, str(q), "--base", base, "--k", "0"])
+    err = _error(
+        capsys,
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            base,
+            "--relpose-head",
+            str(tmp_path / "h.pt"),
+        ],
+    )
+    assert "--relpose-head" in err and "not used" in err  # the essential matrix has no head
+    err = _error(
         capsys, ["localize", str(q), "--base", base, "--relpose-head", str(tmp_path / "h.pt")]
     )
+    assert "h.pt" in err  # the head is the default relative pose: a missing file is named
     assert "--radius" in _error(
-        capsys, ["localize", str(q), "--base", base, "--gps", str(gps), "--radius", "-1"]
+        capsys,
+        ["localize", *PLACEHOLDER, str(q), "--base", base, "--gps", str(gps), "--radius", "-1"],
     )
     # sequence options without --sequence, or out of range
-    assert "--sequence" in _error(capsys, ["localize", str(q), "--base", base, "--step-m", "5"])
+    assert "--sequence" in _error(
+        capsys, ["localize", *PLACEHOLDER, str(q), "--base", base, "--step-m", "5"]
+    )
     assert "--step-m" in _error(
-        capsys, ["localize", str(q), "--base", base, "--sequence", "filter", "--step-m", "-5"]
+        capsys,
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            base,
+            "--sequence",
+            "filter",
+            "--step-m",
+            "-5",
+        ],
     )
     assert "--appearance-weight" in _error(
         capsys,
-        ["localize", str(q), "--base", base, "--sequence", "filter", "--appearance-weight", "1"],
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            base,
+            "--sequence",
+            "filter",
+            "--appearance-weight",
+            "1",
+        ],
     )
-    assert "appearance_scale" in _error(
+    assert "--appearance-scale" in _error(
         capsys,
-        ["localize", str(q), "--base", base, "--sequence", "smooth", "--appearance-scale", "0"],
+        [
+            "localize",
+            *PLACEHOLDER,
+            str(q),
+            "--base",
+            base,
+            "--sequence",
+            "smooth",
+            "--appearance-scale",
+            "0",
+        ],
     )

@@ -198,3 +198,22 @@ def test_cli_export_random_model_and_bad_checkpoint(tmp_path, capsys) -> None:
     assert "bad.pt" in capsys.readouterr().err
     assert main(["export", "--model", "nonet", "--out", str(tmp_path / "y.onnx")]) == 2
     assert "known models" in capsys.readouterr().err
+
+
+def test_one_reader_for_model_files_and_run_directories(tmp_path) -> None:
+    """Inference and training read weights through geoseg.infer.read_model_state."""
+    from geoseg.infer import read_model_state
+    from geoseg.models.registry import get_model
+    from training import common
+
+    model = get_model("enet")
+    save_model_checkpoint(model, tmp_path / "run" / "model.pt", model_name="enet")
+    loaded, _ = load_model_checkpoint(tmp_path / "run")  # a run directory: its model.pt
+    for k, v in model.state_dict().items():
+        assert torch.equal(loaded.state_dict()[k], v)
+    state, ckpt = common.load_state(tmp_path / "run", expected_model="enet")
+    assert ckpt["model_name"] == "enet" and state.keys() == model.state_dict().keys()
+    with pytest.raises(GeosegError, match="trunk_checkpoint: .*'enet'.*expected 'joint'"):
+        common.load_state(tmp_path / "run", expected_model="joint", option="trunk_checkpoint")
+    with pytest.raises(GeosegError, match="no model.pt, best.pt, last.pt"):
+        read_model_state(tmp_path)

@@ -73,3 +73,39 @@ def test_infer_refuses_a_folder_of_other_files_and_a_file_as_out(model, tmp_path
     blocker.write_text("x")
     assert main(["infer", str(image), "--model", str(model), "--out", str(blocker)]) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+def test_outputs_class_ids_colours_masked_normals_and_probabilities(tmp_path) -> None:
+    import json
+
+    from geoseg.classes import PALETTE, SKY
+
+    image = _image(tmp_path / "street.png", 5, size=(48, 64))
+    out = tmp_path / "out"
+    assert main(["infer", str(image), "--out", str(out), "--probabilities"]) == 0  # shipped net
+    classes = cv2.imread(str(out / "street_classes.png"), cv2.IMREAD_UNCHANGED)
+    assert classes.dtype == np.uint8 and classes.shape == (48, 64) and classes.max() < 8
+    colours = cv2.cvtColor(cv2.imread(str(out / "street_labels.png")), cv2.COLOR_BGR2RGB)
+    np.testing.assert_array_equal(colours, PALETTE[classes])
+    probs = np.load(out / "street_probabilities.npy")
+    assert probs.shape == (8, 48, 64) and probs.dtype == np.float16
+    np.testing.assert_array_equal(probs.astype(np.float32).argmax(0) == classes, True)
+    normals = np.load(out / "street_normals.npy")
+    invalid = np.isnan(normals).any(axis=0)
+    np.testing.assert_array_equal(invalid, classes == SKY)
+    np.testing.assert_allclose(np.linalg.norm(normals[:, ~invalid], axis=0), 1.0, atol=1e-3)
+    legend = json.loads((out / "legend.json").read_text())
+    assert [c["name"] for c in legend["classes"]][SKY] == "sky" and len(legend["classes"]) == 8
+
+
+def test_normals_are_masked_on_the_sky() -> None:
+    from geoseg.classes import BUILDING, SKY
+    from geoseg.commands.infer import masked_normals
+
+    normals = np.zeros((3, 2, 2), np.float32)
+    normals[2] = -1.0
+    labels = np.array([[SKY, BUILDING], [BUILDING, SKY]])
+    got = masked_normals(normals, labels)
+    assert np.isnan(got[:, 0, 0]).all() and np.isnan(got[:, 1, 1]).all()
+    np.testing.assert_array_equal(got[:, 0, 1], [0, 0, -1])
+    assert not np.isnan(normals).any()  # the input is left as it was

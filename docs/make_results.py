@@ -1,0 +1,395 @@
+"""Write docs/results.md (and the README's results table) from bench/results/*.json.
+
+Usage, from anywhere::
+
+    python docs/make_results.py            # rewrite docs/results.md and the README block
+    python docs/make_results.py --check    # exit 1 when either is out of date
+
+Every ``bench/<name>.py`` writes ``bench/results/<name>.json``: one flat object, figure name ->
+value, plus ``machine`` and ``command``. This script never holds a number itself: the headline
+table picks figures by key (:data:`HEADLINE`, with the target and the thesis's figure beside
+each), and one section per results file lists all of its figures. A results file the script does
+not know (a new benchmark) still gets its section; a headline figure whose file or key is
+missing is left out. To add a headline line, append to :data:`HEADLINE`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+PAGE = ROOT / "docs" / "results.md"
+README = ROOT / "README.md"
+BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
+
+
+def _num(v: float) -> str:
+    return f"{v:.3g}" if abs(v) < 1000 else f"{v:,.0f}"
+
+
+def _pct(v: float) -> str:
+    return f"{100 * v:.1f} %"
+
+
+@dataclass(frozen=True)
+class Figure:
+    """One headline line: ``keys`` of ``bench/results/<file>.json`` shown ``" / "``-joined."""
+
+    file: str
+    keys: tuple[str, ...]
+    label: str
+    target: str
+    thesis: str = "-"
+    unit: str = ""
+    fmt: Callable[[float], str] = _num
+
+
+HEADLINE: tuple[Figure, ...] = (
+    Figure("accuracy_seg", ("miou",), "segmentation mIoU, held-out city", ">= 0.80"),
+    Figure("accuracy_seg", ("building_iou",), "building IoU, held-out city", ">= 0.90"),
+    Figure(
+        "accuracy_seg",
+        ("normals_building_median_deg",),
+        "normal error on building pixels, median",
+        "<= 10",
+        unit=" deg",
+    ),
+    Figure(
+        "accuracy_seg",
+        ("dirichlet_fp_removed", "dirichlet_extra_false_rejections"),
+        "Dirichlet filter: building false positives removed / extra false rejections",
+        ">= 70 % / <= 15 %",
+        "~70 % / ~15 %",
+        fmt=_pct,
+    ),
+    Figure(
+        "accuracy_reloc",
+        ("recall_at_1_raw_layer21", "recall_at_1", "recall_at_1_reranked"),
+        "place recognition Recall@1, whole base: raw layer-21 / learned / re-ranked",
+        ">= 0.928",
+        "0.928 (raw layer-21)",
+    ),
+    Figure(
+        "accuracy_reloc",
+        ("recall_at_1_gps_window_reranked_gps",),
+        "place recognition Recall@1 in the GPS window (re-ranked, GPS-fused)",
+        ">= 0.996",
+        "0.996 (raw layer-21)",
+    ),
+    Figure(
+        "accuracy_reloc",
+        ("recall_at_1_sequence",),
+        "place recognition Recall@1, queries as one drive (route filter)",
+        "reported",
+    ),
+    Figure("accuracy_reloc", ("triplet_accuracy",), "triplet accuracy", ">= 0.94", "0.94"),
+    Figure(
+        "accuracy_reloc",
+        ("relpose_rot_median_deg", "relpose_dir_median_deg"),
+        "relative pose: rotation / direction error, median",
+        "<= 2 / <= 10",
+        unit=" deg",
+    ),
+    Figure(
+        "accuracy_reloc",
+        ("abs_position_median_m", "abs_position_p90_m"),
+        "query position, 0.5-10 m from the base images: median / p90",
+        "<= 2 (median)",
+        unit=" m",
+    ),
+    Figure(
+        "accuracy_reloc",
+        ("position_error_at_base_poses_m", "position_error_at_base_poses_p90_m"),
+        "query position, taken at a base pose: median / p90",
+        "<= 0.5 (median)",
+        unit=" m",
+    ),
+    Figure(
+        "inference_speed",
+        ("normals_head_overhead_pct",),
+        "normals head's extra parameters over ENet",
+        "~10-15",
+        "~10",
+        unit=" %",
+    ),
+    Figure(
+        "inference_speed",
+        ("ort_over_lraspp_640x480",),
+        "joint network CPU time / LRASPP's, 640x480",
+        "<= 0.8",
+    ),
+    Figure(
+        "inference_speed",
+        ("gpu_batch1_ms_640x480",),
+        "joint network latency on an H100, 640x480",
+        "<= 2",
+        "76 (GTX 860M)",
+        unit=" ms",
+    ),
+    Figure(
+        "render_speed",
+        ("fps_320x240", "fps_640x480"),
+        "synthetic world rendering, frames/s at 320x240 / 640x480",
+        ">= 25 / >= 5",
+    ),
+    Figure("ba_speed", ("iter_time_over_ceres_c40",), "k-BA time per iteration / Ceres's", "<= 1"),
+    Figure(
+        "fusion_ch3",
+        ("dpc_time_ratio", "mpc_time_ratio"),
+        "fusion time per iteration vs n = 0: DPC / MPC",
+        "<= 0.40 / <= 0.66",
+        "0.40-0.45 / 0.66-0.72",
+    ),
+    Figure("fusion_ch3", ("memory_ratio",), "Hessian memory, n = 0 / hybrid", ">= 3", "~3"),
+    Figure(
+        "fusion_ch3",
+        ("inlier_loss_max",),
+        "worst inlier loss of the hybrids vs n = 0",
+        "<= 1 %",
+        "0.1-1.3 %",
+        fmt=_pct,
+    ),
+    Figure(
+        "fusion_ch3",
+        ("ba_sigma0.75_t_mean", "dpc_sigma0.75_t_mean", "mpc_sigma0.75_t_mean"),
+        "translation error, GPS sigma_b 0.75 m: n = 0 / DPC / MPC",
+        "thesis's",
+        "0.68 / 0.63 / 0.78",
+        unit=" m",
+    ),
+    Figure(
+        "slam_images",
+        ("translation_error_m", "gps_error_m"),
+        "SLAM on images: horizontal error / the raw GPS fixes'",
+        "<= 0.5 (SLAM)",
+        unit=" m",
+    ),
+    Figure(
+        "slam_images",
+        ("rotation_error_deg",),
+        "SLAM on images: rotation error",
+        "<= 0.5",
+        unit=" deg",
+    ),
+    Figure(
+        "slam_images", ("frames_per_second",), "SLAM on images: frames per second (CPU)", ">= 10"
+    ),
+    Figure(
+        "buildings_ch4",
+        ("association_precision_bayes", "association_precision_raycast"),
+        "building association precision: network + eq. 4.14 / ray-cast baseline",
+        ">= 0.95 (network)",
+        "baseline takes trees for facades",
+    ),
+    Figure(
+        "buildings_ch4",
+        (
+            "translation_error_m_nobuild_exact",
+            "translation_error_m_raycast_exact",
+            "translation_error_m_bayes_exact",
+            "translation_error_m_oracle_exact",
+        ),
+        "1.2 km, exact building model, no GPS: error without buildings / baseline / network / "
+        "oracle",
+        "<= 0.05 (network)",
+        "0.013 (network)",
+        unit=" m",
+    ),
+    Figure(
+        "buildings_ch4",
+        (
+            "translation_error_m_nobuild_gis",
+            "translation_error_m_raycast_gis",
+            "translation_error_m_bayes_gis",
+        ),
+        "1.2 km, GIS model with errors, GPS 0.75 m: without buildings / baseline / network",
+        "network <= without",
+        unit=" m",
+    ),
+    Figure(
+        "buildings_ch4",
+        ("async_time_ratio",),
+        "SLAM loop time per keyframe with the network worker on / off",
+        "<= 1.1",
+    ),
+)
+
+# One line on what each known benchmark measures (unknown files get their script's first line).
+ABOUT: dict[str, str] = {
+    "accuracy_seg": "ENet labels, the joint normals, the naive CNN and its Dirichlet filter on "
+    "the held-out synthetic city (seed 1000, all conditions, `sun_low` never trained on).",
+    "accuracy_reloc": "Relocalisation on the held-out city: a summer tram drive is the image "
+    "base, a winter drive 3 m further along the track the queries (thesis §5.1); the "
+    "`position_error_at_base_poses` figures use winter queries taken exactly at the base poses "
+    "(`geoseg.localizer.Localizer`, GPS window; `_sequence`: the route filter, no GPS).",
+    "inference_speed": "Network sizes, CPU time (onnxruntime vs the LRASPP baseline, side by "
+    "side in one run), int8 quantisation, and GPU latency (`gpu_*`, on a lent H100).",
+    "render_speed": "Frames per second of the synthetic world's ray-casting renderer.",
+    "ba_speed": "Keyframe bundle adjustment time per iteration against Ceres and GTSAM on the "
+    "same problems.",
+    "fusion_ch3": "The chapter-3 experiment: n = 0 against the hybrid DPC and MPC windows with "
+    "GPS fusion (Tables 3.1-3.3, fig. 3.7); full tables in `bench/results/fusion_ch3_full/`.",
+    "buildings_ch4": "Building constraints chosen by the networks (thesis chapter 4): a 1.2 km "
+    "drive with loops through a city full of trees, vehicles and shelters, the image SLAM with "
+    "the ray-cast baseline, the naive CNN + Dirichlet filter, the joint network + eq. 4.14 and "
+    "an oracle, against the exact building model (odometry + elevation, no GPS) and the GIS "
+    "model with its errors (GPS sigma_b 0.75 m); see docs/bridge.md.",
+    "slam_images": "The SLAM on rendered image sequences (six 600 m drives), georeferenced "
+    "without ground truth, against COLMAP.",
+    "frontend_tracks": "The visual front end's tracks against rendered depth and poses.",
+    "train_speed": "Training step time under thread settings.",
+}
+
+
+# ============================================================================ reading
+
+
+def load_results(folder: Path = RESULTS) -> dict[str, dict[str, Any]]:
+    """``name -> figures`` of every ``folder/*.json`` holding a JSON object (others skipped)."""
+    out = {}
+    for path in sorted(folder.glob("*.json")):
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, ValueError) as err:
+            print(f"skipped {path.name}: {err}", file=sys.stderr)
+            continue
+        if isinstance(data, dict):
+            out[path.stem] = data
+    return out
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def headline_rows(results: dict[str, dict[str, Any]]) -> list[tuple[str, str, str, str, str]]:
+    """``(label, measured, target, thesis, file)`` for each headline figure that is there."""
+    rows = []
+    for fig in HEADLINE:
+        data = results.get(fig.file, {})
+        values = [data.get(k) for k in fig.keys]
+        if not all(_is_number(v) for v in values):
+            continue
+        measured = " / ".join(fig.fmt(float(v)) for v in values) + fig.unit
+        rows.append((fig.label, measured, fig.target, fig.thesis, fig.file))
+    return rows
+
+
+def _flatten(data: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    out = []
+    for k, v in data.items():
+        if isinstance(v, dict):
+            out += _flatten(v, f"{prefix}{k}.")
+        else:
+            out.append((f"{prefix}{k}", v))
+    return out
+
+
+def _cell(v: Any) -> str:
+    if _is_number(v):
+        return f"{v:.4g}" if isinstance(v, float) else str(v)
+    if v is None:
+        return "-"
+    text = json.dumps(v) if isinstance(v, list) else str(v)
+    text = text.replace("|", "\\|").replace("\n", " ")
+    return text if len(text) <= 120 else text[:117] + "..."
+
+
+def _about(name: str) -> str:
+    if name in ABOUT:
+        return ABOUT[name]
+    script = ROOT / "bench" / f"{name}.py"
+    if script.is_file():
+        import ast
+
+        doc = ast.get_docstring(ast.parse(script.read_text())) or ""
+        return doc.strip().splitlines()[0] if doc.strip() else ""
+    return ""
+
+
+# ============================================================================ writing
+
+
+def headline_table(results: dict[str, dict[str, Any]], link: str) -> str:
+    """The Markdown headline table; ``link`` prefixes the per-file anchors."""
+    lines = [
+        "| figure | measured | target | thesis |",
+        "|---|---|---|---|",
+    ]
+    for label, measured, target, thesis, file in headline_rows(results):
+        lines.append(f"| [{label}]({link}#{file}) | {measured} | {target} | {thesis} |")
+    return "\n".join(lines)
+
+
+def results_page(results: dict[str, dict[str, Any]]) -> str:
+    parts = [
+        "# Benchmark results",
+        "",
+        "Generated by `python docs/make_results.py` from `bench/results/*.json`; do not edit by "
+        "hand. Each benchmark is a script `bench/NAME.py` (`geoseg bench NAME`) that prints a "
+        "table and writes `bench/results/NAME.json`. CPU figures come from a shared 2-core "
+        "machine: speeds are ratios measured side by side in one run.",
+        "",
+        "## Headline figures",
+        "",
+        headline_table(results, ""),
+        "",
+    ]
+    for name, data in results.items():
+        parts += [f'<a id="{name}"></a>', "", f"## {name}", ""]
+        about = _about(name)
+        if about:
+            parts += [about, ""]
+        for meta in ("command", "machine"):
+            if meta in data:
+                parts.append(f"- {meta}: `{_cell(data[meta])}`")
+        parts += ["", "| figure | value |", "|---|---|"]
+        for key, value in _flatten(data):
+            if key in ("command", "machine"):
+                continue
+            parts.append(f"| `{key}` | {_cell(value)} |")
+        parts.append("")
+    return "\n".join(parts)
+
+
+def readme_with_table(readme: str, table: str) -> str:
+    """``readme`` with the text between its results markers replaced by ``table``."""
+    if BEGIN not in readme or END not in readme:
+        raise SystemExit(f"{README}: no {BEGIN} ... {END} block to fill")
+    head, rest = readme.split(BEGIN, 1)
+    _, tail = rest.split(END, 1)
+    return f"{head}{BEGIN}\n{table}\n{END}{tail}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--check", action="store_true", help="exit 1 when a file is out of date")
+    args = p.parse_args(argv)
+    results = load_results()
+    page = results_page(results)
+    readme = readme_with_table(README.read_text(), headline_table(results, "docs/results.md"))
+    if args.check:
+        stale = [
+            path
+            for path, text in ((PAGE, page), (README, readme))
+            if not path.is_file() or path.read_text() != text
+        ]
+        for path in stale:
+            print(f"{path.relative_to(ROOT)} is out of date: run python docs/make_results.py")
+        return 1 if stale else 0
+    PAGE.write_text(page)
+    README.write_text(readme)
+    print(f"written {PAGE.relative_to(ROOT)} and the README's results table")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,203 @@
+"""The README's commands and Python snippets work as written, from a folder outside the repository.
+
+Every ``bash`` and ``python`` block of README.md is run in document order in one temporary
+folder (the inputs the "own data" walkthroughs name are made first, from a small render). The
+commands run in this process through ``geoseg.cli.main`` (what the ``geoseg`` entry point
+calls), with their frame counts and image sizes capped (:data:`TINY`) to keep the suite short.
+Installation, the test suite itself and training are not run (:data:`NOT_RUN`, with the reason);
+a README command that is neither run nor listed there fails the test.
+"""
+
+from __future__ import annotations
+
+import csv
+import glob
+import json
+import re
+import shlex
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from geoseg.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+
+# command prefix -> why the test does not run it
+NOT_RUN = {
+    "pip install": "installation (the test runs on the installed package)",
+    "python -m pytest": "the test suite itself",
+    "geoseg train": "training takes minutes to hours; tests/training runs each trainer on tiny configs",
+}
+# command -> option -> largest value the test uses (frames), or the value it uses (size)
+TINY = {
+    "render": {"--frames": 12},
+    "demo": {"--frames": 2, "--drive-m": 0},  # the buildings step: tests/geoseg/test_commands_synth.py
+}
+SIZES = {"render": "160x120", "demo": "160x120"}
+SLAM_FRAMES = 40  # the SLAM needs a few tens of frames to start: its render gets these
+
+
+def readme_blocks(text: str) -> list[tuple[str, str]]:
+    """``(language, code)`` of the fenced ``bash`` and ``python`` blocks, in order."""
+    return [
+        (lang, code)
+        for lang, code in re.findall(r"```(bash|python)\n(.*?)```", text, flags=re.DOTALL)
+    ]
+
+
+def bash_commands(code: str) -> list[str]:
+    """The commands of a bash block: continuation lines joined, comments dropped, ``&&``
+    chains split."""
+    code = code.replace("\\\n", " ")
+    out = []
+    for line in code.splitlines():
+        line = re.sub(r"\s+#.*$", "", line).strip()
+        out += [c.strip() for c in line.split("&&") if c.strip()]
+    return out
+
+
+def _not_run(command: str) -> str | None:
+    return next((why for prefix, why in NOT_RUN.items() if command.startswith(prefix)), None)
+
+
+def _tiny(argv: list[str], slam_renders: set[str]) -> list[str]:
+    """Cap frame counts and sizes (``argv`` without the leading ``geoseg``)."""
+    name = argv[0]
+    argv = list(argv)
+    out_dir = argv[argv.index("--out") + 1] if "--out" in argv else None
+    for option, cap in TINY.get(name, {}).items():
+        if option in argv:
+            i = argv.index(option) + 1
+            argv[i] = str(min(int(argv[i]), cap))
+        else:
+            argv += [option, str(cap)]
+    if name in SIZES:
+        size = "320x240" if out_dir in slam_renders else SIZES[name]
+        if "--size" in argv:
+            argv[argv.index("--size") + 1] = size
+        else:
+            argv += ["--size", size]
+    if name == "render" and out_dir in slam_renders:
+        argv[argv.index("--frames") + 1] = str(SLAM_FRAMES)
+    return argv
+
+
+def _expand(argv: list[str]) -> list[str]:
+    out = []
+    for a in argv:
+        hits = sorted(glob.glob(a)) if any(c in a for c in "*?[") else []
+        out += hits or [a]
+    return out
+
+
+def _make_own_data(folder: Path) -> None:
+    """The inputs the walkthroughs name: my_images/, my_photos/ + positions.csv, new_photos/,
+    query_gps.csv (from a small render of the forward-looking car camera, whose
+    heading is the track's, as the positions file assumes)."""
+    src = folder / "_source"
+    argv = ["render", "--out", str(src), "--frames", "8", "--rig", "car", "--size", "160x120"]
+    assert main(argv) == 0
+    import cv2
+
+    with (src / "poses.csv").open() as f:
+        poses = list(csv.DictReader(f))
+    (folder / "my_images").mkdir()
+    (folder / "my_photos").mkdir()
+    (folder / "new_photos").mkdir()
+    rows = ["image,x,y,z"]
+    for i, pose in enumerate(poses):
+        rgb = cv2.imread(str(src / "rgb" / f"{i:06d}.png"))
+        cv2.imwrite(str(folder / "my_photos" / f"p{i:02d}.jpg"), rgb)
+        rows.append(f"p{i:02d}.jpg,{pose['tx']},{pose['ty']},{float(pose['tz']) - 1.5}")
+    (folder / "my_photos" / "positions.csv").write_text("\n".join(rows) + "\n")
+    for name, i in (("street.jpg", 1), ("corner.jpg", 6)):
+        shutil.copy(folder / "my_photos" / f"p{i:02d}.jpg", folder / "my_images" / name)
+    gps = ["image,x,y"]
+    for name, i in (("a.jpg", 2), ("b.jpg", 5)):
+        shutil.copy(folder / "my_photos" / f"p{i:02d}.jpg", folder / "new_photos" / name)
+        gps.append(f"{name},{float(poses[i]['tx']) + 1.0},{float(poses[i]['ty']) - 1.0}")
+    (folder / "query_gps.csv").write_text("\n".join(gps) + "\n")
+
+
+def test_readme_blocks_are_found() -> None:
+    blocks = readme_blocks(README.read_text())
+    commands = [c for lang, code in blocks if lang == "bash" for c in bash_commands(code)]
+    assert "geoseg demo" in commands and "python -m pytest" in commands
+    assert any(c.startswith("geoseg localize") for c in commands)
+    assert sum(lang == "python" for lang, _ in blocks) >= 2
+
+
+@pytest.mark.filterwarnings("ignore")
+def test_every_readme_command_and_snippet_runs(tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)  # not the repository: no configs/, no relative weights
+    _make_own_data(tmp_path)
+    blocks = readme_blocks(README.read_text())
+    commands = [c for lang, code in blocks if lang == "bash" for c in bash_commands(code)]
+    # renders whose output a `geoseg slam run` reads need the SLAM's frame count and size
+    slam_renders = {shlex.split(c)[3] for c in commands if c.startswith("geoseg slam run")}
+    ran, skipped = [], []
+    for lang, code in blocks:
+        if lang == "python":
+            exec(compile(code, "README.md", "exec"), {"__name__": "readme"})  # noqa: S102
+            ran.append("python snippet")
+            continue
+        for command in bash_commands(code):
+            if _not_run(command):
+                skipped.append(command)
+                continue
+            argv = shlex.split(command)
+            assert argv[0] == "geoseg", f"README command not run by this test: {command}"
+            argv = _expand(_tiny(argv[1:], slam_renders))
+            assert main(argv) == 0, f"README command failed: {command} (ran as {argv})"
+            ran.append(command)
+    out = capsys.readouterr().out
+    # what the walkthroughs promise
+    assert "mIoU" in out  # the demo's score
+    assert (tmp_path / "geoseg_demo" / "segmentation.png").is_file()
+    assert (tmp_path / "my_labels" / "street_classes.png").is_file()
+    assert (tmp_path / "my_labels" / "legend.json").is_file()
+    where = json.loads((tmp_path / "where.json").read_text())
+    for query in where["queries"]:
+        xy = np.array(query["position"]["xyz"])[:2]
+        assert np.linalg.norm(xy - np.array(query["gps"])) < 25.0  # within the GPS window
+    assert (tmp_path / "drive_slam" / "summary.json").is_file()
+    assert len(ran) >= 12 and all(_not_run(c) for c in skipped)
+
+
+def _make_results():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_results", ROOT / "docs" / "make_results.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["make_results"] = module  # dataclasses look their module up there
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_results_page_and_readme_table_are_generated_from_bench_results() -> None:
+    """docs/results.md and the README's table match bench/results/*.json (after a benchmark
+    run: python docs/make_results.py)."""
+    assert _make_results().main(["--check"]) == 0
+
+
+def test_results_page_takes_unknown_and_broken_results_files(tmp_path: Path) -> None:
+    mr = _make_results()
+    (tmp_path / "new_bench.json").write_text(json.dumps({"speed": 2.5, "nested": {"a": 1}}))
+    (tmp_path / "accuracy_seg.json").write_text(json.dumps({"miou": 0.5, "machine": "m"}))
+    (tmp_path / "broken.json").write_text("{not json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    results = mr.load_results(tmp_path)
+    assert set(results) == {"new_bench", "accuracy_seg"}
+    page = mr.results_page(results)
+    assert "## new_bench" in page and "| `nested.a` | 1 |" in page
+    # a headline figure whose file is there; the others (files missing) are left out
+    rows = mr.headline_rows(results)
+    assert [r[1] for r in rows] == ["0.5"]
+    readme = f"intro\n{mr.BEGIN}\nold table\n{mr.END}\nrest\n"
+    new = mr.readme_with_table(readme, "NEW")
+    assert new == f"intro\n{mr.BEGIN}\nNEW\n{mr.END}\nrest\n"
