@@ -43,9 +43,15 @@ MODEL_FILE = "model.pt"
 ONNX_FILE = "model.onnx"
 CARD_JSON = "model_card.json"
 CARD_MD = "model_card.md"
+# training frames pooled into the card's colour statistics (they settle within a few dozen)
+COLOUR_STAT_FRAMES = 32
 
 
 # ----------------------------------------------------------------------------- config
+# trainers whose whole network can start from earlier weights of the same architecture
+INIT_CHECKPOINT_TRAINERS = ("seg", "naive")
+
+
 def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
     """The ``__post_init__`` checks every image trainer's config shares.
 
@@ -57,7 +63,8 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
 
     Raises:
         ConfigError: a non-positive crop, another model, model options its builder does not
-            take (checked now, not after the data are prepared), bad ``data.synth`` keys.
+            take (checked now, not after the data are prepared), bad ``data.synth`` keys,
+            ``init_checkpoint`` for a trainer that does not take it.
     """
     from geoseg.models.registry import check_model_config
 
@@ -70,6 +77,11 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
         check_model_config(model, dict(cfg.model_config))
     except ConfigError as err:
         raise ConfigError(f"model_config: {err}") from None
+    if cfg.init_checkpoint is not None and trainer not in INIT_CHECKPOINT_TRAINERS:
+        raise ConfigError(
+            f"init_checkpoint: the {trainer} trainer does not take it (trainers that do: "
+            f"{', '.join(INIT_CHECKPOINT_TRAINERS)}; the others start from their *_checkpoint key)"
+        )
     if cfg.data.source == "synth":
         from geoseg.data.synthetic import synthetic_config
 
@@ -173,8 +185,24 @@ def build_frame_dataset(
                 "data.root: a Cityscapes-format folder is needed for source=cityscapes"
             )
         name = data.train_split if split == "train" else data.val_split
-        return CityscapesDataset(data.root, name, transform=transform)
-    raise GeosegError(f"data.source: expected synth or cityscapes, got {data.source!r}")
+        return CityscapesDataset(data.root, name, transform=transform, label_map=data.label_map)
+    if data.source == "camvid":
+        from geoseg.data.camvid import CamVidDataset
+
+        if data.root is None:
+            raise GeosegError("data.root: a CamVid-layout folder is needed for source=camvid")
+        name = data.train_split if split == "train" else data.val_split
+        return CamVidDataset(data.root, name, transform=transform, label_map=data.label_map)
+    raise GeosegError(f"data.source: expected synth, cityscapes or camvid, got {data.source!r}")
+
+
+def dataset_classes(dataset: Dataset) -> tuple[int, ...] | None:
+    """The geoseg classes ``dataset`` labels (its ``labelled_classes``), None = all of them.
+
+    The segmentation metrics take their mean IoU over these (:class:`training.metrics.SegmentationMeter`).
+    """
+    classes = getattr(dataset, "labelled_classes", None)
+    return None if classes is None else tuple(int(c) for c in classes)
 
 
 def prerender_frames(data: DataConfig, *datasets: Dataset | None) -> None:
@@ -290,6 +318,54 @@ def load_state(
             f"{file}: holds a {name!r} model, expected {expected_model!r} (another architecture)"
         )
     return dict(state), ckpt
+
+
+def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: str) -> Path:
+    """Initialise ``model`` from the weights at ``path`` (the ``init_checkpoint`` config key).
+
+    Args:
+        model: the freshly built network.
+        path: a ``model.pt``, a training checkpoint or a run directory holding one, of the same
+            architecture (e.g. ``geoseg/weights/seg`` to fine-tune the shipped ENet).
+        model_name: registry name of ``model``; a checkpoint of another model is refused.
+
+    Returns:
+        The file the weights came from.
+
+    Raises:
+        GeosegError: unreadable file, another architecture (another model name, or tensors
+            whose names or shapes differ: the message lists the first ones).
+    """
+    try:
+        file = resolve_weights_file(path)
+    except GeosegError as err:
+        raise GeosegError(f"init_checkpoint: {err}") from None
+    state, _ = load_state(file, expected_model=model_name, option="init_checkpoint")
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    reshaped = [
+        f"{k} {tuple(state[k].shape)} vs {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in state and tuple(state[k].shape) != tuple(v.shape)
+    ]
+    if missing or unexpected or reshaped:
+        parts = []
+        for label, names in (("missing", missing), ("unexpected", unexpected), ("shape", reshaped)):
+            if names:
+                parts.append(f"{label}: {', '.join(names[:3])}{' ...' if len(names) > 3 else ''}")
+        raise GeosegError(
+            f"init_checkpoint: {file} does not fit this {model_name!r} architecture "
+            f"(model_config {_model_config_of(model)}); {'; '.join(parts)}"
+        )
+    model.load_state_dict(state)
+    logger.info("initialised %s from %s", model_name, file)
+    return file
+
+
+def _model_config_of(model: nn.Module) -> str:
+    num_classes = getattr(model, "num_classes", None)
+    return f"num_classes={num_classes}" if num_classes is not None else type(model).__name__
 
 
 def seed_model_init(seed: int) -> None:
@@ -431,7 +507,8 @@ def finish_run(
     """The end of an image trainer's ``main``: best weights, best epoch's metrics, artefacts.
 
     Loads the best weights into ``model`` and takes the metrics of the epoch they come from
-    (:func:`load_best_weights`), adds
+    (:func:`load_best_weights`), records the training frames' colour statistics in the card
+    (``colour_statistics``, :mod:`training.colour_stats`), adds
     ``extra_metrics(model)`` when given (e.g. a dense evaluation, run on the best weights before
     the model moves to the CPU), then :func:`finalize_run` with the config's data summary,
     ``cfg.export`` and ``cfg.data.size`` as the export's example size.
@@ -449,9 +526,17 @@ def finish_run(
     Returns:
         ``run_dir`` as a :class:`~pathlib.Path`.
     """
+    from geoseg.colour_transfer import CARD_KEY
+    from training.colour_stats import training_colour_statistics
+
     _, metrics = load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model))
+    card = dict(extra_card or {})
+    if dd.is_main_process():  # the training set's colours, for the colour transfer at inference
+        frames = COLOUR_STAT_FRAMES
+        stats = training_colour_statistics(cfg.data, frames=frames)
+        card[CARD_KEY] = {**stats.as_dict(), "frames": frames}
     return finalize_run(
         run_dir,
         model.cpu(),
@@ -464,7 +549,7 @@ def finish_run(
         command=command,
         export=cfg.export,
         example_size=cfg.data.size,
-        extra_card=extra_card,
+        extra_card=card,
     )
 
 
