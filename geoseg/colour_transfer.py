@@ -184,20 +184,32 @@ def typical_statistics(images: Iterable[np.ndarray]) -> ColourStatistics:
     return ColourStatistics(mean=tuple(median[:3].tolist()), std=tuple(median[3:].tolist()))
 
 
-def transfer_lab(lab: np.ndarray, source: ColourStatistics, target: ColourStatistics) -> np.ndarray:
+def transfer_lab(
+    lab: np.ndarray,
+    source: ColourStatistics,
+    target: ColourStatistics,
+    *,
+    match_std: bool = True,
+) -> np.ndarray:
     """Map ``lαβ`` values with statistics ``source`` onto ``target`` (Reinhard's eq. 10-11).
 
     Args:
         lab: `(..., 3)` ``lαβ`` values.
         source: statistics the values are taken to have.
         target: statistics to map them to.
+        match_std: scale each channel to the target's std (Reinhard's transfer); False only
+            shifts the means (removes a colour cast and an exposure offset, keeps the image's
+            own contrast and saturation).
 
     Returns:
-        `(..., 3)` float64: mean ``target.mean`` and std ``target.std`` per channel when
-        ``source`` are the values' own statistics. A flat source channel is only shifted.
+        `(..., 3)` float64: mean ``target.mean`` and (with ``match_std``) std ``target.std``
+        per channel when ``source`` are the values' own statistics. A flat source channel is
+        only shifted.
     """
     src_std = np.asarray(source.std)
     scale = np.where(src_std > MIN_STD, np.asarray(target.std) / np.maximum(src_std, MIN_STD), 1.0)
+    if not match_std:
+        scale = np.ones(3)
     return (np.asarray(lab, np.float64) - source.mean) * scale + np.asarray(target.mean)
 
 
@@ -205,6 +217,8 @@ def transfer_colour(
     image: np.ndarray,
     target: ColourStatistics,
     source: ColourStatistics | None = None,
+    *,
+    match_std: bool = True,
 ) -> np.ndarray:
     """Give ``image`` the colour statistics ``target``.
 
@@ -213,6 +227,7 @@ def transfer_colour(
         target: statistics to reach (e.g. the training set's, from a model card).
         source: statistics to map from: None = the image's own (each image of a batch on its
             own); a sequence's pooled statistics map every frame the same way.
+        match_std: see :func:`transfer_lab` (False: shift the means only).
 
     Returns:
         Same shape and dtype as ``image``: uint8 rounded and clipped to [0, 255], float clipped
@@ -222,10 +237,10 @@ def transfer_colour(
     if arr.ndim not in (3, 4):
         raise GeosegError(f"image: expected (H, W, 3) or (B, H, W, 3), got shape {arr.shape}")
     if arr.ndim == 4:
-        return np.stack([transfer_colour(a, target, source) for a in arr])
+        return np.stack([transfer_colour(a, target, source, match_std=match_std) for a in arr])
     lab = rgb_to_lab(arr)
     stats = source if source is not None else colour_statistics(arr)
-    rgb = np.clip(lab_to_rgb(transfer_lab(lab, stats, target)), 0.0, 1.0)
+    rgb = np.clip(lab_to_rgb(transfer_lab(lab, stats, target, match_std=match_std)), 0.0, 1.0)
     if arr.dtype == np.uint8:
         return np.round(rgb * 255.0).astype(np.uint8)
     return rgb.astype(arr.dtype)
@@ -238,11 +253,19 @@ class ColourTransfer:
         target: the training set's statistics (:func:`statistics_from_card` reads a model card's).
         source: fixed source statistics for a whole sequence (:meth:`fit_sequence`); None maps
             each image from its own statistics.
+        match_std: Reinhard's full transfer (means and stds); False shifts the means only.
     """
 
-    def __init__(self, target: ColourStatistics, source: ColourStatistics | None = None) -> None:
+    def __init__(
+        self,
+        target: ColourStatistics,
+        source: ColourStatistics | None = None,
+        *,
+        match_std: bool = True,
+    ) -> None:
         self.target = target
         self.source = source
+        self.match_std = match_std
 
     def fit_sequence(self, images: Iterable[np.ndarray]) -> ColourTransfer:
         """Pool ``images``' statistics as the source of every later call; returns ``self``."""
@@ -251,11 +274,12 @@ class ColourTransfer:
 
     def __call__(self, images: np.ndarray) -> np.ndarray:
         """`(H, W, 3)` or `(B, H, W, 3)` uint8 RGB → the same, mapped onto ``target``."""
-        return transfer_colour(images, self.target, self.source)
+        return transfer_colour(images, self.target, self.source, match_std=self.match_std)
 
     def __repr__(self) -> str:
         mode = "per image" if self.source is None else "fixed source"
-        return f"ColourTransfer({mode}, target={self.target})"
+        what = "means and stds" if self.match_std else "means only"
+        return f"ColourTransfer({mode}, {what}, target={self.target})"
 
 
 CARD_KEY = "colour_statistics"

@@ -365,7 +365,11 @@ class Segmenter:
 
 
 def colour_transfer_for(
-    model_path: str | os.PathLike, *, mode: str = "image", sequence: Sequence[np.ndarray] = ()
+    model_path: str | os.PathLike,
+    *,
+    mode: str = "image",
+    sequence: Sequence[np.ndarray] = (),
+    match_std: bool = True,
 ) -> Any:
     """A colour transfer onto the training set of the weights at ``model_path``.
 
@@ -377,6 +381,8 @@ def colour_transfer_for(
         mode: ``"image"`` maps each image from its own statistics; ``"sequence"`` maps every
             image from the pooled statistics of ``sequence`` (steadier along a drive).
         sequence: `(H, W, 3)` uint8 RGB images of the sequence (``mode="sequence"`` only).
+        match_std: Reinhard's full transfer (means and stds per channel); False shifts the
+            means only.
 
     Returns:
         A :class:`geoseg.colour_transfer.ColourTransfer` for :class:`Segmenter`.
@@ -398,7 +404,8 @@ def colour_transfer_for(
             "training set's colour statistics from"
         )
     transfer = ColourTransfer(
-        statistics_from_card(json.loads(card_path.read_text()), name=str(card_path))
+        statistics_from_card(json.loads(card_path.read_text()), name=str(card_path)),
+        match_std=match_std,
     )
     if mode == "sequence":
         if len(sequence) == 0:

@@ -113,3 +113,11 @@ def test_typical_statistics_are_medians_of_the_images_own() -> None:
     own = np.array([colour_statistics(i).mean for i in day + night])
     assert np.allclose(typical.mean, np.median(own, axis=0))
     assert typical.mean[0] > colour_statistics(day + night).mean[0]
+
+
+def test_mean_only_transfer_keeps_the_image_contrast() -> None:
+    source, target = _pair()
+    s_stats, t_stats = colour_statistics(source), colour_statistics(target)
+    mapped = transfer_lab(rgb_to_lab(source), s_stats, t_stats, match_std=False).reshape(-1, 3)
+    assert np.allclose(mapped.mean(0), t_stats.mean, atol=1e-12)
+    assert np.allclose(mapped.std(0), s_stats.std, atol=1e-12)

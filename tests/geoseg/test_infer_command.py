@@ -73,3 +73,27 @@ def test_infer_refuses_a_folder_of_other_files_and_a_file_as_out(model, tmp_path
     blocker.write_text("x")
     assert main(["infer", str(image), "--model", str(model), "--out", str(blocker)]) == 2
     assert "is a file" in capsys.readouterr().err
+
+
+def test_colour_transfer_option_reads_the_model_card(model, tmp_path, capsys) -> None:
+    import json
+    import shutil
+
+    from geoseg.colour_transfer import CARD_KEY, ColourStatistics
+
+    image = _image(tmp_path / "in" / "x.png", 5)
+    bare = tmp_path / "bare" / model.name
+    bare.parent.mkdir()
+    shutil.copy(model, bare)
+    argv = ["infer", str(image), "--model", str(bare), "--colour-transfer", "image"]
+    assert main(argv + ["--out", str(tmp_path / "o1")]) == 2
+    assert "no model card" in capsys.readouterr().err
+    dark_green = ColourStatistics(mean=(-2.0, -0.3, -0.1), std=(0.1, 0.01, 0.01))
+    (bare.parent / "model_card.json").write_text(json.dumps({CARD_KEY: dark_green.as_dict()}))
+    for mode, out in (("off", "plain"), ("image", "image"), ("sequence", "seq")):
+        argv = ["infer", str(image), "--model", str(bare), "--colour-transfer", mode]
+        assert main(argv + ["--out", str(tmp_path / out)]) == 0
+    labels = {o: cv2.imread(str(tmp_path / o / "x_labels.png")) for o in ("plain", "image", "seq")}
+    assert not np.array_equal(labels["plain"], labels["image"])
+    # one input: its own statistics are the sequence's
+    assert np.array_equal(labels["image"], labels["seq"])
