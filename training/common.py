@@ -158,6 +158,7 @@ def build_frame_dataset(
         GeosegError: unknown split, Cityscapes without ``root`` or in the wrong layout, bad
             ``data.synth`` keys.
     """
+    from geoseg.data.camera_effects import CameraEffects
     from geoseg.data.transforms import build_transforms
 
     if split not in ("train", "val", "test"):
@@ -165,6 +166,7 @@ def build_frame_dataset(
     augment = split == "train" if augment is None else augment
     transform = Chain(
         build_transforms(data.augment, size=tuple(data.size), train=augment),
+        CameraEffects(data.augment.camera) if augment and data.augment.camera.enabled else None,
         random_crop(crop) if crop is not None else None,
         NormalizeImage() if normalize else None,
     )
@@ -257,7 +259,9 @@ def describe_data(data: DataConfig) -> dict[str, Any]:
         out["render_version"] = RENDER_VERSION
     else:
         out.update(root=str(data.root), train_split=data.train_split, val_split=data.val_split)
-    out["augment"] = {k: v for k, v in vars(data.augment).items()}
+    from geoseg.config import to_dict
+
+    out["augment"] = to_dict(data.augment)
     return out
 
 
