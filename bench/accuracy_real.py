@@ -16,9 +16,8 @@ at 320x240 and at the native 480x360:
   pretraining brings.
 
 Per-class IoU, pixel accuracy and milliseconds per image (network only; the colour transfer's
-own cost separately) for each. A panel of val frames (RGB | truth | zero-shot with colour
-transfer | fine-tuned | normals of the shipped joint network) goes to
-``accuracy_real_panel.png``. Published context, not the same protocol: ENet reports 51.3 %
+own cost separately) for each. A panel of val frames (RGB | truth | zero-shot | fine-tuned |
+normals of the shipped joint network) goes to ``accuracy_real_panel.png``. Published context, not the same protocol: ENet reports 51.3 %
 class-average IoU over CamVid's 11 classes on its test split (Paszke et al. 2016).
 
 The fine-tuning runs are stages (``<runs>/from_shipped``, ``<runs>/from_scratch``): evaluated
@@ -176,7 +175,7 @@ def write_panel(path: Path, images, labels, segmenters: dict[str, Any], normals_
             tiles.append(normals_to_rgb(normals[0]))
         rows.append(np.concatenate(tiles, axis=1))
     panel = np.concatenate(rows, axis=0)
-    titles = ["RGB", "truth", *segmenters, "normals (shipped, colour transfer)"]
+    titles = ["RGB", "truth", *segmenters, "normals (shipped joint network)"]
     header = np.full((28, panel.shape[1], 3), 255, np.uint8)
     for k, title in enumerate(titles):
         cv2.putText(header, title, (320 * k + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
@@ -291,13 +290,11 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"finetuned_minus_scratch_miou{size_key}"] = a - b
 
     args.out.mkdir(parents=True, exist_ok=True)
-    panel_segmenters = {"zero-shot + colour transfer": Segmenter.from_onnx(seg_onnx)}
-    panel_segmenters["zero-shot + colour transfer"].colour_transfer = transfer
+    panel_segmenters = {"zero-shot (shipped seg)": shipped}
     if "finetuned" in tuned:
         panel_segmenters["fine-tuned from shipped"] = tuned["finetuned"]
     normals_onnx = pretrained_file("normals", "model.onnx")
     normals_net = Segmenter.from_onnx(normals_onnx)
-    normals_net.colour_transfer = colour_transfer_for(normals_onnx)
     write_panel(args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net)
 
     figures["machine"] = _machine(load_start)
