@@ -330,7 +330,8 @@ def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: 
     Args:
         model: the freshly built network.
         path: a ``model.pt``, a training checkpoint or a run directory holding one, of the same
-            architecture (e.g. ``geoseg/weights/seg`` to fine-tune the shipped ENet).
+            architecture; or, when no such path exists, the name of shipped weights
+            (``"seg"``: ``geoseg/weights/seg``, :mod:`geoseg.pretrained`).
         model_name: registry name of ``model``; a checkpoint of another model is refused.
 
     Returns:
@@ -341,6 +342,10 @@ def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: 
             whose names or shapes differ: the message lists the first ones).
     """
     try:
+        if not Path(path).exists() and str(path) in _shipped_names():
+            from geoseg.pretrained import pretrained_dir
+
+            path = pretrained_dir(str(path))
         file = resolve_weights_file(path)
     except GeosegError as err:
         raise GeosegError(f"init_checkpoint: {err}") from None
@@ -365,6 +370,12 @@ def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: 
     model.load_state_dict(state)
     logger.info("initialised %s from %s", model_name, file)
     return file
+
+
+def _shipped_names() -> tuple[str, ...]:
+    from geoseg.pretrained import PRETRAINED
+
+    return tuple(PRETRAINED)
 
 
 def _model_config_of(model: nn.Module) -> str:

@@ -130,7 +130,8 @@ class TrainConfig:
     seed: int = 0
     deterministic: bool = True
     # start from these weights (a model.pt, training checkpoint or run directory of the same
-    # architecture, e.g. the shipped geoseg/weights/seg); None = random initialisation
+    # architecture, or a shipped name such as "seg" for geoseg/weights/seg); None = random
+    # initialisation
     init_checkpoint: Path | None = None
     resume: bool = False  # continue from out_dir/last.pt
     overwrite: bool = False  # allow starting afresh over an existing out_dir/last.pt

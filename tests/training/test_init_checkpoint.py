@@ -84,6 +84,17 @@ def test_init_checkpoint_refuses_another_architecture(tmp_path):
         common.load_init_weights(model, tmp_path / "missing.pt", model_name="enet")
 
 
+def test_init_checkpoint_takes_a_shipped_name(monkeypatch, tmp_path):
+    from geoseg.pretrained import pretrained_file
+
+    monkeypatch.chdir(tmp_path)  # no folder "seg" here: the name means the shipped weights
+    model = get_model("enet")
+    assert common.load_init_weights(model, "seg", model_name="enet") == pretrained_file("seg")
+    shipped, _ = load_model_checkpoint(pretrained_file("seg"))
+    key = next(iter(shipped.state_dict()))
+    assert torch.equal(model.state_dict()[key], shipped.state_dict()[key])
+
+
 def test_trainers_without_init_checkpoint_refuse_the_key():
     with pytest.raises(ConfigError, match="init_checkpoint: the normals trainer does not take it"):
         load_config(normals_trainer.NormalsConfig, {"init_checkpoint": "runs/seg"})
