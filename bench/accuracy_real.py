@@ -121,7 +121,7 @@ def evaluate(segmenter: Any, images: list, labels: list, classes, size) -> dict[
     scores = segmentation_scores(cm, classes=classes)
     scores["ms_per_image"] = 1000.0 * net_s / len(images)
     if transfer is not None:
-        scores["colour_transfer_ms_per_image"] = 1000.0 * transfer_s / len(images)
+        scores["transfer_ms_per_image"] = 1000.0 * transfer_s / len(images)
     return scores
 
 
