@@ -66,18 +66,22 @@ def test_bad_options_are_config_errors() -> None:
 
 
 def test_training_frames_get_the_effects_when_configured(tmp_path) -> None:
+    import cv2
+
     from geoseg.config import load_config
+    from training.common import build_frame_dataset, describe_data
     from training.config import TrainConfig
 
-    cfg = load_config(
-        TrainConfig,
-        {
-            "data": {
-                "augment": {"hflip": 0.0, "camera": {"p_noise": 1.0, "noise_std": [0.05, 0.05]}}
-            }
-        },
-    )
-    assert cfg.data.augment.camera.p_noise == 1.0
-    from training.common import describe_data
-
+    for folder in ("train", "trainannot"):
+        (tmp_path / folder).mkdir()
+    rgb = np.random.default_rng(0).integers(40, 200, (16, 24, 3), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "train" / "f.png"), rgb)
+    cv2.imwrite(str(tmp_path / "trainannot" / "f.png"), np.full((16, 24), 3, np.uint8))
+    camera = {"p_noise": 1.0, "noise_std": [0.05, 0.05]}
+    data = {"source": "camvid", "root": str(tmp_path), "size": [16, 24]}
+    cfg = load_config(TrainConfig, {"data": data | {"augment": {"hflip": 0.0, "camera": camera}}})
     assert describe_data(cfg.data)["augment"]["camera"]["p_noise"] == 1.0
+    noisy = build_frame_dataset(cfg.data, "train", normalize=False)[0]
+    clean = build_frame_dataset(cfg.data, "train", augment=False, normalize=False)[0]
+    assert (noisy["image"] - clean["image"]).abs().mean() > 0.01
+    assert torch.equal(noisy["labels"], clean["labels"])
