@@ -93,7 +93,14 @@ NON_NUMERIC = {
     "demo": {"--out", "--config", "--size", "--conditions", "--set", "--force", "--overwrite"},
     "train": {"--config", "--resume", "--overwrite", "--device", "--out", "--set"},
     "export": {"--checkpoint", "--model", "--out", "--overwrite", "--config", "--static"},
-    "infer": {"--model", "--out", "--device", "--overwrite"},
+    "infer": {
+        "--model",
+        "--out",
+        "--device",
+        "--overwrite",
+        "--colour-transfer",
+        "--colour-means-only",
+    },
     "localize": {
         "--base",
         "--gps",
