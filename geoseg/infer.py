@@ -235,6 +235,10 @@ class Segmenter:
         normalization: ``{"mean": [3], "std": [3]}`` for images scaled to [0, 1].
         model_name: name for messages and logs.
         source: the file the model came from.
+        colour_transfer: maps the uint8 RGB images onto the training set's colour statistics
+            before normalisation (:class:`geoseg.colour_transfer.ColourTransfer`, built with
+            :func:`colour_transfer_for`); None = images as given. Also settable afterwards as
+            the attribute of the same name.
     """
 
     def __init__(
@@ -244,8 +248,10 @@ class Segmenter:
         normalization: Mapping[str, Any] | None = None,
         model_name: str = "model",
         source: str | os.PathLike | None = None,
+        colour_transfer: Callable[[np.ndarray], np.ndarray] | None = None,
     ) -> None:
         self.backend = backend
+        self.colour_transfer = colour_transfer
         self.normalization = _check_normalization(
             "normalization", normalization or DEFAULT_NORMALIZATION
         )
@@ -381,6 +387,8 @@ class Segmenter:
                 f"images: {images.shape[2]}x{images.shape[1]} pixels is too small; the network "
                 f"needs at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}"
             )
+        if self.colour_transfer is not None:
+            images = self.colour_transfer(images)
         x = images.transpose(0, 3, 1, 2).astype(np.float32) / 255.0
         return np.ascontiguousarray((x - self._mean) / self._std)
 
@@ -422,6 +430,56 @@ class Segmenter:
             if out.get("features") is None
             else np.asarray(out["features"], np.float32),
         )
+
+
+def colour_transfer_for(
+    model_path: str | os.PathLike,
+    *,
+    mode: str = "image",
+    sequence: Sequence[np.ndarray] = (),
+    match_std: bool = True,
+) -> Any:
+    """A colour transfer onto the training set of the weights at ``model_path``.
+
+    The target statistics come from the ``model_card.json`` beside the weights file
+    (:func:`geoseg.colour_transfer.statistics_from_card`).
+
+    Args:
+        model_path: the ``.onnx`` or ``.pt`` file (its folder holds the model card).
+        mode: ``"image"`` maps each image from its own statistics; ``"sequence"`` maps every
+            image from the pooled statistics of ``sequence`` (steadier along a drive).
+        sequence: `(H, W, 3)` uint8 RGB images of the sequence (``mode="sequence"`` only).
+        match_std: Reinhard's full transfer (means and stds per channel); False shifts the
+            means only.
+
+    Returns:
+        A :class:`geoseg.colour_transfer.ColourTransfer` for :class:`Segmenter`.
+
+    Raises:
+        GeosegError: no model card beside the weights, a card without statistics, an unknown
+            mode, or ``"sequence"`` without images.
+    """
+    import json
+
+    from geoseg.colour_transfer import ColourTransfer, statistics_from_card
+
+    if mode not in ("image", "sequence"):
+        raise GeosegError(f"colour transfer mode: expected image or sequence, got {mode!r}")
+    card_path = Path(model_path).parent / "model_card.json"
+    if not card_path.is_file():
+        raise GeosegError(
+            f"colour transfer: no model card {card_path} beside {model_path} to read the "
+            "training set's colour statistics from"
+        )
+    transfer = ColourTransfer(
+        statistics_from_card(json.loads(card_path.read_text()), name=str(card_path)),
+        match_std=match_std,
+    )
+    if mode == "sequence":
+        if len(sequence) == 0:
+            raise GeosegError("colour transfer mode 'sequence': no images to pool statistics from")
+        transfer.fit_sequence(sequence)
+    return transfer
 
 
 def _is_image_model(model: nn.Module) -> bool:

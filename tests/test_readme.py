@@ -36,7 +36,10 @@ NOT_RUN = {
 # command -> option -> largest value the test uses (frames), or the value it uses (size)
 TINY = {
     "render": {"--frames": 12},
-    "demo": {"--frames": 2, "--drive-m": 0},  # the buildings step: tests/geoseg/test_commands_synth.py
+    "demo": {
+        "--frames": 2,
+        "--drive-m": 0,
+    },  # the buildings step: tests/geoseg/test_commands_synth.py
 }
 SIZES = {"render": "160x120", "demo": "160x120"}
 SLAM_FRAMES = 40  # the SLAM needs a few tens of frames to start: its render gets these

@@ -48,9 +48,15 @@ NORMALIZATION: dict[str, list[float]] = {k: list(v) for k, v in DEFAULT_NORMALIZ
 ONNX_FILE = "model.onnx"
 CARD_JSON = "model_card.json"
 CARD_MD = "model_card.md"
+# training frames pooled into the card's colour statistics (they settle within a few dozen)
+COLOUR_STAT_FRAMES = 32
 
 
 # ----------------------------------------------------------------------------- config
+# trainers whose whole network can start from earlier weights of the same architecture
+INIT_CHECKPOINT_TRAINERS = ("seg", "naive")
+
+
 def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
     """The ``__post_init__`` checks every image trainer's config shares.
 
@@ -62,7 +68,8 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
 
     Raises:
         ConfigError: a non-positive crop, another model, model options its builder does not
-            take (checked now, not after the data are prepared), bad ``data.synth`` keys.
+            take (checked now, not after the data are prepared), bad ``data.synth`` keys,
+            ``init_checkpoint`` for a trainer that does not take it.
     """
     from geoseg.models.registry import check_model_config
 
@@ -75,6 +82,11 @@ def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:
         check_model_config(model, dict(cfg.model_config))
     except ConfigError as err:
         raise ConfigError(f"model_config: {err}") from None
+    if cfg.init_checkpoint is not None and trainer not in INIT_CHECKPOINT_TRAINERS:
+        raise ConfigError(
+            f"init_checkpoint: the {trainer} trainer does not take it (trainers that do: "
+            f"{', '.join(INIT_CHECKPOINT_TRAINERS)}; the others start from their *_checkpoint key)"
+        )
     if cfg.data.source == "synth":
         from geoseg.data.synthetic import synthetic_config
 
@@ -151,6 +163,7 @@ def build_frame_dataset(
         GeosegError: unknown split, Cityscapes without ``root`` or in the wrong layout, bad
             ``data.synth`` keys.
     """
+    from geoseg.data.camera_effects import CameraEffects
     from geoseg.data.transforms import build_transforms
 
     if split not in ("train", "val", "test"):
@@ -158,6 +171,7 @@ def build_frame_dataset(
     augment = split == "train" if augment is None else augment
     transform = Chain(
         build_transforms(data.augment, size=tuple(data.size), train=augment),
+        CameraEffects(data.augment.camera) if augment and data.augment.camera.enabled else None,
         random_crop(crop) if crop is not None else None,
         NormalizeImage() if normalize else None,
     )
@@ -178,8 +192,24 @@ def build_frame_dataset(
                 "data.root: a Cityscapes-format folder is needed for source=cityscapes"
             )
         name = data.train_split if split == "train" else data.val_split
-        return CityscapesDataset(data.root, name, transform=transform)
-    raise GeosegError(f"data.source: expected synth or cityscapes, got {data.source!r}")
+        return CityscapesDataset(data.root, name, transform=transform, label_map=data.label_map)
+    if data.source == "camvid":
+        from geoseg.data.camvid import CamVidDataset
+
+        if data.root is None:
+            raise GeosegError("data.root: a CamVid-layout folder is needed for source=camvid")
+        name = data.train_split if split == "train" else data.val_split
+        return CamVidDataset(data.root, name, transform=transform, label_map=data.label_map)
+    raise GeosegError(f"data.source: expected synth, cityscapes or camvid, got {data.source!r}")
+
+
+def dataset_classes(dataset: Dataset) -> tuple[int, ...] | None:
+    """The geoseg classes ``dataset`` labels (its ``labelled_classes``), None = all of them.
+
+    The segmentation metrics take their mean IoU over these (:class:`training.metrics.SegmentationMeter`).
+    """
+    classes = getattr(dataset, "labelled_classes", None)
+    return None if classes is None else tuple(int(c) for c in classes)
 
 
 def prerender_frames(data: DataConfig, *datasets: Dataset | None) -> None:
@@ -234,7 +264,9 @@ def describe_data(data: DataConfig) -> dict[str, Any]:
         out["render_version"] = RENDER_VERSION
     else:
         out.update(root=str(data.root), train_split=data.train_split, val_split=data.val_split)
-    out["augment"] = {k: v for k, v in vars(data.augment).items()}
+    from geoseg.config import to_dict
+
+    out["augment"] = to_dict(data.augment)
     return out
 
 
@@ -263,6 +295,65 @@ def load_state(
         if option is None:
             raise
         raise GeosegError(f"{option}: {err}") from None
+
+
+def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: str) -> Path:
+    """Initialise ``model`` from the weights at ``path`` (the ``init_checkpoint`` config key).
+
+    Args:
+        model: the freshly built network.
+        path: a ``model.pt``, a training checkpoint or a run directory holding one, of the same
+            architecture; or, when no such path exists, the name of shipped weights
+            (``"seg"``: ``geoseg/weights/seg``, :mod:`geoseg.pretrained`).
+        model_name: registry name of ``model``; a checkpoint of another model is refused.
+
+    Returns:
+        The file the weights came from.
+
+    Raises:
+        GeosegError: unreadable file, another architecture (another model name, or tensors
+            whose names or shapes differ: the message lists the first ones).
+    """
+    try:
+        if not Path(path).exists() and str(path) in _shipped_names():
+            from geoseg.pretrained import pretrained_dir
+
+            path = pretrained_dir(str(path))
+        file = resolve_weights_file(path)
+    except GeosegError as err:
+        raise GeosegError(f"init_checkpoint: {err}") from None
+    state, _ = load_state(file, expected_model=model_name, option="init_checkpoint")
+    own = model.state_dict()
+    missing = sorted(set(own) - set(state))
+    unexpected = sorted(set(state) - set(own))
+    reshaped = [
+        f"{k} {tuple(state[k].shape)} vs {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in state and tuple(state[k].shape) != tuple(v.shape)
+    ]
+    if missing or unexpected or reshaped:
+        parts = []
+        for label, names in (("missing", missing), ("unexpected", unexpected), ("shape", reshaped)):
+            if names:
+                parts.append(f"{label}: {', '.join(names[:3])}{' ...' if len(names) > 3 else ''}")
+        raise GeosegError(
+            f"init_checkpoint: {file} does not fit this {model_name!r} architecture "
+            f"(model_config {_model_config_of(model)}); {'; '.join(parts)}"
+        )
+    model.load_state_dict(state)
+    logger.info("initialised %s from %s", model_name, file)
+    return file
+
+
+def _shipped_names() -> tuple[str, ...]:
+    from geoseg.pretrained import PRETRAINED
+
+    return tuple(PRETRAINED)
+
+
+def _model_config_of(model: nn.Module) -> str:
+    num_classes = getattr(model, "num_classes", None)
+    return f"num_classes={num_classes}" if num_classes is not None else type(model).__name__
 
 
 def seed_model_init(seed: int) -> None:
@@ -404,7 +495,8 @@ def finish_run(
     """The end of an image trainer's ``main``: best weights, best epoch's metrics, artefacts.
 
     Loads the best weights into ``model`` and takes the metrics of the epoch they come from
-    (:func:`load_best_weights`), adds
+    (:func:`load_best_weights`), records the training frames' colour statistics in the card
+    (``colour_statistics``, :mod:`training.colour_stats`), adds
     ``extra_metrics(model)`` when given (e.g. a dense evaluation, run on the best weights before
     the model moves to the CPU), then :func:`finalize_run` with the config's data summary,
     ``cfg.export`` and ``cfg.data.size`` as the export's example size.
@@ -422,9 +514,17 @@ def finish_run(
     Returns:
         ``run_dir`` as a :class:`~pathlib.Path`.
     """
+    from geoseg.colour_transfer import CARD_KEY
+    from training.colour_stats import training_colour_statistics
+
     _, metrics = load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model))
+    card = dict(extra_card or {})
+    if dd.is_main_process():  # the training set's colours, for the colour transfer at inference
+        frames = COLOUR_STAT_FRAMES
+        stats = training_colour_statistics(cfg.data, frames=frames)
+        card[CARD_KEY] = {**stats.as_dict(), "frames": frames}
     return finalize_run(
         run_dir,
         model.cpu(),
@@ -437,7 +537,7 @@ def finish_run(
         command=command,
         export=cfg.export,
         example_size=cfg.data.size,
-        extra_card=extra_card,
+        extra_card=card,
     )
 
 

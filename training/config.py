@@ -15,7 +15,7 @@ from typing import Any, Literal
 
 from geoseg.config import check_range, to_dict
 from geoseg.data.transforms import AugmentConfig
-from geoseg.errors import ConfigError
+from geoseg.errors import ConfigError, GeosegError
 
 
 @dataclass
@@ -72,11 +72,17 @@ class DataConfig:
     """Where the frames come from and how they are loaded.
 
     ``source`` picks the dataset (``synth``: frames rendered on the fly from the synthetic world,
-    options in ``synth``; ``cityscapes``: a Cityscapes-format folder at ``root``).
+    options in ``synth``; ``cityscapes``: a Cityscapes-format folder at ``root``; ``camvid``: a
+    CamVid-layout folder at ``root``, :mod:`geoseg.data.camvid`).
+
+    ``label_map`` (cityscapes / camvid) replaces the reader's table from the dataset's label ids
+    to geoseg classes: ``{id: class name | "ignore"}`` (:mod:`geoseg.data.label_map`); the classes
+    it reaches are the ones the mean IoU is taken over.
     """
 
-    source: Literal["synth", "cityscapes"] = "synth"
+    source: Literal["synth", "cityscapes", "camvid"] = "synth"
     root: Path | None = None
+    label_map: dict[int, str] | None = None
     train_split: str = "train"
     val_split: str = "val"
     size: tuple[int, int] = (240, 320)  # (H, W) of the network input
@@ -96,6 +102,15 @@ class DataConfig:
             )
         if any(s < 1 for s in self.size):
             raise ConfigError(f"data.size: expected positive (H, W), got {self.size}")
+        if self.label_map is not None:
+            from geoseg.data.label_map import normalise_label_map
+
+            if self.source == "synth":
+                raise ConfigError("data.label_map: only for source=cityscapes or camvid")
+            try:
+                normalise_label_map(self.label_map)
+            except GeosegError as err:
+                raise ConfigError(f"data.{err}") from None
 
 
 @dataclass
@@ -114,6 +129,10 @@ class TrainConfig:
     out_dir: Path = Path("runs/run")
     seed: int = 0
     deterministic: bool = True
+    # start from these weights (a model.pt, training checkpoint or run directory of the same
+    # architecture, or a shipped name such as "seg" for geoseg/weights/seg); None = random
+    # initialisation
+    init_checkpoint: Path | None = None
     resume: bool = False  # continue from out_dir/last.pt
     overwrite: bool = False  # allow starting afresh over an existing out_dir/last.pt
     val_every: int = 1  # epochs between validations (the last epoch is always validated)
@@ -139,6 +158,8 @@ class TrainConfig:
         if not (self.device in ("auto", "cpu", "cuda") or self.device.startswith("cuda:")):
             raise ConfigError(f"device: expected auto, cpu, cuda or cuda:N, got {self.device!r}")
         self.out_dir = Path(self.out_dir)
+        if self.init_checkpoint is not None:
+            self.init_checkpoint = Path(self.init_checkpoint)
 
     def as_dict(self) -> dict[str, Any]:
         """Plain-data form (Paths as strings) for checkpoints and JSON."""

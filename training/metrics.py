@@ -83,17 +83,29 @@ def iou_per_class(cm: torch.Tensor) -> torch.Tensor:
 
 
 def segmentation_scores(
-    cm: torch.Tensor, class_names: Sequence[str] | None = None
+    cm: torch.Tensor,
+    class_names: Sequence[str] | None = None,
+    *,
+    classes: Sequence[int] | None = None,
 ) -> dict[str, float]:
-    """mIoU (mean over classes with a defined IoU), pixel accuracy and per-class IoU.
+    """mIoU, pixel accuracy and per-class IoU.
+
+    The mean is taken over ``classes`` (the classes the dataset labels), skipping those with an
+    undefined IoU (neither present nor predicted). A class the dataset cannot contain (CamVid has
+    no ``terrain``) is left out of the mean and of the per-class keys; predicting it still
+    costs: those pixels are errors of their true class, whose IoU drops.
 
     Args:
-        cm: `(C, C)` confusion matrix.
+        cm: `(C, C)` confusion matrix (rows true, columns predicted).
         class_names: C names for the ``iou_<name>`` keys (default: geoseg's 8 classes when
             C == 8, else ``iou_<index>``).
+        classes: indices of the classes the dataset labels (default: all C).
 
     Returns:
         ``{"miou", "pixel_acc", "iou_<name>"...}`` as Python floats (NaN where undefined).
+
+    Raises:
+        GeosegError: wrong number of names, a class index outside ``[0, C)``.
     """
     iou = iou_per_class(cm)
     total = float(cm.sum())
@@ -101,12 +113,16 @@ def segmentation_scores(
     names = names or [str(i) for i in range(cm.shape[0])]
     if len(names) != cm.shape[0]:
         raise GeosegError(f"class_names: expected {cm.shape[0]} names, got {len(names)}")
-    defined = iou[~torch.isnan(iou)]
+    keep = list(range(cm.shape[0])) if classes is None else sorted({int(c) for c in classes})
+    if not keep or keep[0] < 0 or keep[-1] >= cm.shape[0]:
+        raise GeosegError(f"classes: expected indices in [0, {cm.shape[0]}), got {classes}")
+    kept = iou[keep]
+    defined = kept[~torch.isnan(kept)]
     out = {
         "miou": float(defined.mean()) if defined.numel() else math.nan,
         "pixel_acc": float(cm.diagonal().sum()) / total if total else math.nan,
     }
-    out.update({f"iou_{n}": float(v) for n, v in zip(names, iou)})
+    out.update({f"iou_{names[c]}": float(iou[c]) for c in keep})
     return out
 
 
@@ -290,7 +306,8 @@ class Meter:
 
 class SegmentationMeter(Meter):
     """Confusion-matrix accumulator: ``outputs[output_key]`` `(B, C, H, W)` logits vs
-    ``batch[target_key]`` `(B, H, W)` labels; computes :func:`segmentation_scores`."""
+    ``batch[target_key]`` `(B, H, W)` labels; computes :func:`segmentation_scores` (mean IoU over
+    ``classes``, the classes the dataset labels; default all)."""
 
     def __init__(
         self,
@@ -300,8 +317,10 @@ class SegmentationMeter(Meter):
         target_key: str = "labels",
         ignore_index: int = IGNORE_INDEX,
         class_names: Sequence[str] | None = None,
+        classes: Sequence[int] | None = None,
     ) -> None:
         self.num_classes = num_classes
+        self.classes = None if classes is None else tuple(classes)
         self.output_key = output_key
         self.target_key = target_key
         self.ignore_index = ignore_index
@@ -323,7 +342,7 @@ class SegmentationMeter(Meter):
 
     def compute(self) -> dict[str, float]:
         """:func:`segmentation_scores` of the accumulated matrix."""
-        return segmentation_scores(self.state["cm"].cpu(), self.class_names)
+        return segmentation_scores(self.state["cm"].cpu(), self.class_names, classes=self.classes)
 
 
 class NormalsMeter(Meter):

@@ -147,6 +147,8 @@ def main(cfg: NaiveConfig, *, command: str | None = None) -> Path:
     train_loader, val_loader = common.make_loaders(cfg, train_set, val_set)
     common.seed_model_init(cfg.seed)
     model = get_model("naive_cnn", **cfg.model_config)
+    if cfg.init_checkpoint is not None:
+        common.load_init_weights(model, cfg.init_checkpoint, model_name="naive_cnn")
     run_dir = fit(
         cfg,
         model,

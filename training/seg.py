@@ -11,6 +11,9 @@ the whole network starts from that trunk (the decoder from scratch) and trains f
 epochs in ``<out_dir>``. ENet's own encoder also holds bottlenecks 3.7-3.8, which here belong to
 the head (the joint network branches after layer 21) and therefore start untrained in stage 2.
 
+``init_checkpoint`` starts the whole network from earlier ENet weights (fine-tuning, e.g. the
+shipped ``geoseg/weights/seg`` on real labelled images, ``configs/seg_camvid.yaml``).
+
 Usage::
 
     geoseg train seg --config configs/seg.yaml
@@ -114,7 +117,7 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
 
     Raises:
         GeosegError: bad data, an existing run without ``resume``/``overwrite``, a checkpoint
-            from another architecture.
+            (``init_checkpoint``, ``resume``) from another architecture.
     """
     train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
     val_set = common.build_frame_dataset(cfg.data, "val")
@@ -132,6 +135,8 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
 
     common.seed_model_init(cfg.seed)
     model = get_model("enet", **cfg.model_config)
+    if cfg.init_checkpoint is not None:
+        common.load_init_weights(model, cfg.init_checkpoint, model_name="enet")
     if cfg.encoder_epochs > 0:
         enc_dir = Path(cfg.out_dir) / ENCODER_DIR
         enc_cfg = _stage_cfg(
@@ -166,7 +171,8 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
         train_loader,
         val_loader,
         loss_fn,
-        SegmentationMeter(model.num_classes),
+        # mean IoU over the classes the dataset labels (CamVid has no terrain, for one)
+        SegmentationMeter(model.num_classes, classes=common.dataset_classes(val_set)),
         model_name="enet",
         model_config=cfg.model_config,
         extra=extra,

@@ -28,6 +28,7 @@ logger = logging.getLogger(__name__)
 DEFAULT_CONFIG = Path("configs/world_default.yaml")
 RIGS = ("car", "tram")
 DRIVE_M = 150.0  # the buildings step's drive: long enough to start and fuse, about a minute
+MAX_DRIVE_M = 5000.0
 
 
 @dataclass
@@ -343,8 +344,10 @@ def run(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     if args.frames < 1:
         raise GeosegError(f"--frames: expected an integer >= 1, got {args.frames}")
-    if not args.drive_m >= 0:
-        raise GeosegError(f"--drive-m: expected a length >= 0, got {args.drive_m}")
+    if not 0 <= args.drive_m <= MAX_DRIVE_M:  # NaN fails too
+        raise GeosegError(
+            f"--drive-m: expected a length in [0, {MAX_DRIVE_M:g}] m, got {args.drive_m}"
+        )
     check_fps(args.fps, "--fps")
     conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
     if len(conditions) < 2 or len(set(conditions)) != len(conditions):

@@ -68,6 +68,20 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="also write the class probabilities (NAME_probabilities.npy, (8, H, W) float16)",
     )
     parser.add_argument(
+        "--colour-transfer",
+        choices=["off", "image", "sequence"],
+        default="off",
+        help="map the inputs' colours onto the training images' (Reinhard et al. 2001; the "
+        "statistics in the model card beside --model): 'image' each input from its own "
+        "statistics, 'sequence' all inputs from their pooled statistics (default: off)",
+    )
+    parser.add_argument(
+        "--colour-means-only",
+        action="store_true",
+        help="with --colour-transfer: shift the colour means only (keep the inputs' contrast "
+        "and saturation) instead of matching means and standard deviations",
+    )
+    parser.add_argument(
         "--overwrite",
         action="store_true",
         help="write into an --out folder that holds files geoseg infer did not write (they "
@@ -143,6 +157,27 @@ def masked_normals(normals, labels):
     return out
 
 
+def _colour_transfer(args: argparse.Namespace, images: list[Path]):
+    """The ``--colour-transfer`` map for the model of ``args`` (sequence: over the readable
+    inputs; an unreadable one is reported later, where it is processed)."""
+    import cv2
+
+    from geoseg.infer import colour_transfer_for
+
+    sequence = []
+    if args.colour_transfer == "sequence":
+        for path in images:
+            bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if bgr is not None:
+                sequence.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    return colour_transfer_for(
+        args.model,
+        mode=args.colour_transfer,
+        sequence=sequence,
+        match_std=not args.colour_means_only,
+    )
+
+
 def run(args: argparse.Namespace) -> int:
     import cv2
     import numpy as np
@@ -165,6 +200,8 @@ def run(args: argparse.Namespace) -> int:
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
     else:
         segmenter = Segmenter.from_checkpoint(args.model, device=args.device)
+    if args.colour_transfer != "off":
+        segmenter.colour_transfer = _colour_transfer(args, list(stems))
     out = prepare_output_dir(
         args.out, producer=PRODUCER, overwrite=args.overwrite, adopt=_earlier_infer
     )

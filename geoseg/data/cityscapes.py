@@ -51,7 +51,8 @@ id    Cityscapes name       geoseg      why
 ====  ====================  ==========  =====================================================
 
 Any other value in a ``labelIds`` file is an error. With ``label_format="geoseg"`` the label files
-already hold geoseg ids (0..7, 255).
+already hold geoseg ids (0..7, 255). ``label_map`` replaces the table (:mod:`geoseg.data.label_map`),
+e.g. for a dataset in this layout with other classes.
 """
 
 from __future__ import annotations
@@ -78,6 +79,7 @@ from geoseg.classes import (
     VEGETATION,
     VEHICLE,
 )
+from geoseg.data.label_map import apply_label_map, label_lut, labelled_classes
 from geoseg.errors import GeosegError
 
 logger = logging.getLogger(__name__)
@@ -161,8 +163,13 @@ class CityscapesDataset(Dataset):
         label_format: ``"cityscapes"`` (labelIds, mapped by :data:`CITYSCAPES_TO_GEOSEG`) or
             ``"geoseg"`` (files already hold ids 0..7 / 255).
         transform: applied to each sample dict (e.g. :func:`geoseg.data.transforms.build_transforms`).
+        label_map: label id → geoseg class (name, id or ``"ignore"``) replacing
+            :data:`CITYSCAPES_TO_GEOSEG` (``label_format="cityscapes"`` only).
 
     Each sample is ``{"image": (3, H, W) float32 in [0, 1] RGB, "labels": (H, W) int64}``.
+
+    Attributes:
+        labelled_classes: the geoseg classes the labels can hold (the classes the mean IoU covers).
 
     Raises:
         GeosegError: ``root`` or a split folder missing (the message names the path expected), no
@@ -178,9 +185,19 @@ class CityscapesDataset(Dataset):
         cities: Sequence[str] | None = None,
         label_format: Literal["cityscapes", "geoseg"] = "cityscapes",
         transform: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
+        label_map: Mapping[int | str, int | str] | None = None,
     ) -> None:
         if label_format not in ("cityscapes", "geoseg"):
             raise GeosegError(f"label_format: expected cityscapes or geoseg, got {label_format!r}")
+        if label_map is not None and label_format != "cityscapes":
+            raise GeosegError("label_map: only with label_format='cityscapes' (raw dataset ids)")
+        self.lut = None if label_map is None else label_lut(label_map)
+        if label_map is not None:
+            self.labelled_classes = labelled_classes(label_map)
+        elif label_format == "cityscapes":
+            self.labelled_classes = labelled_classes(CITYSCAPES_TO_GEOSEG)
+        else:
+            self.labelled_classes = tuple(range(NUM_CLASSES))
         self.root = Path(root)
         self.split = split
         self.label_format = label_format
@@ -241,6 +258,8 @@ class CityscapesDataset(Dataset):
                 f"labels {path}: expected a single-channel labelIds image, got shape {raw.shape} "
                 f"(a *_color.png file?)"
             )
+        if self.lut is not None:
+            return apply_label_map(raw, self.lut, path=path)
         if self.label_format == "cityscapes":
             return map_cityscapes_labels(raw, path=path)
         labels = raw.astype(np.int64)

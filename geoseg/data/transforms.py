@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -31,6 +31,7 @@ from torchvision.transforms import v2
 from torchvision.transforms.v2 import functional as F
 
 from geoseg.classes import IGNORE_INDEX
+from geoseg.data.camera_effects import CameraEffectsConfig
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.vectors import vector_length
 
@@ -172,6 +173,9 @@ class AugmentConfig:
         scale: range of a random rescale factor applied to the network input size before
             cropping back to it (``(1.0, 1.0)`` = none).
         brightness, contrast, saturation, hue: ``ColorJitter`` strengths (image only).
+        camera: camera effects on the image only (noise, blur, vignetting, exposure, white
+            balance, JPEG; :mod:`geoseg.data.camera_effects`), all off by default; applied to
+            training frames after the other augmentations (:func:`training.common.build_frame_dataset`).
     """
 
     hflip: float = 0.5
@@ -180,6 +184,7 @@ class AugmentConfig:
     contrast: float = 0.0
     saturation: float = 0.0
     hue: float = 0.0
+    camera: CameraEffectsConfig = field(default_factory=CameraEffectsConfig)
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.hflip <= 1.0:

@@ -109,3 +109,27 @@ def test_normals_are_masked_on_the_sky() -> None:
     assert np.isnan(got[:, 0, 0]).all() and np.isnan(got[:, 1, 1]).all()
     np.testing.assert_array_equal(got[:, 0, 1], [0, 0, -1])
     assert not np.isnan(normals).any()  # the input is left as it was
+
+
+def test_colour_transfer_option_reads_the_model_card(model, tmp_path, capsys) -> None:
+    import json
+    import shutil
+
+    from geoseg.colour_transfer import CARD_KEY, ColourStatistics
+
+    image = _image(tmp_path / "in" / "x.png", 5)
+    bare = tmp_path / "bare" / model.name
+    bare.parent.mkdir()
+    shutil.copy(model, bare)
+    argv = ["infer", str(image), "--model", str(bare), "--colour-transfer", "image"]
+    assert main(argv + ["--out", str(tmp_path / "o1")]) == 2
+    assert "no model card" in capsys.readouterr().err
+    dark_green = ColourStatistics(mean=(-2.0, -0.3, -0.1), std=(0.1, 0.01, 0.01))
+    (bare.parent / "model_card.json").write_text(json.dumps({CARD_KEY: dark_green.as_dict()}))
+    for mode, out in (("off", "plain"), ("image", "image"), ("sequence", "seq")):
+        argv = ["infer", str(image), "--model", str(bare), "--colour-transfer", mode]
+        assert main(argv + ["--out", str(tmp_path / out)]) == 0
+    labels = {o: cv2.imread(str(tmp_path / o / "x_labels.png")) for o in ("plain", "image", "seq")}
+    assert not np.array_equal(labels["plain"], labels["image"])
+    # one input: its own statistics are the sequence's
+    assert np.array_equal(labels["image"], labels["seq"])

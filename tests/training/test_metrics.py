@@ -123,3 +123,27 @@ def test_building_filter_counts() -> None:
     assert (s["fp_argmax"], s["fp_filter"], s["fr_argmax"], s["fr_filter"]) == (2, 1, 1, 2)
     assert s["fp_removed"] == pytest.approx(0.5)
     assert s["extra_false_rejections"] == pytest.approx(1 / 3)
+
+
+def test_miou_over_the_classes_the_dataset_labels() -> None:
+    # classes 0, 1 labelled; class 2 ("terrain") never in the truth but predicted once
+    cm = torch.tensor([[3, 0, 1], [1, 3, 0], [0, 0, 0]])
+    everything = segmentation_scores(cm, ["a", "b", "t"])
+    assert everything["iou_t"] == 0.0  # present in the mean: it drags it down
+    assert everything["miou"] == pytest.approx((3 / 5 + 3 / 4 + 0.0) / 3)
+    labelled = segmentation_scores(cm, ["a", "b", "t"], classes=[0, 1])
+    # the wrong "t" pixel still costs class a (its row): IoU_a = 3 / (3 + 1 + 1)
+    assert labelled["miou"] == pytest.approx((3 / 5 + 3 / 4) / 2)
+    assert "iou_t" not in labelled and labelled["pixel_acc"] == everything["pixel_acc"]
+    with pytest.raises(GeosegError, match="classes"):
+        segmentation_scores(cm, ["a", "b", "t"], classes=[0, 3])
+
+
+def test_segmentation_meter_takes_the_labelled_classes() -> None:
+    meter = SegmentationMeter(3, classes=[0, 1])
+    logits = torch.zeros(1, 3, 1, 4)
+    logits[0, torch.tensor([0, 1, 2, 2]), 0, torch.arange(4)] = 1.0  # predicts 0, 1, 2, 2
+    meter.update({"logits": logits}, {"labels": torch.tensor([[[0, 1, 1, 0]]])})
+    scores = meter.compute()
+    assert scores["miou"] == pytest.approx((1 / 2 + 1 / 2) / 2)
+    assert "iou_2" not in scores

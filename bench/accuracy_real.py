@@ -1,0 +1,312 @@
+"""Accuracy on real street images: CamVid's validation split, 7 classes mapped to geoseg's.
+
+Measures, on the 101 CamVid val frames (``geoseg.data.camvid``: terrain has no CamVid
+counterpart, so the mean IoU covers road, sidewalk, building, vegetation, vehicle, object, sky),
+at 320x240 and at the native 480x360:
+
+- ``zero_shot_*``: the shipped synthetic-only ``seg`` weights (ONNX, as served), without and
+  with the Reinhard colour transfer onto the training set's statistics
+  (``*_colour_transfer``; :mod:`geoseg.colour_transfer`, statistics from the model card), and
+  with its variant that shifts the colour means only (``*_colour_transfer_means``).
+  Targets: ``zero_shot_miou`` >= 0.55, ``zero_shot_building_iou`` >= 0.70.
+- ``finetuned_*``: ENet fine-tuned from the shipped weights on CamVid train
+  (``configs/seg_camvid.yaml``: a fixed number of epochs, see ``finetune_*``), beside
+  ``scratch_*``: the same recipe and budget from a random initialisation; target
+  ``finetuned_miou`` >= 0.72. ``finetuned_minus_scratch_miou`` is what the synthetic
+  pretraining brings.
+
+Per-class IoU, pixel accuracy and milliseconds per image (network only; the colour transfer's
+own cost separately) for each. A panel of val frames (RGB | truth | zero-shot | fine-tuned |
+normals of the shipped joint network) goes to ``accuracy_real_panel.png``. Published context, not the same protocol: ENet reports 51.3 %
+class-average IoU over CamVid's 11 classes on its test split (Paszke et al. 2016).
+
+The fine-tuning runs are stages (``<runs>/from_shipped``, ``<runs>/from_scratch``): evaluated
+when they exist, trained first only with ``--full`` (each is ``geoseg train seg --config
+configs/seg_camvid.yaml``, minutes to an hour on a CPU).
+
+Usage::
+
+    python bench/accuracy_real.py                       # zero-shot + existing fine-tuning runs
+    python bench/accuracy_real.py --full                # also trains the missing runs
+    python bench/accuracy_real.py --camvid /data/camvid --runs runs/accuracy_real
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parent.parent
+RESULTS_DIR = ROOT / "bench" / "results"
+NAME = "accuracy_real"
+DEFAULT_CAMVID = Path(os.environ.get("GEOSEG_CAMVID", "/work/shared/data/camvid"))
+FINETUNE_CONFIG = ROOT / "configs" / "seg_camvid.yaml"
+SIZES = {"": (240, 320), "_native": None}  # key suffix -> (H, W) or None = as stored
+TARGETS = {"zero_shot_miou": 0.55, "zero_shot_building_iou": 0.70, "finetuned_miou": 0.72}
+PANEL_FRAMES = 4
+MEANS = "_colour_transfer_means"  # the colour transfer shifting the means only
+
+if str(ROOT) not in sys.path:  # `python bench/accuracy_real.py` from a checkout
+    sys.path.insert(0, str(ROOT))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--camvid", type=Path, default=DEFAULT_CAMVID, help="CamVid folder")
+    parser.add_argument(
+        "--runs", type=Path, default=ROOT / "runs" / NAME, help="fine-tuning run folders"
+    )
+    parser.add_argument("--full", action="store_true", help="train missing fine-tuning runs")
+    parser.add_argument("--frames", type=int, default=0, help="val frames (0 = all 101)")
+    parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="output directory")
+    return parser
+
+
+# ----------------------------------------------------------------------------- evaluation
+def load_frames(root: Path, limit: int) -> tuple[list[Any], list[Any], tuple[int, ...]]:
+    """Val frames as uint8 RGB `(H, W, 3)` and geoseg labels `(H, W)`, and the labelled classes."""
+    from geoseg.data.camvid import CamVidDataset
+
+    dataset = CamVidDataset(root, "val")
+    count = len(dataset) if limit <= 0 else min(limit, len(dataset))
+    images = [dataset.load_image(i) for i in range(count)]
+    labels = [dataset.load_labels(i) for i in range(count)]
+    return images, labels, dataset.labelled_classes
+
+
+def resize_pair(image: Any, labels: Any, size: tuple[int, int] | None) -> tuple[Any, Any]:
+    """Image by area averaging, labels by nearest neighbour, to ``size`` = (H, W)."""
+    import cv2
+
+    if size is None:
+        return image, labels
+    h, w = size
+    small = cv2.resize(image, (w, h), interpolation=cv2.INTER_AREA)
+    small_labels = cv2.resize(labels.astype("uint8"), (w, h), interpolation=cv2.INTER_NEAREST)
+    return small, small_labels.astype(labels.dtype)
+
+
+def evaluate(segmenter: Any, images: list, labels: list, classes, size) -> dict[str, float]:
+    """mIoU over ``classes``, per-class IoU, pixel accuracy, ms per image (network call)."""
+    import torch
+
+    from training.metrics import confusion_matrix, segmentation_scores
+
+    cm = torch.zeros(8, 8, dtype=torch.int64)
+    net_s = 0.0
+    transfer_s = 0.0
+    transfer = segmenter.colour_transfer
+    for image, truth in zip(images, labels):
+        image, truth = resize_pair(image, truth, size)
+        t0 = time.perf_counter()
+        if transfer is not None:
+            image = transfer(image)
+        t1 = time.perf_counter()
+        segmenter.colour_transfer = None  # timed apart
+        result = segmenter(image)
+        segmenter.colour_transfer = transfer
+        net_s += time.perf_counter() - t1
+        transfer_s += t1 - t0
+        cm += confusion_matrix(
+            torch.from_numpy(result.labels[0].astype("int64")), torch.from_numpy(truth)
+        )
+    scores = segmentation_scores(cm, classes=classes)
+    scores["ms_per_image"] = 1000.0 * net_s / len(images)
+    if transfer is not None:
+        scores["transfer_ms_per_image"] = 1000.0 * transfer_s / len(images)
+    return scores
+
+
+def finetune(run_dir: Path, camvid: Path, init: str | None) -> Path:
+    """Stage: the run in ``run_dir`` (trained with configs/seg_camvid.yaml when missing)."""
+    from geoseg.config import load_config
+    from training.seg import SegConfig, main
+
+    overrides = [
+        f"out_dir={run_dir}",
+        f"data.root={camvid}",
+        f"init_checkpoint={init if init else 'null'}",
+        "export=false",
+        "progress=false",
+    ]
+    cfg = load_config(SegConfig, FINETUNE_CONFIG, overrides=overrides)
+    return main(
+        cfg,
+        command=f"geoseg train seg --config {FINETUNE_CONFIG.name} "
+        + " ".join(f"--set {o}" for o in overrides),
+    )
+
+
+def run_facts(run_dir: Path) -> dict[str, float]:
+    """Epochs, optimizer steps and wall minutes of a fine-tuning run (from its records)."""
+    rows = json.loads((run_dir / "metrics.json").read_text())
+    return {
+        "epochs": rows[-1]["epoch"],
+        "steps": rows[-1]["global_step"],
+        "minutes": sum(float(r.get("time_s") or 0.0) for r in rows) / 60.0,
+    }
+
+
+# ----------------------------------------------------------------------------- panel
+def write_panel(path: Path, images, labels, segmenters: dict[str, Any], normals_net) -> None:
+    """Rows of val frames: RGB | truth | each segmenter's labels | normals."""
+    import cv2
+    import numpy as np
+
+    from geoseg.classes import colorize
+    from geoseg.infer import normals_to_rgb
+
+    picks = np.linspace(0, len(images) - 1, PANEL_FRAMES).round().astype(int)
+    rows = []
+    for i in picks:
+        image, truth = resize_pair(images[i], labels[i], (240, 320))
+        tiles = [image, colorize(truth)]
+        tiles += [colorize(seg(image).labels[0]) for seg in segmenters.values()]
+        normals = normals_net(image).normals
+        if normals is not None:
+            tiles.append(normals_to_rgb(normals[0]))
+        rows.append(np.concatenate(tiles, axis=1))
+    panel = np.concatenate(rows, axis=0)
+    titles = ["RGB", "truth", *segmenters, "normals (shipped joint network)"]
+    header = np.full((28, panel.shape[1], 3), 255, np.uint8)
+    for k, title in enumerate(titles):
+        cv2.putText(header, title, (320 * k + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
+    cv2.imwrite(str(path), cv2.cvtColor(np.concatenate([header, panel]), cv2.COLOR_RGB2BGR))
+
+
+# ----------------------------------------------------------------------------- output
+def markdown_table(figures: dict[str, Any]) -> str:
+    lines = ["| figure | 320x240 | 480x360 (native) | target |", "|---|---|---|---|"]
+    stems = [
+        "zero_shot_miou",
+        "zero_shot_miou_colour_transfer",
+        "zero_shot_building_iou",
+        "zero_shot_building_iou_colour_transfer",
+        "zero_shot_miou" + MEANS,
+        "zero_shot_building_iou" + MEANS,
+        "zero_shot_pixel_acc",
+        "zero_shot_pixel_acc_colour_transfer",
+        "zero_shot_pixel_acc" + MEANS,
+        "finetuned_miou",
+        "scratch_miou",
+        "finetuned_minus_scratch_miou",
+        "finetuned_building_iou",
+        "zero_shot_ms_per_image",
+        "finetuned_ms_per_image",
+    ]
+    for stem in stems:
+        low = figures.get(stem)
+        if low is None:
+            continue
+        native = figures.get(_native_key(stem))
+        target = TARGETS.get(stem.partition("_colour_transfer")[0])
+        lines.append(
+            f"| {stem} | {_fmt(low)} | {_fmt(native)} | {'>= ' + str(target) if target else ''} |"
+        )
+    return "\n".join(lines)
+
+
+def _native_key(stem: str) -> str:
+    head, sep, tail = stem.partition("_colour_transfer")
+    return head + "_native" + sep + tail
+
+
+def _fmt(value: Any) -> str:
+    if value is None:
+        return "-"
+    return f"{value:.3f}" if isinstance(value, float) else str(value)
+
+
+def _machine(load_start: float) -> str:
+    import torch
+
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+    return (
+        f"{platform.machine()} {os.cpu_count()} cores, {gpu}, {platform.system()} "
+        f"{platform.release()}, Python {platform.python_version()}, torch {torch.__version__}, "
+        f"1-min load average {load_start:.1f} -> {os.getloadavg()[0]:.1f}"
+    )
+
+
+def _json_safe(value: Any) -> Any:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def _put(figures: dict[str, Any], prefix: str, suffix: str, scores: dict[str, float]) -> None:
+    """``{prefix}_{metric}{suffix}`` keys; mIoU and building IoU also under the issue's names."""
+    for key, value in scores.items():
+        figures[f"{prefix}_{key}{suffix}"] = value
+    figures[f"{prefix}_building_iou{suffix}"] = scores["iou_building"]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    load_start = os.getloadavg()[0]
+
+    from geoseg.infer import Segmenter, colour_transfer_for
+    from geoseg.pretrained import pretrained_file
+
+    images, labels, classes = load_frames(args.camvid, args.frames)
+    figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
+    seg_onnx = pretrained_file("seg", "model.onnx")
+    shipped = Segmenter.from_onnx(seg_onnx)
+    transfer = colour_transfer_for(seg_onnx)
+    transfer_means = colour_transfer_for(seg_onnx, match_std=False)
+    variants = (("", None), ("_colour_transfer", transfer), (MEANS, transfer_means))
+    for size_key, size in SIZES.items():
+        for ct_key, ct in variants:
+            shipped.colour_transfer = ct
+            scores = evaluate(shipped, images, labels, classes, size)
+            _put(figures, "zero_shot", size_key + ct_key, scores)
+    shipped.colour_transfer = None
+
+    tuned: dict[str, Segmenter] = {}
+    for prefix, init in (("finetuned", str(pretrained_file("seg").parent)), ("scratch", None)):
+        run_dir = args.runs / ("from_shipped" if init else "from_scratch")
+        if not (run_dir / "model.pt").is_file():
+            if not args.full:
+                print(f"{run_dir}: no fine-tuning run (--full trains it); skipped")
+                continue
+            finetune(run_dir, args.camvid, init)
+        tuned[prefix] = Segmenter.from_checkpoint(run_dir / "model.pt")
+        for size_key, size in SIZES.items():
+            _put(figures, prefix, size_key, evaluate(tuned[prefix], images, labels, classes, size))
+        for key, value in run_facts(run_dir).items():
+            figures[f"{prefix}_train_{key}"] = value
+    for size_key in SIZES:
+        a, b = figures.get(f"finetuned_miou{size_key}"), figures.get(f"scratch_miou{size_key}")
+        if a is not None and b is not None:
+            figures[f"finetuned_minus_scratch_miou{size_key}"] = a - b
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    panel_segmenters = {"zero-shot (shipped seg)": shipped}
+    if "finetuned" in tuned:
+        panel_segmenters["fine-tuned from shipped"] = tuned["finetuned"]
+    normals_onnx = pretrained_file("normals", "model.onnx")
+    normals_net = Segmenter.from_onnx(normals_onnx)
+    write_panel(args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net)
+
+    figures["machine"] = _machine(load_start)
+    figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
+    print(markdown_table(figures))
+    out_json = args.out / f"{NAME}.json"
+    tmp = out_json.with_name(f".{out_json.name}.tmp")
+    tmp.write_text(json.dumps({k: _json_safe(v) for k, v in figures.items()}, indent=1) + "\n")
+    os.replace(tmp, out_json)
+    print(f"wrote {out_json} and {args.out / f'{NAME}_panel.png'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
