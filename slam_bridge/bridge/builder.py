@@ -39,8 +39,10 @@ class BridgeConfig:
         association: ``bayes``, ``dirichlet`` or ``raycast`` (module docstring).
         radius_m: farthest facade a point may be associated with (eq. 4.14's ``r``).
         sigma_m: Geman-McClure scale of a building row (eq. 4.2).
-        window_weight: the building rows of one fused window weigh together at most this much
-            (None: no cap); with a GIS model's errors they must not outvote the GPS fix.
+        window_weight: the building rows of one fused window weigh together at most this much,
+            in GPS fixes (None: no cap). A GIS model's facades are off by a metre or so, a GPS
+            fix by less: the default is about ``sigma_gps^2 / sigma_model^2`` for a 0.75 m GPS
+            and a model off by 1.2 m (``geoseg render``'s error model).
         network_size: ``(W, H)`` the images are resized to for the network (the size the
             shipped networks were trained at).
         network_threads: onnxruntime threads of the network: it runs beside the SLAM, and
@@ -55,7 +57,7 @@ class BridgeConfig:
     association: str = "bayes"
     radius_m: float = 3.0
     sigma_m: float = 0.5
-    window_weight: float | None = 2.0
+    window_weight: float | None = 0.4
     network_size: tuple[int, int] = (320, 240)
     network_threads: int = 1
     associate_every: int = 5
