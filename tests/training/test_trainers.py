@@ -8,6 +8,7 @@ import onnx
 import pytest
 import torch
 
+from geoseg.classes import BUILDING
 from geoseg.cli import main as cli_main
 from geoseg.config import load_config
 from geoseg.errors import ConfigError, GeosegError
@@ -185,7 +186,7 @@ def test_naive_main_writes_a_complete_run(naive_run, run_files):
 
 
 @pytest.mark.parametrize("window", [1, 3])
-def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path, window):
+def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path, window, monkeypatch):
     from geoseg.dirichlet import DirichletFilter, load_filter
 
     cfg = load_config(
@@ -222,7 +223,17 @@ def test_dirichlet_fits_and_writes_the_filter(naive_run, cache_dir, tmp_path, wi
     mtime = (out / "metrics.json").stat().st_mtime_ns
     dirichlet_trainer.main(cfg)  # finished: skipped
     assert (out / "metrics.json").stat().st_mtime_ns == mtime
-    # the tiny network calls no pixel building: fitting on the accepted ones must say so
+    # a network that calls no pixel building: fitting on the accepted ones must say so
+    real = dirichlet_trainer.dense_probabilities
+
+    def never_building(*args, **kwargs):
+        for probs, labels in real(*args, **kwargs):
+            probs = probs.copy()
+            probs[..., 0] += probs[..., BUILDING]  # its building mass goes to the road
+            probs[..., BUILDING] = 0.0
+            yield probs, labels
+
+    monkeypatch.setattr(dirichlet_trainer, "dense_probabilities", never_building)
     cfg.fit_pixels, cfg.overwrite = "accepted", True
     with pytest.raises(GeosegError, match="0 accepted true building pixels"):
         dirichlet_trainer.main(cfg)
