@@ -312,7 +312,8 @@ def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool
     from geoseg.config import to_dict
 
     parts = {
-        "method": method, "model": model, "drive": to_dict(cfg.drive), "slam": to_dict(cfg.slam),
+        "method": method, "model": model, "drive": to_dict(cfg.drive),
+        "slam": {k: v for k, v in to_dict(cfg.slam).items() if k != "bridge"},  # not this one's
         "gps_sigma_m": cfg.gps_sigma_m, "start_keyframes": cfg.start_keyframes,
         "seed": cfg.seed,
     }  # fmt: skip
