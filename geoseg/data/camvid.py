@@ -39,8 +39,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import torch
-from torch.utils.data import Dataset
 
 from geoseg.classes import (
     BUILDING,
@@ -53,6 +51,7 @@ from geoseg.classes import (
     VEHICLE,
 )
 from geoseg.data.label_map import apply_label_map, label_lut, labelled_classes
+from geoseg.data.labelled_folder import LabelledImageFolder
 from geoseg.errors import GeosegError
 
 logger = logging.getLogger(__name__)
@@ -77,7 +76,7 @@ CAMVID_TO_GEOSEG: dict[int, int] = {
 """CamVid class id → geoseg class id (or IGNORE_INDEX); the table in the module docstring."""
 
 
-class CamVidDataset(Dataset):
+class CamVidDataset(LabelledImageFolder):
     """Frames of a CamVid-layout folder as ``{"image", "labels"}`` samples.
 
     Args:
@@ -137,9 +136,6 @@ class CamVidDataset(Dataset):
             samples.append((image, label))
         return samples
 
-    def __len__(self) -> int:
-        return len(self.samples)
-
     def load_labels(self, index: int) -> np.ndarray:
         """`(H, W)` int64 geoseg ids of frame ``index`` (mapped and checked)."""
         path = self.samples[index][1]
@@ -152,30 +148,3 @@ class CamVidDataset(Dataset):
                 "(a colour-coded label image?)"
             )
         return apply_label_map(raw, self.lut, path=path)
-
-    def load_image(self, index: int) -> np.ndarray:
-        """`(H, W, 3)` uint8 RGB image of frame ``index``."""
-        path = self.samples[index][0]
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise GeosegError(f"image {path}: cannot read (not an image file?)")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"index {index} out of range for {len(self)} frames")
-        index %= len(self)
-        image = self.load_image(index)
-        labels = self.load_labels(index)
-        if image.shape[:2] != labels.shape:
-            raise GeosegError(
-                f"labels {self.samples[index][1]}: size {labels.shape} differs from image "
-                f"{self.samples[index][0]} size {image.shape[:2]}"
-            )
-        sample: dict[str, Any] = {
-            "image": torch.from_numpy(image).permute(2, 0, 1).float().div_(255.0),
-            "labels": torch.from_numpy(labels),
-        }
-        if self.transform is not None:
-            sample = dict(self.transform(sample))
-        return sample

@@ -64,8 +64,6 @@ from typing import Any, Literal
 
 import cv2
 import numpy as np
-import torch
-from torch.utils.data import Dataset
 
 from geoseg.classes import (
     BUILDING,
@@ -80,6 +78,7 @@ from geoseg.classes import (
     VEHICLE,
 )
 from geoseg.data.label_map import apply_label_map, label_lut, labelled_classes
+from geoseg.data.labelled_folder import LabelledImageFolder
 from geoseg.errors import GeosegError
 
 logger = logging.getLogger(__name__)
@@ -153,7 +152,7 @@ def map_cityscapes_labels(label_ids: np.ndarray, *, path: str | Path = "<labels>
     return mapped
 
 
-class CityscapesDataset(Dataset):
+class CityscapesDataset(LabelledImageFolder):
     """Frames of a Cityscapes-format folder as ``{"image", "labels"}`` samples.
 
     Args:
@@ -244,9 +243,6 @@ class CityscapesDataset(Dataset):
             )
         return samples
 
-    def __len__(self) -> int:
-        return len(self.samples)
-
     def load_labels(self, index: int) -> np.ndarray:
         """`(H, W)` int64 geoseg ids of frame ``index`` (mapped and checked)."""
         path = self.samples[index][1]
@@ -270,30 +266,3 @@ class CityscapesDataset(Dataset):
                 f"range [0, {NUM_CLASSES}) (or {IGNORE_INDEX})"
             )
         return labels
-
-    def load_image(self, index: int) -> np.ndarray:
-        """`(H, W, 3)` uint8 RGB image of frame ``index``."""
-        path = self.samples[index][0]
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise GeosegError(f"image {path}: cannot read (not an image file?)")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        if not -len(self) <= index < len(self):
-            raise IndexError(f"index {index} out of range for {len(self)} frames")
-        index %= len(self)
-        image = self.load_image(index)
-        labels = self.load_labels(index)
-        if image.shape[:2] != labels.shape:
-            raise GeosegError(
-                f"labels {self.samples[index][1]}: size {labels.shape} differs from image "
-                f"{self.samples[index][0]} size {image.shape[:2]}"
-            )
-        sample: dict[str, Any] = {
-            "image": torch.from_numpy(image).permute(2, 0, 1).float().div_(255.0),
-            "labels": torch.from_numpy(labels),
-        }
-        if self.transform is not None:
-            sample = dict(self.transform(sample))
-        return sample
