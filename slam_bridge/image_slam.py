@@ -10,7 +10,8 @@ The run (:func:`run_image_slam`): the visual front end
 (:class:`slam_bridge.frontend.image_tracks.ImageTracks`) turns the images into keyframe tracks,
 the start-up (:class:`slam_bridge.slam.initialization.TwoViewStart`) initialises and
 georeferences the map without ground truth, and the loop (:func:`slam_bridge.slam.loop.
-run_slam`) fuses the GPS at every keyframe. Outputs in ``out_dir`` (a stage: the folder is
+run_slam`) fuses the GPS at every keyframe (and the DEM, the odometry and, given a building
+model, building constraints chosen by a network: :mod:`slam_bridge.bridge`). Outputs in ``out_dir`` (a stage: the folder is
 refused if it holds other files, and ``summary.json`` is written last, so a folder without it
 is an unfinished run):
 
