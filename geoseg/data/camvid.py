@@ -37,7 +37,6 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from geoseg.classes import (
@@ -139,12 +138,5 @@ class CamVidDataset(LabelledImageFolder):
     def load_labels(self, index: int) -> np.ndarray:
         """`(H, W)` int64 geoseg ids of frame ``index`` (mapped and checked)."""
         path = self.samples[index][1]
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise GeosegError(f"labels {path}: cannot read (not an image file?)")
-        if raw.ndim != 2:
-            raise GeosegError(
-                f"labels {path}: expected a single-channel class-id image, got shape {raw.shape} "
-                "(a colour-coded label image?)"
-            )
+        raw = self.read_label_file(index, ("class-id image", "a colour-coded label image?"))
         return apply_label_map(raw, self.lut, path=path)

@@ -62,7 +62,6 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Literal
 
-import cv2
 import numpy as np
 
 from geoseg.classes import (
@@ -246,14 +245,7 @@ class CityscapesDataset(LabelledImageFolder):
     def load_labels(self, index: int) -> np.ndarray:
         """`(H, W)` int64 geoseg ids of frame ``index`` (mapped and checked)."""
         path = self.samples[index][1]
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise GeosegError(f"labels {path}: cannot read (not an image file?)")
-        if raw.ndim != 2:
-            raise GeosegError(
-                f"labels {path}: expected a single-channel labelIds image, got shape {raw.shape} "
-                f"(a *_color.png file?)"
-            )
+        raw = self.read_label_file(index, ("labelIds image", "a *_color.png file?"))
         if self.lut is not None:
             return apply_label_map(raw, self.lut, path=path)
         if self.label_format == "cityscapes":

@@ -35,6 +35,20 @@ class LabelledImageFolder(Dataset):
     def load_labels(self, index: int) -> np.ndarray:
         raise NotImplementedError
 
+    def read_label_file(self, index: int, hint: tuple[str, str]) -> np.ndarray:
+        """``(H, W)`` the raw single-channel label image of frame ``index``; ``hint``: (what
+        the file should be, what a multi-channel one probably is), for the error."""
+        path = self.samples[index][1]
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise GeosegError(f"labels {path}: cannot read (not an image file?)")
+        if raw.ndim != 2:
+            raise GeosegError(
+                f"labels {path}: expected a single-channel {hint[0]}, got shape {raw.shape} "
+                f"({hint[1]})"
+            )
+        return raw
+
     def load_image(self, index: int) -> np.ndarray:
         """`(H, W, 3)` uint8 RGB image of frame ``index``."""
         path = self.samples[index][0]
