@@ -132,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
 def _bridge(args, cfg, inputs):
     """The network bridge of ``--buildings`` (its inputs read and checked before the run)."""
     from geoseg.errors import GeosegError
-    from slam_bridge.bridge.builder import build_bridge, load_network
+    from slam_bridge.bridge.builder import build_bridge
     from slam_bridge.bridge.facades import Facades
 
     method = cfg.bridge.association
@@ -154,9 +154,6 @@ def _bridge(args, cfg, inputs):
             raise GeosegError(f"{path}: not a readable mesh ({exc})") from None
         if len(mesh.faces) == 0:
             raise GeosegError(f"{path}: a mesh without faces")
-    segmenter = None
-    if method != "raycast":
-        segmenter = load_network(method, args.network, cfg.bridge.network_threads)
     return build_bridge(
-        cfg.bridge, facades, image_size=inputs.frames.image_size, mesh=mesh, segmenter=segmenter
+        cfg.bridge, facades, image_size=inputs.frames.image_size, mesh=mesh, weights=args.network
     )

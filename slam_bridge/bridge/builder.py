@@ -12,6 +12,7 @@ do not match the images, is refused up front rather than at the first keyframe.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,9 +25,17 @@ from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import BridgeWorker, NetworkOutputs, segmenter_outputs
 from slam_bridge.errors import SlamError
 
-__all__ = ["ASSOCIATIONS", "BridgeConfig", "load_network", "check_network", "build_bridge"]
+__all__ = [
+    "ASSOCIATIONS",
+    "BridgeConfig",
+    "load_network",
+    "network_outputs",
+    "check_network",
+    "build_bridge",
+]
 
 ASSOCIATIONS = ("bayes", "dirichlet", "raycast")
+WORKERS = ("process", "thread")
 #: the shipped weights of each association's network (``geoseg.pretrained``)
 SHIPPED_WEIGHTS = {"bayes": "normals", "dirichlet": "naive"}
 
@@ -50,8 +59,11 @@ class BridgeConfig:
         associate_every: keyframes between associations.
         infer_every: keyframes between inferences (1: all; more for a network too slow for
             every keyframe, :class:`~slam_bridge.bridge.worker.BridgeWorker`).
-        asynchronous: inference and association in worker threads beside the SLAM (False:
-            inline, deterministic, the same numbers as a worker that keeps up).
+        asynchronous: inference and association beside the SLAM (False: inline,
+            deterministic, the same numbers as a worker that keeps up).
+        worker: where the asynchronous inference runs: ``process`` (a child process with its
+            own copy of the network: nothing of it competes with the loop for the GIL) or
+            ``thread``. A network given as an object (not as weights) runs in a thread.
     """
 
     association: str = "bayes"
@@ -63,12 +75,15 @@ class BridgeConfig:
     associate_every: int = 5
     infer_every: int = 1
     asynchronous: bool = True
+    worker: str = "process"
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
             raise SlamError(
                 f"association: expected one of {list(ASSOCIATIONS)}, got {self.association!r}"
             )
+        if self.worker not in WORKERS:
+            raise SlamError(f"worker: expected one of {list(WORKERS)}, got {self.worker!r}")
         check_positive("radius_m", self.radius_m)
         check_positive("sigma_m", self.sigma_m)
         if self.network_threads < 1:
@@ -91,6 +106,15 @@ def load_network(association: str, weights: str | Path | None = None, threads: i
     if path.suffix.lower() == ".onnx":
         return Segmenter.from_onnx(path, threads=threads)
     return Segmenter.from_file(path)
+
+
+def network_outputs(
+    association: str, weights: str | Path | None, threads: int | None, size: tuple[int, int]
+) -> NetworkOutputs:
+    """The worker's network (:func:`load_network` through
+    :func:`~slam_bridge.bridge.worker.segmenter_outputs` at ``size``); with
+    :func:`functools.partial`, the picklable recipe a child process builds it from."""
+    return segmenter_outputs(load_network(association, weights, threads), size)
 
 
 def check_network(network: NetworkOutputs, image_size: tuple[int, int], needs_normals: bool):
@@ -122,6 +146,7 @@ def build_bridge(
     image_size: tuple[int, int],
     mesh=None,
     segmenter=None,
+    weights: str | Path | None = None,
     dirichlet_filter=None,
 ) -> BridgeWorker:
     """The worker of ``cfg.association`` over ``facades``.
@@ -131,7 +156,9 @@ def build_bridge(
         facades: the building model.
         image_size: ``(W, H)`` of the SLAM's images (the network is checked on it).
         mesh: the model's mesh (``raycast``; :class:`trimesh.Trimesh`).
-        segmenter: the network (default: :func:`load_network`'s shipped one).
+        segmenter: the network as an object (a :class:`geoseg.infer.Segmenter`, say); it runs
+            in a thread or inline.
+        weights: else the network's weights (:func:`load_network`; default: the shipped ones).
         dirichlet_filter: the ``dirichlet`` rule's filter (default: the shipped one); its 5x5
             smoothing is applied to every network's maps before sampling.
 
@@ -143,13 +170,17 @@ def build_bridge(
     from geoseg.pretrained import pretrained_file
 
     method = cfg.association
-    network = None
-    if method != "raycast":
-        segmenter = segmenter or load_network(method, threads=cfg.network_threads)
-        network = segmenter_outputs(segmenter, tuple(cfg.network_size))
-        check_network(network, image_size, needs_normals=method == "bayes")
+    network, make_network = None, None
+    size = tuple(cfg.network_size)
+    uses_network = method != "raycast"
+    if uses_network and segmenter is not None:
+        network = segmenter_outputs(segmenter, size)
+    elif uses_network and cfg.worker == "process":
+        make_network = partial(network_outputs, method, weights, cfg.network_threads, size)
+    elif uses_network:
+        network = network_outputs(method, weights, cfg.network_threads, size)
     dirichlet_filter = dirichlet_filter or (
-        load_filter(pretrained_file("dirichlet", "dirichlet.json")) if network else None
+        load_filter(pretrained_file("dirichlet", "dirichlet.json")) if uses_network else None
     )
     r = cfg.radius_m
     if method == "raycast":
@@ -164,13 +195,23 @@ def build_bridge(
             facades, s.points, s.labels, s.normals, BUILDING, r
         )
     constraints = BuildingConstraints(facades, sigma_m=cfg.sigma_m, window_weight=cfg.window_weight)
-    return BridgeWorker(
+    worker = BridgeWorker(
         network,
         NUM_CLASSES,
         rule,
         constraints,
-        smooth=dirichlet_filter.smooth if network is not None else None,
+        smooth=dirichlet_filter.smooth if uses_network else None,
         associate_every=cfg.associate_every,
         infer_every=cfg.infer_every,
         asynchronous=cfg.asynchronous,
+        make_network=make_network,
     )
+    if uses_network:
+        try:
+            worker.call_network(
+                partial(check_network, image_size=image_size, needs_normals=method == "bayes")
+            )
+        except BaseException:
+            worker.close()
+            raise
+    return worker

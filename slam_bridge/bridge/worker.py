@@ -14,20 +14,23 @@ At each keyframe it
 
 The SLAM never waits: a job that is not finished is applied at a later keyframe (its *lag*, in
 keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
-evidence). The network runtime (onnxruntime, torch) releases the GIL: inference and association
-each run in a thread of their own beside the loop (an association does not queue behind
-inference). With ``asynchronous=False`` the jobs run inline when submitted and their results
-are applied at the next keyframe, as an asynchronous worker that kept up would apply them: the
-same numbers, deterministically.
+evidence). Association runs in a thread of its own (an association does not queue behind
+inference). Inference runs in a thread too, or, given ``make_network``, in a **child process**
+that builds the network once: the network runtime releases the GIL, but the resizing, smoothing
+and sampling around it do not, and in a thread they take turns with the loop's Python code.
+With ``asynchronous=False`` the jobs run inline when submitted and their results are applied at
+the next keyframe, as an asynchronous worker that kept up would apply them: the same numbers,
+deterministically.
 """
 
 from __future__ import annotations
 
 import logging
+import multiprocessing
 import time
 from collections import deque
 from collections.abc import Callable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Executor, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,6 +47,51 @@ __all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker", "segmenter_output
 
 #: image ``(H, W, 3)`` uint8 RGB -> (probabilities ``(h, w, K)``, normals ``(h, w, 3)`` or None)
 NetworkOutputs = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+#: ``(image, uv (N, 2), R_wc (3, 3))`` of one keyframe's inference
+InferenceJob = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def infer_and_sample(
+    network: NetworkOutputs, job: InferenceJob, num_classes: int, smooth
+) -> tuple[object, float]:
+    """The network's outputs at a keyframe's observations (:func:`~slam_bridge.bridge.evidence.
+    sample_outputs`) and the seconds it took."""
+    image, uv, R_wc = job
+    t0 = time.perf_counter()
+    probs, normals = network(image)
+    size = (image.shape[1], image.shape[0])
+    out = sample_outputs(probs, normals, uv, R_wc, size, num_classes, smooth)
+    return out, time.perf_counter() - t0
+
+
+# the child process's network and settings (:func:`_child_start`), one per child
+_CHILD: dict = {}
+
+
+def _child_start(make_network: Callable[[], NetworkOutputs], num_classes: int, smooth) -> None:
+    _CHILD.update(num_classes=num_classes, smooth=smooth)
+    try:
+        _CHILD["network"] = make_network()
+    except Exception as exc:  # raised by the first job, in the parent (an initializer's error
+        _CHILD["error"] = exc  # would only break the pool)
+
+
+def _child_network() -> NetworkOutputs:
+    if "error" in _CHILD:
+        raise _CHILD["error"]
+    return _CHILD["network"]
+
+
+def _child_infer(job: InferenceJob) -> tuple[object, float]:
+    return infer_and_sample(_child_network(), job, _CHILD["num_classes"], _CHILD["smooth"])
+
+
+def _child_call(fn: Callable[[NetworkOutputs], object]) -> object:
+    return fn(_child_network())
+
+
+def _built(network: NetworkOutputs) -> None:
+    """Nothing: a first call that waits for the child's network to be built."""
 
 
 @dataclass(frozen=True)
@@ -102,9 +150,13 @@ class BridgeWorker:
             many keyframes, so a slow network labelling every few still reaches most points,
             deterministically (where dropping jobs depends on the machine's load).
         max_pending: most inference jobs waiting; more are dropped.
-        asynchronous: run the jobs in a worker thread (False: inline, deterministic).
+        asynchronous: run the jobs beside the loop (False: inline, deterministic).
         image_at: ``timestamp -> (H, W, 3) uint8`` image of a keyframe the hook gets without
             observations (those the start-up placed; None: they get no evidence).
+        make_network: a picklable ``() -> network`` instead of ``network``: with
+            ``asynchronous``, inference runs in a child process that calls it once (started,
+            and its network built, before the constructor returns); inline, it is called
+            here.
     """
 
     def __init__(
@@ -120,10 +172,11 @@ class BridgeWorker:
         max_pending: int = 4,
         asynchronous: bool = True,
         image_at: Callable[[float], np.ndarray] | None = None,
+        make_network: Callable[[], NetworkOutputs] | None = None,
     ) -> None:
         if min(associate_every, infer_every, max_pending) < 1:
             raise SlamError("associate_every, infer_every and max_pending must be >= 1")
-        self.network, self.num_classes = network, num_classes
+        self.num_classes = num_classes
         self.associate, self.constraints, self.smooth = associate, constraints, smooth
         self.associate_every, self.max_pending = associate_every, max_pending
         self.infer_every = infer_every
@@ -135,11 +188,27 @@ class BridgeWorker:
             "infer": deque(),
             "associate": deque(),
         }
-        self._pools = (
-            {kind: ThreadPoolExecutor(1, f"bridge-{kind}") for kind in self._pending}
-            if asynchronous
-            else None
-        )
+        self.in_process = asynchronous and make_network is not None
+        if make_network is not None and not asynchronous and network is None:
+            network = make_network()
+        self.network = network
+        self._pools: dict[str, Executor] | None = None
+        if asynchronous:
+            self._pools = {"associate": ThreadPoolExecutor(1, "bridge-associate")}
+            if self.in_process:  # spawn: the parent's threads (onnxruntime's) do not fork well
+                self._pools["infer"] = ProcessPoolExecutor(
+                    1,
+                    mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_child_start,
+                    initargs=(make_network, num_classes, smooth),
+                )
+                try:
+                    self.call_network(_built)  # started and built now: its errors raise here
+                except BaseException:
+                    self.close()
+                    raise
+            else:
+                self._pools["infer"] = ThreadPoolExecutor(1, "bridge-infer")
 
     # ------------------------------------------------------------------ the loop's hook
     def __call__(self, slam_map: Map, k: int, obs) -> None:
@@ -149,7 +218,7 @@ class BridgeWorker:
         if self.evidence is None:
             self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
         self._apply(slam_map, k, wait=False)
-        infer = self.network is not None and k % self.infer_every == 0
+        infer = (self.network is not None or self.in_process) and k % self.infer_every == 0
         image = None if obs is None or not infer else obs.image
         if infer and image is None and self.image_at is not None:
             image = self.image_at(float(slam_map.timestamps[k]))
@@ -161,7 +230,8 @@ class BridgeWorker:
                 idx = slam_map.keyframe_observations(k)
                 idx = idx[slam_map.obs_active[idx]]
                 job = (image, slam_map.obs_uv[idx].copy(), slam_map.R_wc[k].copy())
-                self._submit("infer", k, slam_map.obs_point[idx].copy(), self._infer, job)
+                fn = _child_infer if self.in_process else self._infer
+                self._submit("infer", k, slam_map.obs_point[idx].copy(), fn, job)
         if k % self.associate_every == 0:
             self._submit("associate", k, None, self._associate, self._snapshot(slam_map, k))
         self.stats.main_seconds.append(time.perf_counter() - t0)
@@ -179,10 +249,19 @@ class BridgeWorker:
         return final
 
     def close(self) -> None:
-        """Stop the threads, dropping the jobs not started (after a failed run, say)."""
+        """Stop the threads (and the child process), dropping the jobs not started (after a
+        failed run, say)."""
         if self._pools is not None:
             for pool in self._pools.values():
                 pool.shutdown(wait=True, cancel_futures=True)
+            self._pools = None
+
+    def call_network(self, fn: Callable[[NetworkOutputs], object]) -> object:
+        """``fn(network)`` where the network lives (the child process: ``fn`` picklable),
+        waited for; its errors are raised here."""
+        if self.in_process:
+            return self._pools["infer"].submit(_child_call, fn).result()
+        return fn(self.network)
 
     # ------------------------------------------------------------------ jobs
     def _submit(self, kind: str, k: int, payload, fn, arg) -> None:
@@ -193,31 +272,26 @@ class BridgeWorker:
             fut = self._pools[kind].submit(fn, arg)
         self._pending[kind].append((k, payload, fut))
 
-    def _infer(self, job):
-        image, uv, R_wc = job
-        t0 = time.perf_counter()
-        probs, normals = self.network(image)
-        W, H = image.shape[1], image.shape[0]
-        out = sample_outputs(probs, normals, uv, R_wc, (W, H), self.num_classes, self.smooth)
-        self.stats.inference_seconds.append(time.perf_counter() - t0)
-        return out
+    def _infer(self, job: InferenceJob) -> tuple[object, float]:
+        return infer_and_sample(self.network, job, self.num_classes, self.smooth)
 
-    def _associate(self, inputs: AssociationInputs) -> Association:
+    def _associate(self, inputs: AssociationInputs) -> tuple[Association, float]:
         t0 = time.perf_counter()
         out = self.associate(inputs)
-        self.stats.association_seconds.append(time.perf_counter() - t0)
-        return out
+        return out, time.perf_counter() - t0
 
     def _apply(self, slam_map: Map, k: int, wait: bool) -> None:
         """Apply the finished jobs of each kind in submission order (all when ``wait``)."""
         for kind, pending in self._pending.items():
             while pending and (wait or pending[0][2].done()):
                 k_sub, payload, fut = pending.popleft()
-                result = fut.result()  # re-raises a job's error here, in the main thread
+                result, seconds = fut.result()  # re-raises a job's error here, in the main thread
                 if kind == "infer":
                     self.evidence.add_samples(k_sub, payload, result)
+                    self.stats.inference_seconds.append(seconds)
                 else:
                     self.constraints.update(result)
+                    self.stats.association_seconds.append(seconds)
                     self.stats.lags.append(k - k_sub)
 
     def _snapshot(self, slam_map: Map, k: int) -> AssociationInputs:

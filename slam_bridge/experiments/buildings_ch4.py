@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_bridge.bridge.builder import BridgeConfig, build_bridge, load_network
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge
 from slam_bridge.bridge.worker import BridgeWorker
 from slam_bridge.errors import SlamError
 from slam_bridge.image_slam import ImageSlamConfig
@@ -244,11 +244,11 @@ class RunAssets:
     facades: dict  # model -> Facades
     meshes: dict  # model -> trimesh.Trimesh
     world: object = None  # the true facades (the exact model), for the evaluation
-    segmenters: dict = field(default_factory=dict)  # association -> Segmenter
 
 
 def load_assets(cfg: BuildingsConfig, folder: Path) -> RunAssets:
-    """The building models and the shipped networks."""
+    """The building models (each run's bridge loads the shipped network itself: in a child
+    process when it is asynchronous)."""
     import trimesh
 
     from slam_bridge.bridge.facades import Facades
@@ -260,9 +260,6 @@ def load_assets(cfg: BuildingsConfig, folder: Path) -> RunAssets:
         meshes[model] = trimesh.load(gis / "buildings_model.ply", force="mesh")
     assets = RunAssets(folder, tuple(cfg.drive.image_size), facades, meshes)
     assets.world = Facades.read_csv(folder / "gis" / "exact" / "facades.csv")
-    for method in ("dirichlet", "bayes"):
-        if method in cfg.methods:
-            assets.segmenters[method] = load_network(method, threads=cfg.bridge.network_threads)
     return assets
 
 
@@ -281,7 +278,6 @@ def _worker(
         return build_bridge(
             settings, facades,
             image_size=assets.image_size, mesh=assets.meshes[model],
-            segmenter=assets.segmenters.get(method),
         )  # fmt: skip
     # the oracle: the truth gathered beside the SLAM, keyframe by keyframe
     constraints = BuildingConstraints(
@@ -319,6 +315,8 @@ def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool
     }  # fmt: skip
     if method != "nobuild":
         parts["bridge"] = to_dict(_settings(cfg, method, model, asynchronous))
+        if not asynchronous:  # inline: where an asynchronous worker would run changes nothing
+            parts["bridge"].pop("worker", None)
     return json.dumps(parts, sort_keys=True, default=str)
 
 

@@ -15,6 +15,7 @@ from geoseg.infer import Segmenter
 from geoseg.pretrained import pretrained_file
 from geoseg.synth.export import render_sequence
 from slam_bridge.bridge.association import associate_bayes
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge
 from slam_bridge.bridge.constraints import BuildingConstraints
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import BridgeWorker, segmenter_outputs
@@ -72,6 +73,20 @@ def test_joint_network_bridge_on_images(drive):
     assert len(worker.stats.inference_seconds) >= 0.8 * len(result.records)
     assert got.size >= 200 and precision >= 0.8
     assert fused >= 0.4 * len(result.records)
+
+
+def test_asynchronous_bridge_with_the_network_in_a_child_process(drive):
+    """The default bridge (``build_bridge``: shipped joint network in a child process, association
+    in a thread) beside the image SLAM: every job comes back, evidence and associations arrive."""
+    inputs = load_inputs(drive, gps=drive / "gps.csv", odometry=drive / "gis" / "odometry.csv")
+    facades = Facades.read_csv(drive / "gis" / "facades.csv")
+    worker = build_bridge(BridgeConfig(), facades, image_size=inputs.frames.image_size)
+    assert worker.in_process
+    result, _ = run_on_images(inputs, ImageSlamConfig(), progress=False, bridge=worker)
+    submitted = len(worker.stats.inference_seconds) + worker.stats.dropped
+    assert result.tracking_failures == 0 and submitted >= 0.8 * len(result.records)
+    assert len(worker.stats.inference_seconds) > 0
+    assert worker.constraints.association.associated.sum() >= 100
 
 
 def _slam_run(drive, out, *extra) -> list[str]:

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import operator
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from geoseg.classes import NUM_CLASSES
+from geoseg.errors import GeosegError
+from geoseg.pretrained import pretrained_file
 from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_network
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import segmenter_outputs
@@ -86,3 +89,42 @@ def test_build_bridge_wires_the_association_and_the_constraints(facades):
     a = worker.associate(snapshot)
     assert a.method == "bayes" and a.facade.tolist() == [0]
     worker.close()
+
+
+def test_process_worker_gives_what_the_inline_network_gives(facades):
+    """The asynchronous worker's child process builds the shipped network from its recipe and
+    answers as the same network run inline."""
+    image = np.random.default_rng(0).integers(0, 255, (480, 640, 3), dtype=np.uint8)
+    call = operator.methodcaller("__call__", image)  # fn(network) = network(image), picklable
+    inline = build_bridge(BridgeConfig(asynchronous=False), facades, image_size=(640, 480))
+    child = build_bridge(BridgeConfig(worker="process"), facades, image_size=(640, 480))
+    try:
+        assert child.in_process and child.network is None and not inline.in_process
+        (p_child, n_child), (p_inline, n_inline) = (
+            child.call_network(call),
+            inline.call_network(call),
+        )
+        assert p_child.shape == (240, 320, NUM_CLASSES) and n_child.shape == (240, 320, 3)
+        np.testing.assert_allclose(p_child, p_inline, atol=1e-5)
+        np.testing.assert_allclose(n_child, n_inline, atol=1e-5)
+    finally:
+        child.close()
+        inline.close()
+
+
+def test_process_worker_raises_a_bad_network_in_the_parent(facades, tmp_path):
+    """Weights the child cannot load, or a network the bridge cannot use, raise their own clear
+    error from build_bridge (not a broken process pool)."""
+    missing = tmp_path / "missing.onnx"
+    with pytest.raises(GeosegError, match="missing.onnx"):
+        build_bridge(BridgeConfig(), facades, image_size=(640, 480), weights=missing)
+    with pytest.raises(SlamError, match="no normals"):
+        build_bridge(
+            BridgeConfig(), facades, image_size=(640, 480),
+            weights=pretrained_file("naive", "model.onnx"),
+        )  # fmt: skip
+
+
+def test_config_refuses_an_unknown_worker():
+    with pytest.raises(SlamError, match="worker"):
+        BridgeConfig(worker="cluster")
