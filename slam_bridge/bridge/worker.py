@@ -16,8 +16,11 @@ The SLAM never waits: a job that is not finished is applied at a later keyframe 
 keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
 evidence). Association runs in a thread of its own (an association does not queue behind
 inference). Inference runs in a thread too, or, given ``make_network``, in a **child process**
-that builds the network once: the network runtime releases the GIL, but the resizing, smoothing
-and sampling around it do not, and in a thread they take turns with the loop's Python code.
+that builds the network once, at a lower scheduling priority than the loop: the network
+runtime releases the GIL, but the resizing, smoothing and sampling around it do not, and in a
+thread they take turns with the loop's Python code. A script that builds such a worker must
+guard its entry point (``if __name__ == "__main__":``): the child is started by ``spawn``, which
+imports the script's main module again.
 With ``asynchronous=False`` the jobs run inline when submitted and their results are applied at
 the next keyframe, as an asynchronous worker that kept up would apply them: the same numbers,
 deterministically.
@@ -27,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing
+import os
 import time
 from collections import deque
 from collections.abc import Callable
@@ -66,9 +70,14 @@ def infer_and_sample(
 
 # the child process's network and settings (:func:`_child_start`), one per child
 _CHILD: dict = {}
+#: scheduling priority of the child below the SLAM's (POSIX ``nice``): on a machine with few
+#: cores the loop's own work goes first when both want the same core
+CHILD_NICENESS = 10
 
 
 def _child_start(make_network: Callable[[], NetworkOutputs], num_classes: int, smooth) -> None:
+    if hasattr(os, "nice"):  # the loop first: the network gets the cycles the loop leaves
+        os.nice(CHILD_NICENESS)
     _CHILD.update(num_classes=num_classes, smooth=smooth)
     try:
         _CHILD["network"] = make_network()
