@@ -54,7 +54,7 @@ COLOUR_STAT_FRAMES = 32
 
 # ----------------------------------------------------------------------------- config
 # trainers whose whole network can start from earlier weights of the same architecture
-INIT_CHECKPOINT_TRAINERS = ("seg", "naive")
+INIT_CHECKPOINT_TRAINERS = ("seg", "naive", "relpose")
 
 
 def check_trainer_config(cfg: TrainConfig, *, trainer: str, model: str) -> None:

@@ -21,12 +21,14 @@ alone, taking ``(B, C, h, w)`` feature maps.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from torch import nn
 from torch.utils.data import Dataset
@@ -82,6 +84,10 @@ class RoutesConfig:
         spacing_m: keyframe spacing, metres.
         offset_m: along-track shift between consecutive traversals, metres.
         yaw_jitter_deg: yaw jitter of traversals after the first, +- degrees.
+        aligned_conditions: per route, that many more traversals at its first traversal's
+            poses (no along-track offset), in conditions of the pool the route does not use:
+            views of one place in two conditions, for the relative-pose head's near pairs.
+        aligned_yaw_jitter_deg: yaw jitter of the aligned traversals, +- degrees.
         draw_seed: seeds the conditions and routes of the cities.
     """
 
@@ -98,6 +104,8 @@ class RoutesConfig:
     spacing_m: float = 8.0
     offset_m: float = 3.0
     yaw_jitter_deg: float = 5.0
+    aligned_conditions: int = 0
+    aligned_yaw_jitter_deg: float = 3.0
     draw_seed: int = 0
 
     def __post_init__(self) -> None:
@@ -126,6 +134,13 @@ class RoutesConfig:
             check_range(f"routes.{key}", getattr(self, key), 0.0, None, low_open=True)
         check_range("routes.offset_m", self.offset_m, 0.0)
         check_range("routes.yaw_jitter_deg", self.yaw_jitter_deg, 0.0, 180.0)
+        check_range("routes.aligned_yaw_jitter_deg", self.aligned_yaw_jitter_deg, 0.0, 180.0)
+        spare = len(self.conditions) - self.conditions_per_route
+        if not 0 <= self.aligned_conditions <= spare:
+            raise ConfigError(
+                f"routes.aligned_conditions: expected 0..{spare} (the conditions a route does "
+                f"not use), got {self.aligned_conditions}"
+            )
         if self.cache_dir is not None:
             self.cache_dir = Path(self.cache_dir)
         self.specs("train")  # validate the world keys and lengths now
@@ -147,6 +162,23 @@ class RoutesConfig:
             spacing_m=self.spacing_m,
             offset_m=self.offset_m,
             yaw_jitter_deg=self.yaw_jitter_deg,
+        )
+
+    def aligned_spec(self, spec: Any) -> Any:
+        """The traversals of ``spec``'s route at its first traversal's poses: a
+        :class:`~geoseg.data.traversals.RouteSpec` whose first condition is ``spec``'s first
+        (the same cached traversal) followed by ``aligned_conditions`` others, drawn with
+        ``(draw_seed, seed, 5152)``; None when ``aligned_conditions`` is 0."""
+        if not self.aligned_conditions:
+            return None
+        spare = [c for c in self.conditions if c not in spec.conditions]
+        rng = np.random.default_rng(np.random.SeedSequence([self.draw_seed, spec.seed, 5152]))
+        pick = rng.choice(len(spare), size=self.aligned_conditions, replace=False)
+        return dataclasses.replace(
+            spec,
+            conditions=[spec.conditions[0], *(spare[j] for j in pick)],
+            offset_m=0.0,
+            yaw_jitter_deg=self.aligned_yaw_jitter_deg,
         )
 
 
@@ -223,13 +255,25 @@ def prepare_routes(
     *,
     progress: bool = True,
 ) -> list[RouteFeatures]:
-    """Render (or read) the routes of ``split`` and their layer-21 features (images dropped)."""
-    return [
-        route_features(
-            spec, extractor, cache_dir=routes.cache_dir, progress=progress, keep_images=False
-        )
-        for spec in routes.specs(split)
-    ]
+    """Render (or read) the routes of ``split`` and their layer-21 features (images dropped);
+    a route's aligned traversals (``routes.aligned_conditions``) follow its own."""
+    out = []
+    for spec in routes.specs(split):
+        kw = {"cache_dir": routes.cache_dir, "progress": progress, "keep_images": False}
+        route = route_features(spec, extractor, **kw)
+        aligned = routes.aligned_spec(spec)
+        if aligned is not None:
+            extra = route_features(aligned, extractor, **kw)
+            if not np.allclose(extra.traversals[0].t_wc, route.traversals[0].t_wc, atol=1e-6):
+                raise GeosegError(f"city {spec.seed}: the aligned traversals left the route")
+            route = RouteFeatures(
+                spec,
+                route.traversals + extra.traversals[1:],
+                route.features + extra.features[1:],
+                aligned=aligned,
+            )
+        out.append(route)
+    return out
 
 
 def feature_shape(routes: Sequence[RouteFeatures]) -> tuple[int, int, int]:
@@ -280,12 +324,17 @@ def describe_routes(routes: RoutesConfig, extractor: TrunkFeatureExtractor) -> d
     """Plain-data summary of the routes and trunk of a run (model cards)."""
     from geoseg.config import to_dict
 
-    return {
+    out = {
         "source": "synth traversals (geoseg.data.traversals)",
         "train_routes": [to_dict(s) for s in routes.specs("train")],
         "val_routes": [to_dict(s) for s in routes.specs("val")],
         "trunk_fingerprint": extractor.fingerprint,
     }
+    for split in ("train", "val"):
+        aligned = [routes.aligned_spec(s) for s in routes.specs(split)]
+        if any(a is not None for a in aligned):
+            out[f"{split}_aligned_routes"] = [to_dict(a) for a in aligned if a is not None]
+    return out
 
 
 # ============================================================================ sampling and loaders

@@ -24,6 +24,11 @@ that re-ranking the whole base by predicted distance puts other places behind th
 ``turned_pairs_per_epoch`` pairs of nearby views that look elsewhere (axes at least
 ``turned_min_angle_deg`` apart: the crossing street, the opposite direction) train the same
 kind of floor, ``turned_floor_m``: in a GPS window the nearest camera may face another street.
+``near_pairs_per_epoch`` pairs of views at most ``near_max_baseline_m`` apart (a query at a base
+image's pose; from the routes' aligned traversals, ``routes.aligned_conditions``) train the
+rotation and the distance, whose target is floored at ``distance_floor_m`` (a zero baseline has
+no logarithm); the direction term is masked below ``direction_min_m``, where it is undefined.
+``init_checkpoint`` starts the head from earlier relative-pose weights (fine-tuning).
 
 Validation: eq. 5.2, and the median / mean rotation and direction errors (degrees; medians from
 a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs; with
@@ -112,6 +117,13 @@ class RelPoseConfig(HeadTrainConfig):
         turned_max_m: largest distance between the views of a turned pair, metres.
         turned_min_angle_deg: smallest angle between the optical axes of a turned pair.
         turned_floor_m: distance the head must predict at least for turned pairs, metres.
+        near_pairs_per_epoch: extra pairs per epoch of views at most ``near_max_baseline_m``
+            apart (axes within ``max_angle_deg``), from the traversals that share poses
+            (``routes.aligned_conditions``; 0: none).
+        val_near_pairs: such pairs added to the validation pairs (0: none).
+        near_max_baseline_m: largest baseline of a near pair, metres.
+        distance_floor_m: the distance target is ``log max(d, distance_floor_m)``.
+        direction_min_m: pairs nearer than this have no direction term (undefined at 0 m).
     """
 
     trainer: ClassVar[str] = "relpose"
@@ -137,6 +149,11 @@ class RelPoseConfig(HeadTrainConfig):
     turned_max_m: float = 25.0
     turned_min_angle_deg: float = 45.0
     turned_floor_m: float = 30.0
+    near_pairs_per_epoch: int = 0
+    val_near_pairs: int = 0
+    near_max_baseline_m: float = 0.5
+    distance_floor_m: float = 0.1
+    direction_min_m: float = 0.05
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -146,6 +163,19 @@ class RelPoseConfig(HeadTrainConfig):
         for name in ("far_max_baseline_m", "unrelated_min_m", "unrelated_floor_m", "turned_max_m"):
             check_range(name, getattr(self, name), 0.0, None, low_open=True)
         check_range("turned_floor_m", self.turned_floor_m, 0.0, None, low_open=True)
+        for name in ("near_max_baseline_m", "distance_floor_m"):
+            check_range(name, getattr(self, name), 0.0, None, low_open=True)
+        check_range("direction_min_m", self.direction_min_m, 0.0)
+        for name in ("near_pairs_per_epoch", "val_near_pairs"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if (
+            self.near_pairs_per_epoch or self.val_near_pairs
+        ) and not self.routes.aligned_conditions:
+            raise ConfigError(
+                "near_pairs_per_epoch, val_near_pairs: near pairs come from traversals at one "
+                "route's poses; set routes.aligned_conditions >= 1"
+            )
         check_range("turned_min_angle_deg", self.turned_min_angle_deg, 0.0, 180.0)
         for name in ("lam", "mu"):
             if not getattr(self, name) > 0:
@@ -207,23 +237,43 @@ class PairRegressor(nn.Module):
 
 class RelPoseLoss:
     """Eq. 5.2 (:func:`relpose_loss`) against ``batch["R_ab"]``, ``batch["t_dir_ab"]``, plus
-    ``mu`` times the squared log-baseline error against ``batch["baseline_m"]`` when the head
-    predicts distances; ``batch["pose_weight"]`` (when present) weighs the eq. 5.2 terms per
-    pair (0 for the far, distance-only pairs), and where ``batch["distance_floor"]`` is true
-    ``baseline_m`` is a floor: only predictions nearer than it are penalised."""
+    ``mu`` times the squared log-baseline error against ``max(batch["baseline_m"],
+    distance_floor_m)`` when the head predicts distances; the direction term is dropped for
+    pairs with ``baseline_m`` below ``direction_min_m`` (views of one place: no direction);
+    ``batch["pose_weight"]`` (when present) weighs the eq. 5.2 terms per pair (0 for the far,
+    distance-only pairs), and where ``batch["distance_floor"]`` is true ``baseline_m`` is a
+    floor: only predictions nearer than it are penalised."""
 
-    def __init__(self, lam: float = 1.0, mu: float = 1.0) -> None:
+    def __init__(
+        self,
+        lam: float = 1.0,
+        mu: float = 1.0,
+        *,
+        distance_floor_m: float = 0.1,
+        direction_min_m: float = 0.05,
+    ) -> None:
         self.lam = float(lam)
         self.mu = float(mu)
+        self.distance_floor_m = float(distance_floor_m)
+        self.direction_min_m = float(direction_min_m)
 
     def __call__(self, outputs: dict[str, torch.Tensor], batch: dict[str, Any]) -> torch.Tensor:
+        baseline = batch.get("baseline_m")
+        direction_weight = None if baseline is None else baseline >= self.direction_min_m
         loss = relpose_loss(
-            outputs, batch["R_ab"], batch["t_dir_ab"], lam=self.lam, reduction="none"
+            outputs,
+            batch["R_ab"],
+            batch["t_dir_ab"],
+            lam=self.lam,
+            direction_weight=direction_weight,
+            reduction="none",
         )
         if "pose_weight" in batch:
             loss = loss * batch["pose_weight"].to(loss.dtype)
         if "log_distance" in outputs:
-            err = log_distance_error(outputs["log_distance"], batch["baseline_m"])
+            err = log_distance_error(
+                outputs["log_distance"], baseline.clamp(min=self.distance_floor_m)
+            )
             if "distance_floor" in batch:
                 err = torch.where(batch["distance_floor"], err.clamp(max=0.0), err)
             loss = loss + self.mu * err * err
@@ -254,11 +304,24 @@ class RelPoseMeter(Meter):
     """Rotation and direction errors (degrees): means, medians (0.05-degree histograms) and the
     shares within the issue's targets (2 and 10 degrees); with distance outputs, the relative
     baseline error ``|d_est / d_gt - 1|`` (median from 0.1 % bins over [0, 3.6], mean, share
-    within 20 %)."""
+    within 20 %).
+
+    Pairs nearer than ``near_max_baseline_m`` (views of one place) count for the rotation only,
+    plus ``near_dist``: the predicted distance in metres (1 mm bins over [0, 3.6], share read
+    within 0.5 m); pairs with a zero direction target have no direction error."""
 
     bins = 3600  # 0.05 degree over [0, 180]; 0.001 of relative distance error over [0, 3.6]
     # name -> (histogram range, unit suffix, "within" limit)
-    errors = {"rot": (180.0, "deg", 2.0), "dir": (180.0, "deg", 10.0), "dist": (3.6, "rel", 0.2)}
+    errors = {
+        "rot": (180.0, "deg", 2.0),
+        "dir": (180.0, "deg", 10.0),
+        "dist": (3.6, "rel", 0.2),
+        "near_dist": (3.6, "m", 0.5),
+    }
+
+    def __init__(self, near_max_baseline_m: float = 0.5) -> None:
+        self.near_max_baseline_m = float(near_max_baseline_m)
+        super().__init__()
 
     def reset(self) -> None:
         self.state = {}
@@ -268,10 +331,14 @@ class RelPoseMeter(Meter):
 
     def update(self, outputs: Any, batch: Any) -> None:
         rot, dirn = pose_errors_deg(outputs, batch["R_ab"], batch["t_dir_ab"])
-        errs = {"rot": rot, "dir": dirn}
+        has_dir = torch.linalg.vector_norm(batch["t_dir_ab"].detach().cpu(), dim=1) > 0.5
+        errs = {"rot": rot, "dir": dirn[has_dir]}
         if "log_distance" in outputs:
             d = outputs["log_distance"].detach().double().cpu().exp()
-            errs["dist"] = (d / batch["baseline_m"].double().cpu() - 1.0).abs()
+            gt = batch["baseline_m"].double().cpu()
+            near = gt < self.near_max_baseline_m
+            errs["dist"] = (d[~near] / gt[~near] - 1.0).abs()
+            errs["near_dist"] = d[near]
         for name, err in errs.items():
             top = self.errors[name][0]
             idx = (err / top * self.bins).long().clamp(0, self.bins - 1)
@@ -284,7 +351,7 @@ class RelPoseMeter(Meter):
             hist = self.state[f"{name}_hist"]
             n = float(hist.sum())
             if n == 0:
-                if name != "dist":  # no distance output: no distance figures
+                if name in ("rot", "dir"):  # no distance output or near pair: no such figures
                     out.update(
                         {f"{name}_median_{unit}": float("nan"), f"{name}_mean_{unit}": float("nan")}
                     )
@@ -319,12 +386,19 @@ class PairSet(Dataset):
             ``turned_floor_m`` (``distance_floor`` true, ``pose_weight`` 0); spread over the
             route/traversal pairs that have such views.
         turned_max_m, turned_min_angle_deg, turned_floor_m: see :class:`RelPoseConfig`.
+        n_near: extra pairs per draw of views at most ``near_max_baseline_m`` apart (axes
+            within the pairs' ``max_angle_deg``; ``pose_weight`` 1) from two different
+            traversals, spread over the route/traversal pairs that have such views (traversals
+            sharing poses).
+        near_max_baseline_m: see :class:`RelPoseConfig`.
         pair_kwargs: :func:`sample_relpose_pairs` thresholds.
 
     Items: ``{"image": (2, C, h, w) float32, "R_ab": (3, 3) float32, "t_dir_ab": (3,) float32,
-    "baseline_m": () float32, "pose_weight": () float32 (1, or 0 for far and unrelated pairs),
+    "baseline_m": () float32, "pose_weight": () float32 (1, or 0 for far, unrelated and turned
+    pairs),
     "distance_floor": () bool, "same_condition": () bool, "index": (5,) int64 (route, trav a,
-    trav b, a, b)}``.
+    trav b, a, b)}``; the parts follow one another in that order: pose, far, unrelated, turned,
+    near pairs.
     """
 
     def __init__(
@@ -342,6 +416,8 @@ class PairSet(Dataset):
         turned_max_m: float = 25.0,
         turned_min_angle_deg: float = 45.0,
         turned_floor_m: float = 30.0,
+        n_near: int = 0,
+        near_max_baseline_m: float = 0.5,
         **pair_kwargs: Any,
     ) -> None:
         if not routes:
@@ -360,23 +436,39 @@ class PairSet(Dataset):
         self.turned_max_m = float(turned_max_m)
         self.turned_min_angle_deg = float(turned_min_angle_deg)
         self.turned_floor_m = float(turned_floor_m)
+        self.n_near = int(n_near)
+        self.near_max_baseline_m = float(near_max_baseline_m)
         self._eligible: dict[tuple, list[tuple[int, int, int]]] = {}
         self.seed = int(seed)
         self.pair_kwargs = pair_kwargs
         self.resample(0)
 
-    def _jobs(self, optional: bool, thresholds: dict[str, Any]) -> list[tuple[int, int, int]]:
+    @staticmethod
+    def _own(route: Any, near: bool) -> int:
+        """How many of ``route``'s traversals to draw from: all for near pairs, else only
+        its own (not its aligned traversals, whose 8 m keyframe grid would skew the
+        baselines)."""
+        aligned = getattr(route, "aligned", None)
+        if near or aligned is None:
+            return len(route.traversals)
+        return len(route.spec.conditions)
+
+    def _jobs(
+        self, optional: bool, thresholds: dict[str, Any], cross: bool = False
+    ) -> list[tuple[int, int, int]]:
         """The (route, traversal a, traversal b) triples to draw from; ``optional``: only those
-        with an eligible pair (a route without a turn has no turned pair), computed once."""
+        with an eligible pair (a route without a turn has no turned pair), computed once;
+        ``cross``: two different traversals only (a keyframe paired with itself is one image)."""
         jobs = [
             (r, i, j)
             for r, route in enumerate(self.routes)
-            for i in range(len(route.traversals))
-            for j in range(len(route.traversals))
+            for i in range(self._own(route, cross))
+            for j in range(self._own(route, cross))
+            if not (cross and i == j)
         ]
         if not optional:
             return jobs
-        key = tuple(sorted(thresholds.items()))
+        key = (cross, *sorted(thresholds.items()))
         if key not in self._eligible:
             eligible = []
             for r, i, j in jobs:
@@ -392,11 +484,18 @@ class PairSet(Dataset):
         return self._eligible[key]
 
     def _draw(
-        self, n: int, rng: np.random.Generator, *, optional: bool = False, **thresholds: Any
+        self,
+        n: int,
+        rng: np.random.Generator,
+        *,
+        optional: bool = False,
+        cross: bool = False,
+        **thresholds: Any,
     ) -> tuple:
         """``n`` pairs spread over routes and ordered traversal pairs: ``(index (n, 5), R_ab,
-        t_dir_ab, baseline_m)`` as NumPy arrays (``optional``: over those that have one)."""
-        jobs = self._jobs(optional, thresholds)
+        t_dir_ab, baseline_m)`` as NumPy arrays (``optional``: over those that have one;
+        ``cross``: over pairs of two traversals)."""
+        jobs = self._jobs(optional, thresholds, cross)
         index, R, t, baseline = [], [], [], []
         for (r, i, j), count in zip(jobs, split_count(n, len(jobs))):
             if count == 0:
@@ -417,11 +516,17 @@ class PairSet(Dataset):
         unchanged)."""
         rng = np.random.default_rng(np.random.SeedSequence([self.seed, int(epoch), 5202]))
         parts = [self._draw(self.n, rng, **self.pair_kwargs)]
+        weight, floor = [np.ones(self.n)], [np.zeros(self.n, dtype=bool)]
         if self.n_far:
             far = dict(self.pair_kwargs)
             far["min_baseline_m"] = far.get("max_baseline_m", 10.0) + 1e-6
             far["max_baseline_m"] = self.far_max_baseline_m
             parts.append(self._draw(self.n_far, rng, **far))
+            weight.append(np.zeros(self.n_far))
+            floor.append(np.zeros(self.n_far, dtype=bool))
+        n_floor = self.n_unrelated + self.n_turned
+        weight.append(np.zeros(n_floor))
+        floor.append(np.ones(n_floor, dtype=bool))
         if self.n_unrelated:
             index, R, t, _ = self._draw(
                 self.n_unrelated,
@@ -442,16 +547,22 @@ class PairSet(Dataset):
                 max_angle_deg=180.0,
             )
             parts.append((index, R, t, np.full(len(index), self.turned_floor_m)))
+        if self.n_near:
+            near = {**self.pair_kwargs, "min_baseline_m": 0.0}
+            near["max_baseline_m"] = self.near_max_baseline_m
+            parts.append(self._draw(self.n_near, rng, optional=True, cross=True, **near))
+            weight.append(np.ones(self.n_near))
+            floor.append(np.zeros(self.n_near, dtype=bool))
         index, R, t, baseline = (np.concatenate(x) for x in zip(*parts))
         self.index = index.astype(np.int64)
         self.R_ab = torch.from_numpy(R).float()
         self.t_dir_ab = torch.from_numpy(t).float()
         self.baseline_m = torch.from_numpy(baseline).float()
-        self.pose_weight = (torch.arange(len(self)) < self.n).float()
-        self.distance_floor = torch.arange(len(self)) >= self.n + self.n_far
+        self.pose_weight = torch.from_numpy(np.concatenate(weight)).float()
+        self.distance_floor = torch.from_numpy(np.concatenate(floor))
 
     def __len__(self) -> int:
-        return self.n + self.n_far + self.n_unrelated + self.n_turned
+        return self.n + self.n_far + self.n_unrelated + self.n_turned + self.n_near
 
     def __getitem__(self, k: int) -> dict[str, torch.Tensor]:
         r, i, j, a, b = (int(v) for v in self.index[k])
@@ -478,6 +589,8 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
     data = prepare_head_features(cfg)
     common.seed_model_init(cfg.seed)
     head = get_model("relpose", **cfg.model_config)
+    if cfg.init_checkpoint is not None:
+        common.load_init_weights(head, cfg.init_checkpoint, model_name="relpose")
     model = PairRegressor(head)
     thresholds = {
         "min_baseline_m": cfg.min_baseline_m,
@@ -497,16 +610,28 @@ def main(cfg: RelPoseConfig, *, command: str | None = None) -> Path:
         turned_max_m=cfg.turned_max_m,
         turned_min_angle_deg=cfg.turned_min_angle_deg,
         turned_floor_m=cfg.turned_floor_m,
+        n_near=cfg.near_pairs_per_epoch,
+        near_max_baseline_m=cfg.near_max_baseline_m,
         **thresholds,
     )
-    val_set = PairSet(data.val, cfg.val_pairs, seed=cfg.seed + 10_000, **thresholds)
+    val_set = PairSet(
+        data.val,
+        cfg.val_pairs,
+        seed=cfg.seed + 10_000,
+        n_near=cfg.val_near_pairs,
+        near_max_baseline_m=cfg.near_max_baseline_m,
+        **thresholds,
+    )
+    loss = RelPoseLoss(
+        cfg.lam, cfg.mu, distance_floor_m=cfg.distance_floor_m, direction_min_m=cfg.direction_min_m
+    )
     run_dir = fit_head(
         cfg,
         model,
         train_set,
         val_set,
-        RelPoseLoss(cfg.lam, cfg.mu),
-        RelPoseMeter(),
+        loss,
+        RelPoseMeter(near_max_baseline_m=cfg.near_max_baseline_m),
         model_name="relpose_pair",
     )
     return finish_head_run(

@@ -285,6 +285,10 @@ def sample_triplets(
 # ============================================================================ relative pose
 
 
+#: camera centres closer than this are one place: no direction between them (metres)
+_COINCIDENT_M = 1e-9
+
+
 class NoEligiblePairError(GeosegError):
     """Two traversals have no pair of views meeting the baseline and angle thresholds."""
 
@@ -299,6 +303,9 @@ class RelPosePairs:
         R_ab: ``(n, 3, 3)`` float64, ``R_wc_a^T R_wc_b``.
         t_dir_ab: ``(n, 3)`` float64 unit direction a -> b in camera a's frame.
         baseline_m: ``(n,)`` float64 distance between the camera centres.
+
+    Where the centres coincide (baseline 0, possible with ``min_baseline_m = 0``) the direction
+    is undefined and ``t_dir_ab`` is ``(0, 0, 0)``.
     """
 
     idx_a: np.ndarray
@@ -325,19 +332,20 @@ def sample_relpose_pairs(
     """Sample ``n`` pairs ``(a_i, b_j)`` of overlapping views for the relative-pose head.
 
     A pair is eligible when the baseline ``|t_wc_b - t_wc_a|`` lies in
-    ``[min_baseline_m, max_baseline_m]`` (a non-zero baseline: the direction is defined) and the
+    ``[min_baseline_m, max_baseline_m]`` (``min_baseline_m`` 0 admits views from one place, whose
+    direction target is ``(0, 0, 0)``: see :class:`RelPosePairs`) and the
     angle between the optical axes lies in ``[min_angle_deg, max_angle_deg]`` (with the default
     ``min_angle_deg`` 0: the views overlap; a positive one asks for turned views, e.g. the
     crossing street or the opposite direction at the same place). Pairs are drawn uniformly
     with replacement among eligible pairs. ``a`` and ``b`` may be the same traversal (the
-    baseline bound already excludes ``i == j``).
+    positive baseline bound already excludes ``i == j``).
 
     Args:
         a: traversal of the first images (``Na`` poses).
         b: traversal of the second images (``Nb`` poses).
         n: number of pairs, >= 1.
         rng: seed or ``numpy.random.Generator``.
-        min_baseline_m: minimum baseline (metres), > 0.
+        min_baseline_m: minimum baseline (metres), >= 0.
         max_baseline_m: maximum baseline (metres), ``>= min_baseline_m``.
         max_angle_deg: maximum angle between the optical axes (degrees).
         min_angle_deg: minimum angle between the optical axes (degrees), ``<= max_angle_deg``.
@@ -350,7 +358,8 @@ def sample_relpose_pairs(
     """
     ta, tb = as_traversal("a", a), as_traversal("b", b)
     n = _check_count("n", n)
-    check_positive("min_baseline_m", min_baseline_m)
+    if not min_baseline_m >= 0:
+        raise GeosegError(f"min_baseline_m: expected >= 0, got {min_baseline_m}")
     check_positive("max_baseline_m", max_baseline_m)
     check_positive("max_angle_deg", max_angle_deg)
     if max_baseline_m < min_baseline_m:
@@ -373,8 +382,15 @@ def sample_relpose_pairs(
         )
     pick = _rng(rng).integers(0, ia.size, size=n)
     ia, ib = ia[pick].astype(np.int64), ib[pick].astype(np.int64)
-    R_ab, t_dir = relative_pose_labels(ta.R_wc[ia], ta.t_wc[ia], tb.R_wc[ib], tb.t_wc[ib])
-    return RelPosePairs(ia, ib, np.asarray(R_ab), np.asarray(t_dir), dist[ia, ib])
+    baseline = dist[ia, ib]
+    R_ab = ta.R_wc[ia].transpose(0, 2, 1) @ tb.R_wc[ib]
+    t_dir = np.zeros((n, 3))
+    apart = baseline > _COINCIDENT_M  # a direction exists
+    if apart.any():
+        _, t_dir[apart] = relative_pose_labels(
+            ta.R_wc[ia[apart]], ta.t_wc[ia[apart]], tb.R_wc[ib[apart]], tb.t_wc[ib[apart]]
+        )
+    return RelPosePairs(ia, ib, R_ab, t_dir, baseline)
 
 
 # ============================================================================ datasets

@@ -529,11 +529,14 @@ class RouteFeatures:
         spec: the route.
         traversals: one :class:`RouteTraversal` per condition.
         features: per traversal, ``(N, 128, h, w)`` float16 torch tensors.
+        aligned: the route's traversals at its first traversal's poses, when the traversals
+            beyond ``spec``'s come from it (its first traversal is ``spec``'s first).
     """
 
     spec: RouteSpec
     traversals: list[RouteTraversal]
     features: list[torch.Tensor]
+    aligned: RouteSpec | None = None
 
 
 def route_features(
@@ -566,5 +569,5 @@ def route_features(
             )
         )
         if not keep_images:
-            trav.images = trav.images[:0]
+            trav.images = np.empty((0, *trav.images.shape[1:]), np.uint8)  # frees the frames
     return RouteFeatures(spec, travs, feats)

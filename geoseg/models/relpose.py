@@ -403,6 +403,7 @@ def relpose_loss(
     lam: float = 1.0,
     distance_gt: torch.Tensor | None = None,
     mu: float = 1.0,
+    direction_weight: torch.Tensor | None = None,
     reduction: str = "mean",
 ) -> torch.Tensor:
     """Eq. 5.2: ``lam (1 - T_est^T T_gt) + alpha^T alpha``, ``alpha = log(R_gt^T R_est)^vee``.
@@ -420,6 +421,8 @@ def relpose_loss(
         distance_gt: ``(B,)`` true baselines ``|t_ab|`` in metres (> 0), or None: no distance
             term. Needs ``pred["log_distance"]`` ``(B,)``.
         mu: weight of the distance term, > 0.
+        direction_weight: ``(B,)`` per-pair weight of the direction term (0 where the two
+            views are at one place and the direction is undefined), or None: 1.
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` (``(B,)``).
 
     Returns:
@@ -439,7 +442,11 @@ def relpose_loss(
     t_gt = F.normalize(t_dir_gt.to(rot.dtype), dim=1, eps=1e-12)
     t_est = F.normalize(dirn, dim=1, eps=1e-12)
     alpha = so3_log(R_gt.transpose(-1, -2) @ so3_exp(rot))
-    loss = lam * (1.0 - (t_est * t_gt).sum(-1)) + (alpha * alpha).sum(-1)
+    direction = 1.0 - (t_est * t_gt).sum(-1)
+    if direction_weight is not None:
+        check_shape("direction_weight", direction_weight, (bsz,))
+        direction = direction * direction_weight.to(direction.dtype)
+    loss = lam * direction + (alpha * alpha).sum(-1)
     if distance_gt is not None:
         if "log_distance" not in pred:
             raise GeosegError(

@@ -128,6 +128,36 @@ def test_relpose_main_end_to_end(shared, tmp_path, run_files, distance):
         np.testing.assert_allclose(outs[2], ref["log_distance"].numpy(), atol=1e-4)
 
 
+def test_relpose_fine_tune_with_near_pairs_end_to_end(shared, tmp_path):
+    first = load_config(
+        relpose_trainer.RelPoseConfig,
+        None,
+        overrides=_overrides(
+            shared, tmp_path / "first", pairs_per_epoch=8, val_pairs=8, export=False,
+            model_config={"predict_distance": True},
+        ),
+    )  # fmt: skip
+    first_run = relpose_trainer.main(first)
+    over = _overrides(
+        shared, tmp_path / "near", pairs_per_epoch=8, val_pairs=8, near_pairs_per_epoch=6,
+        val_near_pairs=4, export=False, init_checkpoint=str(first_run),
+        model_config={"predict_distance": True},
+    )  # fmt: skip
+    over["routes"]["aligned_conditions"] = 1
+    cfg = load_config(relpose_trainer.RelPoseConfig, None, overrides=over)
+    data = relpose_trainer.prepare_head_features(cfg)
+    assert [len(r.traversals) for r in data.val] == [3]  # 2 offset + 1 aligned traversal
+    np.testing.assert_allclose(data.val[0].traversals[2].t_wc, data.val[0].traversals[0].t_wc)
+    run = relpose_trainer.main(cfg)
+    row = json.loads((run / "metrics.json").read_text())[0]
+    assert math.isfinite(row["val_loss"]) and row["val_near_dist_median_m"] > 0
+    card = json.loads((run / "model_card.json").read_text())
+    assert len(card["data"]["val_aligned_routes"]) == 1
+    over["routes"]["aligned_conditions"] = 0
+    with pytest.raises(GeosegError, match="aligned_conditions"):
+        load_config(relpose_trainer.RelPoseConfig, None, overrides=over)
+
+
 def test_reloc_resume_continues_with_the_next_epochs_triplets(shared, tmp_path):
     kw = {"triplets_per_epoch": 8, "val_triplets": 8, "min_negative_distance_m": 12.0}
     over = _overrides(shared, tmp_path / "run", export=False, **kw)
@@ -227,6 +257,29 @@ def test_relpose_loss_floor_pairs_penalise_only_nearer_predictions():
     want = 3.0 * math.log(20.0 / 40.0) ** 2 / n
     got = relpose_trainer.RelPoseLoss(mu=3.0)(out, batch)
     assert float(got) == pytest.approx(want, rel=1e-5)
+
+
+def test_relpose_loss_floors_the_distance_and_masks_the_direction_at_one_place():
+    n = 2
+    out = {
+        "rotation": torch.zeros(n, 3),
+        "direction": torch.tensor([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]),
+        "log_distance": torch.log(torch.tensor([0.1, 0.3])),
+    }
+    batch = {
+        "R_ab": torch.eye(3).expand(n, 3, 3),
+        "t_dir_ab": torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+        "baseline_m": torch.tensor([0.0, 0.03]),  # one place, and 3 cm apart
+    }
+    loss_fn = relpose_trainer.RelPoseLoss(distance_floor_m=0.1, direction_min_m=0.05)
+    # both are read against the 0.1 m floor; neither has a direction term
+    want = (0.0 + math.log(3.0) ** 2) / n
+    assert float(loss_fn(out, batch)) == pytest.approx(want, rel=1e-5)
+    turned = dict(out, direction=torch.tensor([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]))
+    assert float(loss_fn(turned, batch)) == pytest.approx(want, rel=1e-5)
+    # beyond direction_min_m the direction counts again (opposite direction: 1 - cos = 2)
+    far = dict(batch, baseline_m=torch.tensor([0.0, 0.3]))
+    assert float(loss_fn(turned, far)) == pytest.approx((2.0 + 0.0) / n, rel=1e-5)
 
 
 def test_relpose_meter_medians_and_shares():
@@ -354,6 +407,72 @@ def test_turned_pairs_are_near_turned_views_with_a_distance_floor():
         assert axis_cos <= math.cos(math.radians(45.0)) + 1e-9
     with pytest.raises(GeosegError, match="no pair of views"):
         relpose_trainer.PairSet(routes[:1], 8, n_turned=6, **kw)
+
+
+def _aligned_route() -> SimpleNamespace:
+    """A route of two traversals of 10 cameras 8 m apart looking along +x, the second 3 m
+    further, and one aligned traversal at the first one's positions turned by 2 degrees, with
+    zero features."""
+    from scipy.spatial.transform import Rotation
+
+    R_x = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    t = np.c_[8.0 * np.arange(10), np.zeros(10), np.full(10, 1.5)]
+    turn = Rotation.from_euler("z", 2.0, degrees=True).as_matrix()
+    poses = [(np.stack([R_x] * 10), t), (np.stack([R_x] * 10), t + [3.0, 0.0, 0.0])]
+    poses.append((np.stack([turn @ R_x] * 10), t))
+    travs = [SimpleNamespace(poses=(R, p), R_wc=R, t_wc=p) for R, p in poses]
+    return SimpleNamespace(
+        traversals=travs,
+        features=[torch.zeros(10, 128, 2, 3)] * 3,
+        spec=SimpleNamespace(conditions=["summer_day", "winter"]),
+        aligned=SimpleNamespace(conditions=["summer_day", "night"]),
+    )
+
+
+def test_near_pairs_are_views_of_one_place_in_two_traversals():
+    kw = {"min_baseline_m": 0.5, "max_baseline_m": 10.0, "max_angle_deg": 30.0}
+    plain = relpose_trainer.PairSet([_aligned_route()], 12, seed=0, **kw)
+    pairs = relpose_trainer.PairSet(
+        [_aligned_route()], 12, seed=0, n_near=9, near_max_baseline_m=0.5, **kw
+    )
+    assert len(pairs) == 21
+    np.testing.assert_array_equal(pairs.index[:12], plain.index)  # near pairs come last
+    assert pairs.pose_weight.eq(1).all() and not pairs.distance_floor.any()
+    assert (plain.baseline_m >= 0.5).all()
+    assert (plain.index[:, 1:3] < 2).all()  # pose pairs: the route's own traversals only
+    for _r, i, j, a, b in pairs.index[12:]:
+        assert {int(i), int(j)} == {0, 2} and a == b  # only the traversals that share poses
+    assert pairs.baseline_m[12:].eq(0).all() and pairs.t_dir_ab[12:].eq(0).all()
+    assert pairs[20]["R_ab"].trace().item() == pytest.approx(1 + 2 * math.cos(math.radians(2)))
+    # the meter reads near pairs as a distance in metres, without a direction error
+    meter = relpose_trainer.RelPoseMeter(near_max_baseline_m=0.5)
+    batch = {k: getattr(pairs, k)[10:14] for k in ("R_ab", "t_dir_ab", "baseline_m")}
+    log_d = torch.log(torch.tensor([2.0, 4.0, 0.2, 0.3]))  # two pose pairs, two near pairs
+    out = {"rotation": torch.zeros(4, 3), "direction": batch["t_dir_ab"] + 0.0}
+    out["direction"][2:] = torch.tensor([1.0, 0.0, 0.0])
+    meter.update({**out, "log_distance": log_d}, batch)
+    got = meter.compute()
+    assert got["near_dist_mean_m"] == pytest.approx(0.25, abs=1e-6)
+    assert got["near_dist_within_0.5"] == 1.0
+    assert got["dir_median_deg"] < 0.1  # the near pairs' arbitrary directions do not count
+
+
+def test_aligned_traversals_share_the_first_traversals_poses():
+    from training.heads import RoutesConfig
+
+    routes = RoutesConfig(
+        world={"blocks_x": 2, "blocks_y": 2}, train_seeds=[1, 2], val_seeds=[13],
+        length_m=40.0, aligned_conditions=2, aligned_yaw_jitter_deg=2.0,
+    )  # fmt: skip
+    for spec in routes.specs("train"):
+        aligned = routes.aligned_spec(spec)
+        assert aligned.conditions[0] == spec.conditions[0]
+        assert not set(aligned.conditions[1:]) & set(spec.conditions)
+        assert aligned.offset_m == 0.0 and aligned.yaw_jitter_deg == 2.0
+        assert aligned.traversal_key(0) == spec.traversal_key(0)  # one cached traversal
+    assert RoutesConfig(length_m=40.0).aligned_spec(spec) is None
+    with pytest.raises(GeosegError, match="aligned_conditions"):
+        RoutesConfig(length_m=40.0, conditions_per_route=4, aligned_conditions=2)
 
 
 def test_far_pairs_need_a_distance_head(shared, tmp_path):

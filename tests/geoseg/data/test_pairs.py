@@ -145,6 +145,22 @@ def test_relpose_pairs_labels_equal_relative_pose_labels() -> None:
         sample_relpose_pairs(a, c, 5, min_angle_deg=40.0, max_angle_deg=30.0)
 
 
+def test_relpose_pairs_at_one_place_have_no_direction() -> None:
+    a = _route(20, 4.0)
+    b = _route(20, 4.0, yaw_deg=3.0)  # the same positions, turned by 3 degrees
+    c = _route(20, 4.0, offset=(0.3, 0.0))
+    pairs = sample_relpose_pairs(a, b, 30, rng=0, min_baseline_m=0.0, max_baseline_m=0.5)
+    np.testing.assert_array_equal(pairs.idx_a, pairs.idx_b)  # only the pose itself is that near
+    np.testing.assert_array_equal(pairs.baseline_m, 0.0)
+    np.testing.assert_array_equal(pairs.t_dir_ab, 0.0)
+    np.testing.assert_allclose(pairs.R_ab, np.stack([R_NORTH.T @ _yaw(3.0) @ R_NORTH] * 30))
+    near = sample_relpose_pairs(a, c, 30, rng=0, min_baseline_m=0.0, max_baseline_m=0.5)
+    np.testing.assert_allclose(near.baseline_m, 0.3)
+    np.testing.assert_allclose(np.linalg.norm(near.t_dir_ab, axis=1), 1.0)
+    with pytest.raises(GeosegError, match="min_baseline_m"):
+        sample_relpose_pairs(a, b, 5, min_baseline_m=-0.1)
+
+
 def test_datasets_over_features_and_over_items() -> None:
     db = _route(40, 2.0)
     query = _route(40, 2.0, offset=(0.5, 0.0))
