@@ -52,8 +52,13 @@ database image. Measured:
 
 Weights: ``--trunk``, ``--reloc``, ``--relpose`` (defaults: the shipped ``geoseg/weights/seg``,
 ``.../reloc``, ``.../relpose``, else ``runs/seg`` etc.); the word ``random`` asks for random
-weights. A missing one is replaced by random weights, and then the results JSON is
+weights. With the default ``--relpose``, its distances are gated with the shipped near head
+``relpose_near`` (:class:`geoseg.localizer.GatedRelPoseHead`, ``--near-gate-m``), as in
+``geoseg localize``; ``--relpose-near none`` measures the relative-pose head alone. A missing one is replaced by random weights, and then the results JSON is
 **refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
+
+``--city`` renders another city with the same settings (validation city 13 to choose settings;
+the figures are those of city 1000).
 
 Usage: ``python bench/accuracy_reloc.py [--quick] [--allow-untrained] [--out DIR]``. Prints a
 Markdown table and writes ``<out>/accuracy_reloc.json`` (default ``bench/results``) with the PNGs
@@ -91,6 +96,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     )
     p.add_argument(
         "--relpose", type=Path, default=None, help="relative-pose head (default: shipped relpose)"
+    )
+    p.add_argument(
+        "--relpose-near",
+        type=Path,
+        default=None,
+        help="near head gated with --relpose (default: shipped relpose_near with the default "
+        "--relpose; 'none': --relpose alone)",
+    )
+    p.add_argument(
+        "--near-gate-m",
+        type=float,
+        default=None,
+        help="the near head's distance below which it gives the distance (default: the library's)",
+    )
+    p.add_argument(
+        "--city", type=int, default=1000, help="city seed (1000: held out; 13: validation)"
     )
     p.add_argument("--quick", action="store_true", help="tiny smoke run (tiny city, 64x48)")
     p.add_argument(
@@ -149,12 +170,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def eval_route(quick: bool) -> Any:
+def eval_route(quick: bool, city: int = 1000) -> Any:
     from geoseg.data.traversals import RouteSpec
 
     if quick:
         return RouteSpec(
-            seed=1000,
+            seed=city,
             world={"blocks_x": 2, "blocks_y": 2},
             length_m=60.0,
             spacing_m=6.0,
@@ -163,7 +184,7 @@ def eval_route(quick: bool) -> Any:
             yaw_jitter_deg=3.0,
         )
     return RouteSpec(
-        seed=1000,
+        seed=city,
         world={"blocks_x": 6, "blocks_y": 5},
         length_m=5000.0,
         spacing_m=11.7,
@@ -186,11 +207,11 @@ def _default(path: Path | None, run: str) -> Path | None:
     return None
 
 
-def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, torch.nn.Module, list]:
-    """(trunk extractor, reloc head, relpose head, names of the untrained ones)."""
+def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, Any, list]:
+    """(trunk extractor, reloc head, relpose head (gated with the near head when one is used),
+    names of the untrained ones)."""
     from geoseg.data.traversals import TrunkFeatureExtractor
     from geoseg.models.registry import get_model
-    from training import common
     from training.reloc import load_trunk
 
     untrained = []
@@ -209,11 +230,35 @@ def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, torch.n
             torch.manual_seed(args.seed)
             heads.append(get_model(name))
             continue
-        state, ckpt = common.load_state(path, expected_model=name)
-        head = get_model(name, **dict(ckpt.get("model_config") or {}))
-        head.load_state_dict(state)
-        heads.append(head)
-    return extractor, heads[0].eval(), heads[1].eval(), untrained
+        heads.append(_load_head(path, name))
+    relpose = heads[1].eval()
+    near_path = args.relpose_near
+    if near_path is None and args.relpose is None and "relpose" not in untrained:
+        near_path = _default(None, "relpose_near")
+    args.near_gate_used = None
+    if near_path is not None and str(near_path) != "none":
+        from geoseg.localizer import NEAR_GATE_M, GatedRelPoseHead
+
+        gate = NEAR_GATE_M if args.near_gate_m is None else args.near_gate_m
+        relpose = GatedRelPoseHead(relpose, _load_head(near_path, "relpose").eval(), near_m=gate)
+        args.near_gate_used = {"near_head": _shown(near_path), "near_gate_m": gate}
+    return extractor, heads[0].eval(), relpose, untrained
+
+
+def _shown(path: Path) -> str:
+    """``path`` relative to the repository when inside it (for the results JSON)."""
+    path = Path(path).resolve()
+    return str(path.relative_to(ROOT)) if path.is_relative_to(ROOT) else str(path)
+
+
+def _load_head(path: Path, name: str) -> torch.nn.Module:
+    from geoseg.models.registry import get_model
+    from training import common
+
+    state, ckpt = common.load_state(path, expected_model=name)
+    head = get_model(name, **dict(ckpt.get("model_config") or {}))
+    head.load_state_dict(state)
+    return head
 
 
 # ----------------------------------------------------------------------------- measurements
@@ -702,7 +747,7 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
     from geoseg.models.reloc import RawFeatureEmbedder
     from training.reloc import embed_features
 
-    spec = eval_route(args.quick)
+    spec = eval_route(args.quick, args.city)
     n_pairs = args.pairs if args.pairs is not None else (8 if args.quick else 200)
     n_triplets = args.triplets if args.triplets is not None else (32 if args.quick else 2000)
     load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
@@ -775,6 +820,8 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     res["untrained"] = untrained
+    res["city"] = args.city
+    res["relpose_near_gate"] = args.near_gate_used
     res["quick"] = bool(args.quick)
     res["machine"] = (
         f"{platform.machine()} {os.cpu_count()} cores, {platform.system()} {platform.release()}, "

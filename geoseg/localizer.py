@@ -6,7 +6,8 @@
    within ``radius_m`` of each query's GPS fix; or, for queries that are one drive in order
    (``sequence``), the most probable base images of the route filter (:mod:`geoseg.route_filter`);
 2. a relative pose per match: the relative-pose head (eq. 5.2; rotation, direction and, for the
-   shipped head, the distance between the two cameras) or the essential-matrix baseline;
+   shipped head, the distance between the two cameras; by default gated with a second head for
+   views of one place, :class:`GatedRelPoseHead`) or the essential-matrix baseline;
 3. re-ranking by the predicted distance, nearest first (optionally fused with the GPS fix's
    distance to each base image);
 4. the absolute position from the matches' rays (ranged rays when distances are predicted,
@@ -45,6 +46,8 @@ from geoseg.localize import (
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "NEAR_GATE_M",
+    "GatedRelPoseHead",
     "Localizer",
     "LocalizerConfig",
     "QueryResult",
@@ -59,6 +62,10 @@ RelativePoseFn = Callable[[np.ndarray, Any], list[dict[str, Any]]]
 
 # The image size the shipped networks were trained on, (W, H).
 NETWORK_SIZE = (320, 240)
+
+# The near head's distance (m) below which :class:`GatedRelPoseHead` takes it; chosen on
+# validation city 13 (docs/relocalisation_history.md, "Queries at the base poses").
+NEAR_GATE_M = 0.2
 
 
 @dataclass
@@ -205,6 +212,8 @@ class Localizer:
         trunk: str | Path | None = None,
         reloc_head: str | Path | None = None,
         relpose_head: str | Path | None = None,
+        near_head: str | Path | None = None,
+        near_gate_m: float | None = NEAR_GATE_M,
         network_size: tuple[int, int] | None = NETWORK_SIZE,
         pool: tuple[int, int] | None = None,
         features: Literal["orb", "sift"] = "orb",
@@ -227,6 +236,12 @@ class Localizer:
                 ``focal``, and queries of the intrinsics' size).
             trunk, reloc_head, relpose_head: weight files (default: the shipped ``seg``,
                 ``reloc`` and ``relpose`` ``model.pt``).
+            near_head: weights of the head for views of one place, gated with the relative-pose
+                head (:class:`GatedRelPoseHead`); default: the shipped ``relpose_near`` when
+                ``relpose_head`` is the shipped one too (the two are a pair: the near head is a
+                fine-tune of the shipped head), else none.
+            near_gate_m: the near head's distance below which it gives the distance; None: the
+                relative-pose head alone.
             network_size: ``(W, H)`` every image is resized to before the networks (the
                 shipped networks' 320x240); None keeps each image's size (base and queries must
                 then share one).
@@ -251,6 +266,8 @@ class Localizer:
             )
         if relative_pose not in ("head", "essential"):
             raise GeosegError(f"relative_pose: expected head or essential, got {relative_pose!r}")
+        if near_gate_m is not None:
+            check_positive("near_gate_m", near_gate_m)
         if pool is not None and embedding != "layer21":
             raise GeosegError("pool: only with the layer21 embedding")
         if config is None:
@@ -271,8 +288,17 @@ class Localizer:
         if relative_pose == "head":
             head_path = relpose_head if relpose_head is not None else _shipped("relpose")
             head = _load_head(head_path, "relpose", device)
-            pose_fn: RelativePoseFn = _HeadRelativePose(base, feature_fn, head, device)
             pose_name = f"relative-pose head ({Path(head_path).parent.name}/{Path(head_path).name})"
+            if near_head is None and relpose_head is None and near_gate_m is not None:
+                near_head = _shipped("relpose_near")
+            if near_head is not None and near_gate_m is not None:
+                near = _load_head(near_head, "relpose", device)
+                head = GatedRelPoseHead(head, near, near_m=near_gate_m)
+                pose_name += (
+                    f" gated with the near head ({Path(near_head).parent.name}/"
+                    f"{Path(near_head).name}) below {near_gate_m:g} m"
+                )
+            pose_fn: RelativePoseFn = _HeadRelativePose(base, feature_fn, head, device)
         else:
             from geoseg.image_base import check_image_size
 
@@ -696,11 +722,70 @@ class _HeadRelativePose:
         )
 
 
+class GatedRelPoseHead:
+    """The relative-pose head with a second head for the distance of views of one place.
+
+    The shipped head (``relpose``, ``configs/relpose.yaml``) learned baselines of 0.5-10 m and
+    reads two views of one place as 2-3 m apart (its rotation and direction stay right); its
+    fine-tune with views of one place in other conditions (``relpose_near``,
+    ``configs/relpose_near.yaml``) reads those distances right but is less accurate on the
+    0.5-10 m baselines. So the distance of each pair is the near head's where the near head reads
+    it below ``near_m``, else the far head's; rotation and direction are always the far head's.
+    Both heads sit on the frozen trunk's layer-21 features: the gate costs one more head pass
+    per pair, no more trunk work.
+
+    Called like a :class:`geoseg.models.relpose.RelPoseHead`: ``(feat_a, feat_b)`` ``(B, C, h,
+    w)`` each -> ``{"rotation" (B, 3), "direction" (B, 3), "log_distance" (B,), "near" (B,)
+    bool}`` (``near``: the pairs whose distance is the near head's).
+
+    Args:
+        far: the head for baselines from 0.5 m up (predicting distances).
+        near: the head for views of one place (predicting distances).
+        near_m: the gate, metres (> 0).
+
+    Raises:
+        GeosegError: a head without the distance output, or a bad ``near_m``.
+    """
+
+    predict_distance = True
+
+    def __init__(self, far: Any, near: Any, *, near_m: float = NEAR_GATE_M) -> None:
+        for name, head in (("far", far), ("near", near)):
+            if not getattr(head, "predict_distance", False):
+                raise GeosegError(f"{name}: the gate needs a relative-pose head with distances")
+        check_positive("near_m", near_m)
+        self.far, self.near, self.near_m = far, near, float(near_m)
+
+    def __call__(self, feat_a: Any, feat_b: Any) -> dict[str, Any]:
+        import torch
+
+        out = dict(self.far(feat_a, feat_b))
+        near = self.near(feat_a, feat_b)["log_distance"]
+        pick = near < math.log(self.near_m)
+        out["log_distance"] = torch.where(pick, near, out["log_distance"])
+        out["near"] = pick
+        return out
+
+    def eval(self) -> GatedRelPoseHead:
+        self.far.eval()
+        self.near.eval()
+        return self
+
+    def to(self, device: Any) -> GatedRelPoseHead:
+        self.far.to(device)
+        self.near.to(device)
+        return self
+
+    def parameters(self) -> Any:
+        yield from self.far.parameters()
+        yield from self.near.parameters()
+
+
 def head_relative_poses(head: Any, feat_a: Any, feat_b: Any) -> list[dict[str, Any]]:
     """The relative-pose head's outputs as :data:`RelativePoseFn` dicts.
 
     Args:
-        head: a :class:`geoseg.models.relpose.RelPoseHead`.
+        head: a :class:`geoseg.models.relpose.RelPoseHead` or :class:`GatedRelPoseHead`.
         feat_a: ``(B, C, h, w)`` features of the base images.
         feat_b: ``(B, C, h, w)`` features of the query (repeated).
 

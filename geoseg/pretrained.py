@@ -10,7 +10,8 @@ there; the model card's ``command`` reproduces it.
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``normals`` (the joint labels + normals
 network: the ``seg`` trunk and label head with a trained normals head), ``naive`` (the 2015
 patch CNN), ``dirichlet`` (its false-positive filter), ``reloc`` and ``relpose`` (the
-relocalisation heads, when shipped).
+relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of one
+place, :class:`geoseg.localizer.GatedRelPoseHead`).
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ PRETRAINED: dict[str, str] = {
     "dirichlet": "Dirichlet false-positive filter of the naive CNN",
     "reloc": "relocalisation embedding on the layer-21 features",
     "relpose": "relative-pose head on the layer-21 features",
+    "relpose_near": "relative-pose head for views of one place, gated with relpose",
 }
 SHIPPED_FILES: tuple[str, ...] = (
     "model.pt",
@@ -53,9 +55,10 @@ def pretrained_dir(name: str) -> Path:
         raise GeosegError(f"pretrained: unknown name {name!r}; known {sorted(PRETRAINED)}")
     folder = WEIGHTS_DIR / name
     if not (folder / "model_card.json").is_file():
-        raise GeosegError(  # every shipped name is also its trainer's name
+        trainer = name.split("_")[0]  # the trainer's name, e.g. relpose for relpose_near
+        raise GeosegError(
             f"pretrained {name!r} ({PRETRAINED[name]}): not shipped in {folder}; train it with "
-            f"`geoseg train {name} --config configs/{name}.yaml`, then "
+            f"`geoseg train {trainer} --config configs/{name}.yaml`, then "
             f"`python -m training.ship runs/{name} {name}`"
         )
     return folder

@@ -126,7 +126,9 @@ def test_files_without_a_digest_load_with_a_warning_or_check_the_card(files, tmp
         load_model_checkpoint(legacy)
 
 
-@pytest.mark.parametrize("name", ["seg", "normals", "naive", "reloc", "relpose", "dirichlet"])
+@pytest.mark.parametrize(
+    "name", ["seg", "normals", "naive", "reloc", "relpose", "relpose_near", "dirichlet"]
+)
 def test_shipped_weights_are_recorded_in_their_cards_and_a_corrupt_copy_is_refused(name, tmp_path):
     folder = WEIGHTS_DIR / name
     card = json.loads((folder / "model_card.json").read_text())

@@ -208,3 +208,75 @@ def test_a_render_output_given_as_base_says_how_to_make_one(tmp_path: Path) -> N
     _render_like(tmp_path / "render")
     with pytest.raises(GeosegError, match="geoseg base build"):
         load_image_base(tmp_path / "render")
+
+
+class _ConstantHead:
+    """A relative-pose head stand-in: fixed outputs per pair."""
+
+    def __init__(self, rotation: float, distances: list[float], predict_distance: bool = True):
+        self.rotation, self.distances = rotation, distances
+        self.predict_distance = predict_distance
+
+    def __call__(self, feat_a, feat_b) -> dict:
+        import torch
+
+        n = feat_a.shape[0]
+        return {
+            "rotation": torch.full((n, 3), self.rotation),
+            "direction": torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1),
+            "log_distance": torch.log(torch.tensor(self.distances[:n])),
+        }
+
+
+def test_gated_head_takes_the_near_heads_distance_below_the_gate_only() -> None:
+    import torch
+
+    from geoseg.localizer import GatedRelPoseHead, head_relative_poses
+
+    far = _ConstantHead(0.0, [3.0, 4.0, 5.0])
+    near = _ConstantHead(0.01, [0.1, 0.29, 0.31])
+    gated = GatedRelPoseHead(far, near, near_m=0.3)
+    feats = torch.zeros(3, 8, 2, 2)
+    out = gated(feats, feats)
+    assert out["near"].tolist() == [True, True, False]
+    np.testing.assert_allclose(out["log_distance"].exp().numpy(), [0.1, 0.29, 5.0], rtol=1e-6)
+    np.testing.assert_allclose(out["rotation"].numpy(), 0.0)  # always the far head's
+    poses = head_relative_poses(gated, feats, feats)
+    assert [p["distance_m"] for p in poses] == pytest.approx([0.1, 0.29, 5.0], rel=1e-6)
+    # a higher gate takes the near head's answer for the third pair too
+    out = GatedRelPoseHead(far, near, near_m=0.5)(feats, feats)
+    assert out["near"].all()
+
+
+def test_gated_head_refuses_heads_without_distances_and_bad_gates() -> None:
+    from geoseg.localizer import GatedRelPoseHead
+
+    head = _ConstantHead(0.0, [1.0])
+    with pytest.raises(GeosegError, match="near: .*distances"):
+        GatedRelPoseHead(head, _ConstantHead(0.0, [1.0], predict_distance=False))
+    with pytest.raises(GeosegError, match="far: .*distances"):
+        GatedRelPoseHead(_ConstantHead(0.0, [1.0], predict_distance=False), head)
+    for bad in (0.0, -0.3, float("nan")):
+        with pytest.raises(GeosegError, match="near_m"):
+            GatedRelPoseHead(head, head, near_m=bad)
+
+
+def test_shipped_localizer_gates_the_distance_with_the_near_head(tmp_path: Path) -> None:
+    from geoseg.localizer import NEAR_GATE_M, GatedRelPoseHead
+    from geoseg.pretrained import pretrained_file
+
+    images, _, _ = _render_like(tmp_path / "render")
+    base = build_image_base(tmp_path / "render", tmp_path / "base")
+    loc = Localizer.from_base(base, embedding="thumbnail", cache=False)
+    head = loc.relative_pose.head
+    assert isinstance(head, GatedRelPoseHead) and head.near_m == NEAR_GATE_M
+    assert "near head" in loc.relative_pose_name
+    (res,) = loc.localize([images[1]])
+    assert all(m["relative_pose"]["distance_m"] > 0 for m in res.matches)
+    # no gate when asked, or with another relative-pose head (the near head is the shipped
+    # head's fine-tune)
+    for kwargs in ({"near_gate_m": None}, {"relpose_head": pretrained_file("relpose")}):
+        loc = Localizer.from_base(base, embedding="thumbnail", cache=False, **kwargs)
+        assert not isinstance(loc.relative_pose.head, GatedRelPoseHead)
+    with pytest.raises(GeosegError, match="near_gate_m"):
+        Localizer.from_base(base, embedding="thumbnail", cache=False, near_gate_m=0.0)

@@ -23,7 +23,9 @@ def frame():
     return rgb, sample["labels"].numpy(), sample["normals"].numpy(), sample["normal_valid"].numpy()
 
 
-@pytest.mark.parametrize("name", ["seg", "normals", "naive", "dirichlet", "reloc", "relpose"])
+@pytest.mark.parametrize(
+    "name", ["seg", "normals", "naive", "dirichlet", "reloc", "relpose", "relpose_near"]
+)
 def test_every_shipped_model_has_a_card_with_its_command(name):
     card = model_card(name)
     assert "geoseg train" in str(card.get("command", "")), card.keys()

@@ -557,6 +557,8 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
             "4",
             "--triplets",
             "8",
+            # with distances, the head is gated with a near head (here: itself)
+            *(["--relpose-near", relpose, "--near-gate-m", "0.5"] if distance else []),
         ]
     )
     assert code == 0
@@ -602,5 +604,10 @@ def test_bench_quick_runs_end_to_end(shared, tmp_path, distance):
         for key in ("recall_at_1_gps_window_reranked", "recall_at_1_reranked"):
             assert 0.0 <= res[f"{key}_distance_only"] <= 1.0
         assert res["relpose_dist_median_rel"] is not None
+        assert res["relpose_near_gate"] == {
+            "near_head": str(Path(relpose).resolve()),
+            "near_gate_m": 0.5,
+        }
     else:
+        assert res["relpose_near_gate"] is None
         assert "abs_position_median_m_top1" not in res and "rays" in res["abs_position_method"]
