@@ -584,10 +584,11 @@ def summarize(
                 out[f"{key}_{method}" if model == primary else f"{key}_{method}_{model}"] = f[key]
     timing = cfg.timing_model()
     bayes = figures.get(f"bayes_{timing}", {})
-    for key in ("inference_ms_per_keyframe", "association_ms_per_keyframe"):
-        if key in bayes:
-            out[key] = bayes[key]
     on, off = figures.get(f"bayes_{timing}_async", {}), figures.get(f"nobuild_{timing}", {})
+    for key in ("inference_ms_per_keyframe", "association_ms_per_keyframe"):
+        # the worker as a user runs it (asynchronous) where there is such a run
+        if key in on or key in bayes:
+            out[key] = on.get(key, bayes.get(key))
     for key in ("constraint_lag_keyframes_median", "constraint_lag_keyframes_max"):
         if key in on:
             out[key] = on[key]
