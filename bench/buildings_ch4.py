@@ -14,8 +14,9 @@ Keys (``<m>`` a method, ``<model>`` ``exact`` or ``gis``): ``association_precisi
 ``translation_error_m_<m>_<model>`` (mean horizontal error of the keyframes),
 ``rotation_error_deg_<m>_<model>``, ``tracking_failures_<m>_<model>``,
 ``inference_ms_per_keyframe`` and ``association_ms_per_keyframe`` (the joint network's bridge:
-worker time per keyframe on this machine's CPU), ``async_time_ratio`` (main-loop time per
-keyframe with the asynchronous worker on / off, GIS model, same drive),
+worker time per keyframe on this machine's CPU, in the asynchronous run), ``async_time_ratio`` (main-loop time per
+keyframe with the asynchronous worker on / off, GIS model, same drive: the median of
+``timing_pairs`` back-to-back pairs of runs, each pair's ratio under ``async_time_ratios``),
 ``constraint_lag_keyframes_median`` / ``_max``; every run's figures under ``runs``.
 
 Usage: ``python bench/buildings_ch4.py [--full] [--data DIR] [--out DIR] [--force]``

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.errors import check_finite
-from slam_bridge.bridge.builder import BridgeConfig
+from slam_bridge.bridge.builder import BridgeConfig, check_covers_window
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import ImageFolder
@@ -95,6 +95,7 @@ class ImageSlamConfig:
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise SlamError(f"method: expected one of {sorted(METHODS)}, got {self.method!r}")
+        check_covers_window(self.bridge, self.slam.window)
 
 
 @dataclass

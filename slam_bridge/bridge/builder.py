@@ -28,6 +28,7 @@ from slam_bridge.errors import SlamError
 __all__ = [
     "ASSOCIATIONS",
     "BridgeConfig",
+    "check_covers_window",
     "load_network",
     "network_outputs",
     "check_network",
@@ -64,6 +65,9 @@ class BridgeConfig:
         worker: where the asynchronous inference runs: ``process`` (a child process with its
             own copy of the network: nothing of it competes with the loop for the GIL) or
             ``thread``. A network given as an object (not as weights) runs in a thread.
+        recent_keyframes: the online associations cover the points seen in this many latest
+            keyframes (None: all points, a snapshot that grows with the map); at least the
+            k-BA window's ``l + history_keyframes`` (checked by the SLAM's config).
     """
 
     association: str = "bayes"
@@ -76,6 +80,7 @@ class BridgeConfig:
     infer_every: int = 1
     asynchronous: bool = True
     worker: str = "process"
+    recent_keyframes: int | None = 150
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
@@ -88,6 +93,20 @@ class BridgeConfig:
         check_positive("sigma_m", self.sigma_m)
         if self.network_threads < 1:
             raise SlamError(f"network_threads: expected >= 1, got {self.network_threads}")
+        if self.recent_keyframes is not None and self.recent_keyframes < 1:
+            raise SlamError(f"recent_keyframes: expected >= 1 or None, got {self.recent_keyframes}")
+
+
+def check_covers_window(cfg: BridgeConfig, window) -> None:
+    """Raise a :class:`SlamError` when the online associations' ``recent_keyframes`` do not
+    cover the points of a fusion window (``window``: a
+    :class:`slam_bridge.slam.windows.WindowConfig`)."""
+    span = window.l + window.history_keyframes
+    if cfg.recent_keyframes is not None and cfg.recent_keyframes < span:
+        raise SlamError(
+            f"bridge.recent_keyframes: {cfg.recent_keyframes} keyframes do not cover the k-BA "
+            f"window's l + history_keyframes = {span}"
+        )
 
 
 def load_network(association: str, weights: str | Path | None = None, threads: int | None = 1):
@@ -205,6 +224,7 @@ def build_bridge(
         infer_every=cfg.infer_every,
         asynchronous=cfg.asynchronous,
         make_network=make_network,
+        recent_keyframes=cfg.recent_keyframes,
     )
     if uses_network:
         try:

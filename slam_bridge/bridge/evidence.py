@@ -193,26 +193,30 @@ class PointEvidence:
         """``(P,)`` observations whose probabilities each point holds."""
         return self.map.attribute(SAMPLES)
 
-    def mean_probs(self) -> np.ndarray:
-        """``(P, K)`` mean probability vector ``P_Z`` of each point (NaN rows: no evidence)."""
-        n = self.samples
+    def mean_probs(self, points: np.ndarray | None = None) -> np.ndarray:
+        """``(P, K)`` mean probability vector ``P_Z`` of each point (NaN rows: no evidence);
+        ``(N, K)`` of ``points`` ``(N,)`` only, when given."""
+        sel = slice(None) if points is None else points
+        n = self.samples[sel]
         out = np.full((n.size, self.num_classes), np.nan)
         seen = n > 0
-        out[seen] = self.map.attribute(PROB_SUM)[seen] / n[seen, None]
+        out[seen] = self.map.attribute(PROB_SUM)[sel][seen] / n[seen, None]
         return out
 
-    def labels(self) -> np.ndarray:
+    def labels(self, points: np.ndarray | None = None) -> np.ndarray:
         """``(P,)`` majority vote of each point's observations (-1: no evidence; a tie goes to
-        the lower class id)."""
-        votes = self.map.attribute(VOTES)
-        return np.where(self.samples > 0, votes.argmax(axis=1), -1)
+        the lower class id); ``(N,)`` of ``points`` only, when given."""
+        sel = slice(None) if points is None else points
+        votes = self.map.attribute(VOTES)[sel]
+        return np.where(self.samples[sel] > 0, votes.argmax(axis=1), -1)
 
-    def normals(self) -> np.ndarray:
+    def normals(self, points: np.ndarray | None = None) -> np.ndarray:
         """``(P, 3)`` normalised mean of each point's world-frame normals (NaN rows: none, or
-        observed normals that cancel out)."""
-        s = self.map.attribute(NORMAL_SUM)
+        observed normals that cancel out); ``(N, 3)`` of ``points`` only, when given."""
+        sel = slice(None) if points is None else points
+        s = self.map.attribute(NORMAL_SUM)[sel]
         norm = np.linalg.norm(s, axis=1)
         out = np.full(s.shape, np.nan)
-        ok = (self.map.attribute(NORMAL_SAMPLES) > 0) & (norm > 1e-6)
+        ok = (self.map.attribute(NORMAL_SAMPLES)[sel] > 0) & (norm > 1e-6)
         out[ok] = s[ok] / norm[ok, None]
         return out

@@ -10,7 +10,11 @@ At each keyframe it
 2. submits the keyframe's image with a copy of its observations and rotation (inference;
    every ``infer_every``-th keyframe, for a network too slow to label them all);
 3. every ``associate_every`` keyframes, submits a snapshot of the points (positions, evidence,
-   the camera centre each is seen from) to the association.
+   the camera centre each is seen from) to the association: of the points seen in the last
+   ``recent_keyframes`` keyframes only, since the fusion constrains the points of its window
+   and an association is per point (the final association, :meth:`BridgeWorker.finish`, covers
+   them all). The snapshot is taken in the loop's thread, so its cost must not grow with the
+   map.
 
 The SLAM never waits: a job that is not finished is applied at a later keyframe (its *lag*, in
 keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
@@ -47,7 +51,7 @@ from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker", "segmenter_outputs"]
+__all__ = ["AssociationInputs", "BridgeStats", "BridgeWorker", "PointRows", "segmenter_outputs"]
 
 #: image ``(H, W, 3)`` uint8 RGB -> (probabilities ``(h, w, K)``, normals ``(h, w, 3)`` or None)
 NetworkOutputs = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
@@ -166,6 +170,9 @@ class BridgeWorker:
             ``asynchronous``, inference runs in a child process that calls it once (started,
             and its network built, before the constructor returns); inline, it is called
             here.
+        recent_keyframes: the snapshots of the online associations hold the points observed
+            in this many latest keyframes (None: all points). It must cover the fusion's window
+            (the k-BA's ``l`` and ``history_keyframes``) with the lag of the associations.
     """
 
     def __init__(
@@ -182,9 +189,13 @@ class BridgeWorker:
         asynchronous: bool = True,
         image_at: Callable[[float], np.ndarray] | None = None,
         make_network: Callable[[], NetworkOutputs] | None = None,
+        recent_keyframes: int | None = None,
     ) -> None:
         if min(associate_every, infer_every, max_pending) < 1:
             raise SlamError("associate_every, infer_every and max_pending must be >= 1")
+        if recent_keyframes is not None and recent_keyframes < 1:
+            raise SlamError(f"recent_keyframes: expected >= 1 or None, got {recent_keyframes}")
+        self.recent_keyframes = recent_keyframes
         self.num_classes = num_classes
         self.associate, self.constraints, self.smooth = associate, constraints, smooth
         self.associate_every, self.max_pending = associate_every, max_pending
@@ -242,7 +253,8 @@ class BridgeWorker:
                 fn = _child_infer if self.in_process else self._infer
                 self._submit("infer", k, slam_map.obs_point[idx].copy(), fn, job)
         if k % self.associate_every == 0:
-            self._submit("associate", k, None, self._associate, self._snapshot(slam_map, k))
+            snapshot = self._snapshot(slam_map, k, recent=self.recent_keyframes)
+            self._submit("associate", k, None, self._associate, snapshot)
         self.stats.main_seconds.append(time.perf_counter() - t0)
 
     def finish(self, slam_map: Map) -> Association | None:
@@ -252,7 +264,7 @@ class BridgeWorker:
             return None
         k = slam_map.num_keyframes
         self._apply(slam_map, k, wait=True)
-        final = self.associate(self._snapshot(slam_map, k))
+        final = self.associate(self._snapshot(slam_map, k, recent=None).inputs())
         self.constraints.update(final)
         self.close()
         return final
@@ -284,9 +296,9 @@ class BridgeWorker:
     def _infer(self, job: InferenceJob) -> tuple[object, float]:
         return infer_and_sample(self.network, job, self.num_classes, self.smooth)
 
-    def _associate(self, inputs: AssociationInputs) -> tuple[Association, float]:
+    def _associate(self, rows: PointRows) -> tuple[Association, float]:
         t0 = time.perf_counter()
-        out = self.associate(inputs)
+        out = self.associate(rows.inputs())
         return out, time.perf_counter() - t0
 
     def _apply(self, slam_map: Map, k: int, wait: bool) -> None:
@@ -303,20 +315,66 @@ class BridgeWorker:
                     self.stats.association_seconds.append(seconds)
                     self.stats.lags.append(k - k_sub)
 
-    def _snapshot(self, slam_map: Map, k: int) -> AssociationInputs:
-        ev = self.evidence
-        P = slam_map.num_points
-        points = np.where(slam_map.triangulated[:, None], slam_map.X_w, np.nan)
-        last = np.full(P, -1, np.int64)
-        np.maximum.at(last, slam_map.obs_point, slam_map.obs_keyframe)
-        centres = np.where((last >= 0)[:, None], slam_map.t_wc[np.maximum(last, 0)], np.nan)
-        return AssociationInputs(
+    def _snapshot(self, slam_map: Map, k: int, recent: int | None) -> PointRows:
+        """The triangulated points observed in keyframes ``k - recent .. k`` (all with None).
+        Only those rows are gathered here, in the loop's thread; the association's thread
+        spreads them over the map's points (:meth:`PointRows.inputs`)."""
+        ev, m = self.evidence, slam_map
+        first = 0 if recent is None else int(m.starts[min(max(0, k - recent), m.num_keyframes)])
+        last = np.full(m.num_points, -1, np.int64)  # the latest keyframe observing each point
+        np.maximum.at(last, m.obs_point[first:], m.obs_keyframe[first:])
+        ids = np.flatnonzero(last >= 0)
+        ids = ids[m.triangulated[ids]]  # the points an association can place
+        return PointRows(
             keyframe=k,
-            points=points,
-            mean_probs=ev.mean_probs(),
-            labels=ev.labels(),
-            normals=ev.normals(),
-            centres=centres,
+            num_points=m.num_points,
+            ids=ids,
+            points=m.X_w[ids],
+            mean_probs=ev.mean_probs(ids),
+            labels=ev.labels(ids),
+            normals=ev.normals(ids),
+            centres=m.t_wc[last[ids]],
+        )
+
+
+@dataclass(frozen=True)
+class PointRows:
+    """Some of a map's points, as :class:`AssociationInputs` holds them (``N`` rows).
+
+    Attributes:
+        keyframe: the keyframe at which they were taken.
+        num_points: ``P``, the map's points then.
+        ids: ``(N,)`` their point ids.
+        points, mean_probs, labels, normals, centres: their rows of
+            :class:`AssociationInputs`' arrays.
+    """
+
+    keyframe: int
+    num_points: int
+    ids: np.ndarray
+    points: np.ndarray
+    mean_probs: np.ndarray
+    labels: np.ndarray
+    normals: np.ndarray
+    centres: np.ndarray
+
+    def inputs(self) -> AssociationInputs:
+        """The association's inputs over all ``P`` points: the other rows empty (NaN
+        positions: not associated)."""
+        P, ids = self.num_points, self.ids
+
+        def spread(rows: np.ndarray, empty: float) -> np.ndarray:
+            out = np.full((P, *rows.shape[1:]), empty, dtype=rows.dtype)
+            out[ids] = rows
+            return out
+
+        return AssociationInputs(
+            keyframe=self.keyframe,
+            points=spread(self.points, np.nan),
+            mean_probs=spread(self.mean_probs, np.nan),
+            labels=spread(self.labels, -1),
+            normals=spread(self.normals, np.nan),
+            centres=spread(self.centres, np.nan),
         )
 
 

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slam_bridge.bridge.builder import BridgeConfig, build_bridge
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_covers_window
 from slam_bridge.bridge.worker import BridgeWorker
 from slam_bridge.errors import SlamError
 from slam_bridge.image_slam import ImageSlamConfig
@@ -121,6 +121,10 @@ class BuildingsConfig:
             worker asynchronous (``bayes_<model>_async``), for the timing figures; the others
             follow ``bridge.asynchronous`` (false in the config: deterministic figures that do
             not depend on the machine's load).
+        timing_pairs: after the runs, this many pairs of ``nobuild`` and asynchronous
+            ``bayes`` runs on the same model, one right after the other: ``async_time_ratio``
+            is the median of the pairs' ratios (0: from ``nobuild_<model>`` and the
+            ``async_run``, measured far apart while the machine's load drifts).
         slam: the image SLAM (default: ``configs/slam_images.yaml``).
         methods: among :data:`METHODS`.
         models: among :data:`MODELS`.
@@ -135,6 +139,7 @@ class BuildingsConfig:
     exact_bridge: dict = field(default_factory=lambda: {"radius_m": 1.5, "window_weight": None})
     naive_infer_every: int = 3
     async_run: bool = True
+    timing_pairs: int = 3
     slam: ImageSlamConfig = field(default_factory=_default_slam)
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     models: list[str] = field(default_factory=lambda: list(MODELS))
@@ -154,6 +159,7 @@ class BuildingsConfig:
             raise SlamError(f"gps_sigma_m: expected >= 0, got {self.gps_sigma_m}")
         if self.start_keyframes < 2:
             raise SlamError(f"start_keyframes: expected >= 2, got {self.start_keyframes}")
+        check_covers_window(self.bridge, self.slam.slam.window)
         known = {f.name for f in dataclasses.fields(BridgeConfig)} - {"association"}
         if set(self.exact_bridge) - known:
             raise SlamError(
@@ -162,15 +168,18 @@ class BuildingsConfig:
             )
         if self.naive_infer_every < 1:
             raise SlamError(f"naive_infer_every: expected >= 1, got {self.naive_infer_every}")
+        if self.timing_pairs < 0:
+            raise SlamError(f"timing_pairs: expected >= 0, got {self.timing_pairs}")
 
     def timing_model(self) -> str:
         """The model of the asynchronous timing run."""
         return "gis" if "gis" in self.models else self.models[0]
 
     def quick(self) -> BuildingsConfig:
-        """The default (short) run: the same city and route, ``quick_length_m`` long."""
+        """The default (short) run: the same city and route, ``quick_length_m`` long, without
+        the timing pairs (a short drive times little)."""
         drive = dataclasses.replace(self.drive, length_m=self.quick_length_m)
-        return dataclasses.replace(self, drive=drive)
+        return dataclasses.replace(self, drive=drive, timing_pairs=0)
 
 
 # ------------------------------------------------------------------------------- the drive
@@ -502,7 +511,8 @@ def run_experiment(
         saved.write_text(json.dumps(fig, indent=1))
         figures[name] = fig
         logger.info("%s: %s", name, _short(fig))
-    summary = summarize(cfg, figures)
+    pairs = _timing_pairs(cfg, assets, runs_dir / "timing_pairs.json", force)
+    summary = summarize(cfg, figures, pairs)
     summary["drive_length_m"] = _drive_length(folder)
     summary["wall_seconds"] = time.perf_counter() - t0
     (out / "buildings_ch4.json").write_text(json.dumps(summary, indent=1, sort_keys=True))
@@ -523,9 +533,42 @@ def _plan(cfg: BuildingsConfig) -> list[tuple[str, str, bool, str]]:
     return plan
 
 
-def summarize(cfg: BuildingsConfig, figures: dict[str, dict]) -> dict:
+def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> list[dict]:
+    """``cfg.timing_pairs`` pairs of runs on the timing model, ``nobuild`` then ``bayes`` with
+    the worker asynchronous: main-loop milliseconds per keyframe of each, side by side (saved
+    in ``saved``, reused like the runs)."""
+    if cfg.timing_pairs == 0 or "bayes" not in cfg.methods:
+        return []
+    model = cfg.timing_model()
+    signature = json.dumps(
+        [_signature(cfg, "nobuild", model, False), _signature(cfg, "bayes", model, True)]
+        + [cfg.timing_pairs]
+    )
+    if saved.is_file() and not force:
+        earlier = json.loads(saved.read_text())
+        if earlier.get("config") == signature:
+            return earlier["pairs"]
+    pairs = []
+    for i in range(cfg.timing_pairs):
+        try:
+            off, _ = run_one(cfg, assets, "nobuild", model, False)
+            on, _ = run_one(cfg, assets, "bayes", model, True)
+        except SlamError as exc:
+            logger.error("timing pair %d failed: %s", i, exc)
+            continue
+        off_ms, on_ms = off["loop_ms_per_keyframe"], on["loop_ms_per_keyframe"]
+        pairs.append({"nobuild_ms": off_ms, "async_ms": on_ms, "ratio": on_ms / off_ms})
+        logger.info("timing pair %d: %.1f / %.1f ms per keyframe", i, on_ms, off_ms)
+    saved.write_text(json.dumps({"config": signature, "pairs": pairs}, indent=1))
+    return pairs
+
+
+def summarize(
+    cfg: BuildingsConfig, figures: dict[str, dict], pairs: list[dict] | None = None
+) -> dict:
     """The flat keys of ``buildings_ch4.json`` (module docstring of ``bench/buildings_ch4.py``)
-    and every run's figures under ``runs``."""
+    and every run's figures under ``runs``; ``pairs``: the timing pairs
+    (:func:`_timing_pairs`), which give ``async_time_ratio`` when there are any."""
     out: dict = {"runs": figures}
     primary = "exact" if "exact" in cfg.models else "gis"
     for method, model, _, name in _plan(cfg):
@@ -541,15 +584,19 @@ def summarize(cfg: BuildingsConfig, figures: dict[str, dict]) -> dict:
                 out[f"{key}_{method}" if model == primary else f"{key}_{method}_{model}"] = f[key]
     timing = cfg.timing_model()
     bayes = figures.get(f"bayes_{timing}", {})
-    for key in ("inference_ms_per_keyframe", "association_ms_per_keyframe"):
-        if key in bayes:
-            out[key] = bayes[key]
     on, off = figures.get(f"bayes_{timing}_async", {}), figures.get(f"nobuild_{timing}", {})
+    for key in ("inference_ms_per_keyframe", "association_ms_per_keyframe"):
+        # the worker as a user runs it (asynchronous) where there is such a run
+        if key in on or key in bayes:
+            out[key] = on.get(key, bayes.get(key))
     for key in ("constraint_lag_keyframes_median", "constraint_lag_keyframes_max"):
         if key in on:
             out[key] = on[key]
-    if "loop_ms_per_keyframe" in on and "loop_ms_per_keyframe" in off:
-        # main-loop time per keyframe with the asynchronous worker on / off, same drive
+    if pairs:  # main-loop time per keyframe with the asynchronous worker on / off, same drive
+        out["async_time_ratio"] = float(np.median([p["ratio"] for p in pairs]))
+        out["async_time_ratios"] = [p["ratio"] for p in pairs]
+        out["timing_pairs"] = pairs
+    elif "loop_ms_per_keyframe" in on and "loop_ms_per_keyframe" in off:
         out["async_time_ratio"] = on["loop_ms_per_keyframe"] / off["loop_ms_per_keyframe"]
     if "loop_ms_per_keyframe" in bayes and "loop_ms_per_keyframe" in off:
         out["sync_time_ratio"] = bayes["loop_ms_per_keyframe"] / off["loop_ms_per_keyframe"]

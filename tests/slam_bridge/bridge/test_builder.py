@@ -128,3 +128,16 @@ def test_process_worker_raises_a_bad_network_in_the_parent(facades, tmp_path):
 def test_config_refuses_an_unknown_worker():
     with pytest.raises(SlamError, match="worker"):
         BridgeConfig(worker="cluster")
+
+
+def test_online_associations_must_cover_the_fusion_window():
+    from slam_bridge.image_slam import ImageSlamConfig
+    from slam_bridge.slam.config import SlamConfig
+    from slam_bridge.slam.windows import WindowConfig
+
+    window = WindowConfig(l=20, n=10, history_keyframes=10)
+    ImageSlamConfig(slam=SlamConfig(window=window), bridge=BridgeConfig(recent_keyframes=30))
+    with pytest.raises(SlamError, match="recent_keyframes: 29 keyframes do not cover"):
+        ImageSlamConfig(slam=SlamConfig(window=window), bridge=BridgeConfig(recent_keyframes=29))
+    with pytest.raises(SlamError, match="recent_keyframes"):
+        BridgeConfig(recent_keyframes=0)

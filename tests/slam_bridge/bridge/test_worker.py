@@ -154,11 +154,47 @@ def test_a_slow_network_labels_every_few_keyframes(scene):
     assert final.associated.sum() > 50
 
 
+def test_online_snapshots_hold_the_recent_points(scene):
+    """With ``recent_keyframes`` an online association sees the triangulated points observed in
+    that many latest keyframes, with the same evidence (so the same association) as a snapshot
+    of every point; the final association covers every point."""
+    _, _, facades, _, stand_in = scene
+    recent, taken = 8, []
+
+    def associate(s):
+        everything = worker._snapshot(worker.evidence.map, s.keyframe, recent=None).inputs()
+        taken.append((s, everything))
+        return associate_bayes(facades, s.points, s.labels, s.normals, BUILDING, 1.0)
+
+    constraints = BuildingConstraints(facades)
+    worker = BridgeWorker(
+        stand_in, 2, associate, constraints, asynchronous=False, recent_keyframes=recent
+    )
+    m = _run(scene, worker, [constraints]).map
+    final = worker.finish(m)
+    online = [(s, e) for s, e in taken[:-1] if s.keyframe > recent]
+    fewer = 0
+    for s, everything in online:
+        seen = np.unique(m.obs_point[(m.obs_keyframe >= s.keyframe - recent)
+                                     & (m.obs_keyframe <= s.keyframe)])  # fmt: skip
+        placed = np.flatnonzero(np.isfinite(everything.points[:, 0]))  # triangulated
+        has = np.flatnonzero(np.isfinite(s.points[:, 0]))
+        np.testing.assert_array_equal(has, np.intersect1d(seen, placed))
+        fewer += has.size < placed.size
+        for name in ("points", "mean_probs", "labels", "normals", "centres"):
+            np.testing.assert_array_equal(getattr(s, name)[has], getattr(everything, name)[has])
+    assert fewer > 0  # older points left out
+    assert final.facade.size == m.num_points
+    assert np.flatnonzero(final.associated).size > 100
+
+
 def test_bad_worker_settings(scene):
     with pytest.raises(SlamError, match="associate_every"):
         _worker(scene, associate_every=0)
     with pytest.raises(SlamError, match="infer_every"):
         _worker(scene, infer_every=0)
+    with pytest.raises(SlamError, match="recent_keyframes"):
+        _worker(scene, recent_keyframes=0)
 
 
 def test_segmenter_outputs_resizes_and_transposes():
