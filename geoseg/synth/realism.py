@@ -110,7 +110,7 @@ class RealismConfig:
             "road_gain": (0.0, None),
             "sun_elevation_deg": (0.5, 89.0),
             "cloud_cover": (0.0, 1.0),
-            "lens_k1": (-0.3, 0.6),
+            "lens_k1": (-0.2, 0.6),
         }
         for name, (low, high) in ranges.items():
             lo, hi = getattr(self, name)

@@ -281,8 +281,8 @@ class Renderer:
         dirs_w = _rotate(dirs_c, R_wc.astype(np.float32))
         movers = self._mover_scene(R_wc, t_wc, float(time_s))
         mover_rays = None
-        if movers is not None and not k1:  # (the pixel boxes assume a pinhole camera)
-            mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height)
+        if movers is not None:
+            mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height, dirs_c, k1)
         hits = self._trace(t_wc, dirs_w, movers, cond, mover_rays)
         return self._shade(
             hits, dirs_c, dirs_w, K, R_wc, t_wc, (width, height), cond, time_s, variation
@@ -356,6 +356,7 @@ class Renderer:
                 scale = width / 2 / K[0, 0]
                 r2 = (rays[:, 0] ** 2 + rays[:, 1] ** 2) / scale**2
                 rays[:, :2] *= (1.0 + k1 * r2)[:, None]
+                return (rays / np.linalg.norm(rays, axis=1, keepdims=True)).astype(np.float32)
             rays = (rays / np.linalg.norm(rays, axis=1, keepdims=True)).astype(np.float32)
             if len(self._ray_cache) > 8:
                 self._ray_cache.clear()
@@ -376,8 +377,13 @@ class Renderer:
         chosen = [v for v, k in zip(self._movers, keep) if k]
         return _Scene(vehicle_mesh_part(self.world, chosen, xy[keep], heading[keep]))
 
-    def _mover_pixels(self, movers: _Scene, K, R_wc, t_wc, width: int, height: int):
-        """Flat indices of the pixels whose rays may hit a moving vehicle (None: all)."""
+    def _mover_pixels(
+        self, movers: _Scene, K, R_wc, t_wc, width: int, height: int, dirs_c=None, k1=0.0
+    ):
+        """Flat indices of the pixels whose rays may hit a moving vehicle (None: all).
+
+        With lens distortion (``k1``), the pixels whose camera rays ``dirs_c`` fall in each
+        vehicle's box of normalised image coordinates (a pixel's margin added)."""
         mesh = movers.intersector.mesh
         X_c = (np.asarray(mesh.vertices) - t_wc) @ R_wc
         faces = np.asarray(mesh.faces)
@@ -391,8 +397,22 @@ class Renderer:
                 continue  # behind the camera
             if not front.all():
                 return None  # straddles the image plane: cast all rays
+            if k1:
+                xy = P[:, :2] / P[:, 2:3]
+                boxes.append((*xy.min(0), *xy.max(0)))
+                continue
             uv = P[:, :2] / P[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
             boxes.append((*uv.min(0), *uv.max(0)))
+        if k1:
+            if not boxes:
+                return np.zeros(0, dtype=np.int64)
+            rx = dirs_c[:, 0] / dirs_c[:, 2]
+            ry = dirs_c[:, 1] / dirs_c[:, 2]
+            mx, my = 2.0 / K[0, 0], 2.0 / K[1, 1]  # margin: two pixels
+            hit = np.zeros(len(rx), dtype=bool)
+            for x0, y0, x1, y1 in boxes:
+                hit |= (rx > x0 - mx) & (rx < x1 + mx) & (ry > y0 - my) & (ry < y1 + my)
+            return np.nonzero(hit)[0]
         mask = np.zeros((height, width), dtype=bool)
         for u0, v0, u1, v1 in boxes:
             c0, r0 = max(int(np.floor(u0)), 0), max(int(np.floor(v0)), 0)

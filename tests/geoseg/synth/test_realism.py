@@ -124,3 +124,33 @@ def test_variation_keeps_dusk_and_night_light():
 def test_bad_realism_values_are_named(kwargs, key):
     with pytest.raises(ConfigError, match=key):
         RealismConfig(**kwargs)
+
+
+def test_lens_distortion_finds_every_moving_vehicle_pixel(tiny_world, monkeypatch):
+    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+    renderer = Renderer(tiny_world)
+    lens = Variation(lens_k1=0.2)
+    frames = [
+        renderer.render(
+            traj.K,
+            traj.R_wc[i],
+            traj.t_wc[i],
+            traj.image_size,
+            time_s=float(traj.timestamps[i]),
+            variation=lens,
+        )
+        for i in range(len(traj))
+    ]
+    # the same frames with every ray cast against the moving vehicles
+    monkeypatch.setattr(Renderer, "_mover_pixels", lambda self, *args: None)
+    for i, frame in enumerate(frames):
+        full = renderer.render(
+            traj.K,
+            traj.R_wc[i],
+            traj.t_wc[i],
+            traj.image_size,
+            time_s=float(traj.timestamps[i]),
+            variation=lens,
+        )
+        np.testing.assert_array_equal(frame.instance, full.instance)
+    assert any((f.labels == VEHICLE).any() for f in frames)
