@@ -351,12 +351,14 @@ class Renderer:
         if rays is None:
             u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height))
             pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
-            rays = pix @ np.linalg.inv(K).T
             if k1:  # radial distortion: x_u = x_d (1 + k1 r_d^2), r_d in the image's half-width
+                rays = _rotate(pix, np.linalg.inv(K))  # (per frame: no BLAS threads)
                 scale = width / 2 / K[0, 0]
                 r2 = (rays[:, 0] ** 2 + rays[:, 1] ** 2) / scale**2
                 rays[:, :2] *= (1.0 + k1 * r2)[:, None]
-                return (rays / np.linalg.norm(rays, axis=1, keepdims=True)).astype(np.float32)
+                norm = np.sqrt(rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2)
+                return (rays / norm[:, None]).astype(np.float32)
+            rays = pix @ np.linalg.inv(K).T
             rays = (rays / np.linalg.norm(rays, axis=1, keepdims=True)).astype(np.float32)
             if len(self._ray_cache) > 8:
                 self._ray_cache.clear()

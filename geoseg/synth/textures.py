@@ -281,7 +281,7 @@ def shopfront_albedo(
     # fascia board and its lettering
     fascia = inside & (v >= fascia_bottom)
     albedo[fascia] = fascia_rgb[fascia]
-    lum = fascia_rgb @ np.float32([0.3, 0.59, 0.11])
+    lum = 0.3 * fascia_rgb[:, 0] + 0.59 * fascia_rgb[:, 1] + 0.11 * fascia_rgb[:, 2]
     letter_rgb = np.where((lum > 0.45)[:, None], np.float32(0.08), np.float32(0.95))
     text = fascia & (v > fascia_bottom + 0.2) & (v < ground_h - 0.35) & in_cols
     text &= du < spacing * (0.2 + 0.2 * hash01(row, col, seed=seed + 103))
