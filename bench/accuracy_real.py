@@ -29,6 +29,7 @@ Usage::
     python bench/accuracy_real.py                       # zero-shot + existing fine-tuning runs
     python bench/accuracy_real.py --full                # also trains the missing runs
     python bench/accuracy_real.py --camvid /data/camvid --runs runs/accuracy_real
+    python bench/accuracy_real.py --model runs/seg_realism --tag realism   # another model
 """
 
 from __future__ import annotations
@@ -73,8 +74,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="zero-shot figures of this synthetic-only model instead of the shipped seg "
         "(model.pt, model.onnx or a run folder); no fine-tuning; writes "
-        f"{NAME}_model.json and its panel beside the shipped weights' predictions",
+        f"{NAME}_<tag>.json and a panel beside the shipped weights' predictions",
     )
+    parser.add_argument("--tag", default="model", help="output name suffix with --model")
     return parser
 
 
@@ -361,15 +363,15 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     args.out.mkdir(parents=True, exist_ok=True)
     shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
     normals_net = Segmenter.from_onnx(pretrained_file("normals", "model.onnx"))
-    panel = args.out / f"{NAME}_model_panel.png"
+    panel = args.out / f"{NAME}_{args.tag}_panel.png"
     write_panel(
         panel, images, labels, {"shipped seg": shipped, str(args.model): model}, normals_net
     )
     figures["machine"] = _machine(load_start)
     figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
     print(markdown_table(figures))
-    _write_json(args.out / f"{NAME}_model.json", figures)
-    print(f"wrote {args.out / f'{NAME}_model.json'} and {panel}")
+    _write_json(args.out / f"{NAME}_{args.tag}.json", figures)
+    print(f"wrote {args.out / f'{NAME}_{args.tag}.json'} and {panel}")
     return 0
 
 
