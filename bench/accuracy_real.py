@@ -29,6 +29,7 @@ Usage::
     python bench/accuracy_real.py                       # zero-shot + existing fine-tuning runs
     python bench/accuracy_real.py --full                # also trains the missing runs
     python bench/accuracy_real.py --camvid /data/camvid --runs runs/accuracy_real
+    python bench/accuracy_real.py --model runs/seg_realism --tag realism   # another model
 """
 
 from __future__ import annotations
@@ -67,7 +68,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--full", action="store_true", help="train missing fine-tuning runs")
     parser.add_argument("--frames", type=int, default=0, help="val frames (0 = all 101)")
     parser.add_argument("--out", type=Path, default=RESULTS_DIR, help="output directory")
+    parser.add_argument(
+        "--model",
+        type=Path,
+        default=None,
+        help="zero-shot figures of this synthetic-only model instead of the shipped seg "
+        "(model.pt, model.onnx or a run folder); no fine-tuning; writes "
+        f"{NAME}_<tag>.json and a panel beside the shipped weights' predictions",
+    )
+    parser.add_argument("--tag", default="model", help="output name suffix with --model")
     return parser
+
+
+def load_segmenter(path: Path) -> Any:
+    """A :class:`~geoseg.infer.Segmenter` from a model.onnx, a model.pt or a run folder."""
+    from geoseg.infer import Segmenter
+
+    if path.is_dir():
+        path = path / "model.pt"
+    if path.suffix == ".onnx":
+        return Segmenter.from_onnx(path)
+    return Segmenter.from_checkpoint(path)
 
 
 # ----------------------------------------------------------------------------- evaluation
@@ -260,6 +281,8 @@ def main(argv: list[str] | None = None) -> int:
     images, labels, classes = load_frames(args.camvid, args.frames)
     figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
     seg_onnx = pretrained_file("seg", "model.onnx")
+    if args.model is not None:
+        return evaluate_model(args, argv, images, labels, classes, load_start)
     shipped = Segmenter.from_onnx(seg_onnx)
     transfer = colour_transfer_for(seg_onnx)
     transfer_means = colour_transfer_for(seg_onnx, match_std=False)
@@ -300,12 +323,62 @@ def main(argv: list[str] | None = None) -> int:
     figures["machine"] = _machine(load_start)
     figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
     print(markdown_table(figures))
-    out_json = args.out / f"{NAME}.json"
-    tmp = out_json.with_name(f".{out_json.name}.tmp")
-    tmp.write_text(json.dumps({k: _json_safe(v) for k, v in figures.items()}, indent=1) + "\n")
-    os.replace(tmp, out_json)
-    print(f"wrote {out_json} and {args.out / f'{NAME}_panel.png'}")
+    _write_json(args.out / f"{NAME}.json", figures)
+    print(f"wrote {args.out / f'{NAME}.json'} and {args.out / f'{NAME}_panel.png'}")
     return 0
+
+
+def evaluate_model(args, argv, images, labels, classes, load_start: float) -> int:
+    """``--model``: the zero-shot figures (with and without colour transfer, both sizes) of
+    another synthetic-only model, and a panel beside the shipped weights."""
+    from geoseg.errors import GeosegError
+    from geoseg.infer import Segmenter, colour_transfer_for
+    from geoseg.pretrained import pretrained_file
+
+    model = load_segmenter(args.model)
+    card_path = args.model / "model.pt" if args.model.is_dir() else args.model
+    variants = [("", None)]
+    try:
+        variants += [
+            ("_colour_transfer", colour_transfer_for(card_path)),
+            (MEANS, colour_transfer_for(card_path, match_std=False)),
+        ]
+    except GeosegError as err:  # no model card with colour statistics: no transfer figures
+        print(f"{args.model}: no colour transfer ({err})")
+    figures: dict[str, Any] = {
+        "frames": len(images),
+        "classes": len(classes),
+        "model": str(args.model),
+    }
+    for size_key, size in SIZES.items():
+        for ct_key, ct in variants:
+            model.colour_transfer = ct
+            _put(
+                figures,
+                "zero_shot",
+                size_key + ct_key,
+                evaluate(model, images, labels, classes, size),
+            )
+    model.colour_transfer = None
+    args.out.mkdir(parents=True, exist_ok=True)
+    shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
+    normals_net = Segmenter.from_onnx(pretrained_file("normals", "model.onnx"))
+    panel = args.out / f"{NAME}_{args.tag}_panel.png"
+    write_panel(
+        panel, images, labels, {"shipped seg": shipped, str(args.model): model}, normals_net
+    )
+    figures["machine"] = _machine(load_start)
+    figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
+    print(markdown_table(figures))
+    _write_json(args.out / f"{NAME}_{args.tag}.json", figures)
+    print(f"wrote {args.out / f'{NAME}_{args.tag}.json'} and {panel}")
+    return 0
+
+
+def _write_json(path: Path, figures: dict[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps({k: _json_safe(v) for k, v in figures.items()}, indent=1) + "\n")
+    os.replace(tmp, path)
 
 
 if __name__ == "__main__":

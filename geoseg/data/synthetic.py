@@ -15,7 +15,8 @@ set, which only evaluation sets do. Defaults: training cities 1-12, validation c
 
 Cache (``cache_dir``): one compressed ``.npz`` per sample, named by the SHA-256 of (world config
 and seed, condition, pose, size, :data:`RENDER_VERSION`) under a two-character sub-folder; the
-pose enters as what determines it (rig, drive, position along the drive, yaw jitter), so a warm
+pose enters as what determines it (rig, drive, position along the drive, yaw jitter), and so does
+the appearance draw (:mod:`geoseg.synth.realism`) when the realism options are on, so a warm
 cache is read without building any world. Writes are atomic (temporary file + ``os.replace``); an unreadable or incomplete
 entry is logged, re-rendered and rewritten. Normals are stored as float16 (< 0.1 degree) and
 every sample, cached or fresh, goes through the same float16 rounding, so a cached sample equals
@@ -51,6 +52,7 @@ from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
 from geoseg.config import from_dict, to_dict
 from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
+from geoseg.synth.realism import RealismConfig, Variation, draw_variation
 from geoseg.vectors import vector_length
 
 logger = logging.getLogger(__name__)
@@ -88,6 +90,9 @@ class SyntheticConfig:
         yaw_jitter_deg: uniform yaw perturbation of the camera, +- degrees.
         sample_seed: seeds the per-index draws (another value, other frames).
         hfov_deg: horizontal field of view (None: the rig's default, 70 degrees).
+        realism: per-frame appearance randomisation
+            (:class:`~geoseg.synth.realism.RealismConfig`, all off by default): each sample
+            draws its :class:`~geoseg.synth.realism.Variation` from ``(sample_seed, i)``.
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -104,6 +109,7 @@ class SyntheticConfig:
     yaw_jitter_deg: float = 4.0
     sample_seed: int = 0
     hfov_deg: float | None = None
+    realism: RealismConfig = field(default_factory=RealismConfig)
 
     def __post_init__(self) -> None:
         from geoseg.synth.conditions import CONDITIONS
@@ -263,6 +269,7 @@ class SampleSpec:
     drive_id: int
     frame_share: float
     yaw_deg: float
+    variation: Variation | None = None
 
 
 class SyntheticDataset(Dataset):
@@ -320,7 +327,15 @@ class SyntheticDataset(Dataset):
             drive_id=int(rng.integers(cfg.drives_per_city)),
             frame_share=float(rng.random()),
             yaw_deg=float(rng.uniform(-cfg.yaw_jitter_deg, cfg.yaw_jitter_deg)),
+            variation=self._variation(index),
         )
+
+    def _variation(self, index: int) -> Variation | None:
+        """Sample ``index``'s appearance draw (None when the realism options are all off)."""
+        if not self.config.realism.enabled:
+            return None
+        rng = np.random.default_rng(np.random.SeedSequence([self.config.sample_seed, index, 4343]))
+        return draw_variation(self.config.realism, rng)
 
     def _camera(self, spec: SampleSpec) -> tuple[Any, np.ndarray, np.ndarray, np.ndarray, float]:
         world = get_world(self.config.world_config(spec.seed))
@@ -350,6 +365,8 @@ class SyntheticDataset(Dataset):
             "size": list(self.size),
             "version": RENDER_VERSION,
         }
+        if spec.variation is not None:  # (absent when off: the older keys stay valid)
+            payload["variation"] = repr(spec.variation)
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
     def _cache_path(self, key: str) -> Path | None:
@@ -374,7 +391,14 @@ class SyntheticDataset(Dataset):
         world, K, R_wc, t_wc, time_s = self._camera(spec)
 
         frame = render(
-            world, K, R_wc, t_wc, (self.size[1], self.size[0]), spec.condition, time_s=time_s
+            world,
+            K,
+            R_wc,
+            t_wc,
+            (self.size[1], self.size[0]),
+            spec.condition,
+            time_s=time_s,
+            variation=spec.variation,
         )
         self.renders += 1
         arrays = {

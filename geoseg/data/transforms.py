@@ -282,7 +282,9 @@ def build_transforms(
         steps.append(v2.Resize(list(size), antialias=True))
     if train:
         if size is not None and cfg.scale != (1.0, 1.0):
-            steps.append(v2.ScaleJitter(tuple(size), scale_range=tuple(cfg.scale), antialias=True))
+            # ScaleJitter's target size is (W, H)
+            target = (size[1], size[0])
+            steps.append(v2.ScaleJitter(target, scale_range=tuple(cfg.scale), antialias=True))
             steps.append(v2.RandomCrop(list(size), pad_if_needed=True, fill=fill))
         if cfg.hflip > 0:
             steps.append(v2.RandomHorizontalFlip(p=cfg.hflip))

@@ -28,6 +28,7 @@ Output conventions (:class:`Frame`):
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -41,6 +42,7 @@ from geoseg.classes import OBJECT, ROAD, SIDEWALK, SKY, TERRAIN, VEGETATION, VEH
 from geoseg.errors import GeosegError, check_finite, check_shape
 from geoseg.synth import textures
 from geoseg.synth.conditions import Condition, get_condition
+from geoseg.synth.realism import Variation, random_colours
 from geoseg.synth.trajectory import Trajectory, check_image_size
 from geoseg.synth.world import (
     SURFACE_CLASS,
@@ -248,6 +250,7 @@ class Renderer:
         condition: str | Condition = "summer_day",
         *,
         time_s: float = 0.0,
+        variation: Variation | None = None,
     ) -> Frame:
         """Render one frame.
 
@@ -259,6 +262,8 @@ class Renderer:
             condition: appearance condition name (:data:`~geoseg.synth.conditions.CONDITIONS`)
                 or a :class:`~geoseg.synth.conditions.Condition`.
             time_s: world time, seconds (positions of the moving vehicles).
+            variation: a domain-randomisation draw (:mod:`geoseg.synth.realism`); None: the
+                world's own appearance.
 
         Returns:
             The frame.
@@ -269,14 +274,19 @@ class Renderer:
         K, R_wc, t_wc = self._check_camera(K, R_wc, t_wc)
         width, height = check_image_size(image_size)
         cond = get_condition(condition)
-        dirs_c = self._camera_rays(K, width, height)
+        if variation is not None:
+            cond = variation.condition(cond)
+        k1 = 0.0 if variation is None else float(variation.lens_k1)
+        dirs_c = self._camera_rays(K, width, height, k1)
         dirs_w = _rotate(dirs_c, R_wc.astype(np.float32))
         movers = self._mover_scene(R_wc, t_wc, float(time_s))
         mover_rays = None
         if movers is not None:
-            mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height)
+            mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height, dirs_c, k1)
         hits = self._trace(t_wc, dirs_w, movers, cond, mover_rays)
-        return self._shade(hits, dirs_c, dirs_w, K, R_wc, t_wc, (width, height), cond, time_s)
+        return self._shade(
+            hits, dirs_c, dirs_w, K, R_wc, t_wc, (width, height), cond, time_s, variation
+        )
 
     def render_trajectory(
         self,
@@ -335,12 +345,19 @@ class Renderer:
             )
         return K, R_wc, t_wc
 
-    def _camera_rays(self, K: np.ndarray, width: int, height: int) -> np.ndarray:
-        key = (K.tobytes(), width, height)
+    def _camera_rays(self, K: np.ndarray, width: int, height: int, k1: float = 0.0) -> np.ndarray:
+        key = (K.tobytes(), width, height, k1)
         rays = self._ray_cache.get(key)
         if rays is None:
             u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height))
             pix = np.stack([u.ravel(), v.ravel(), np.ones(u.size)], axis=1)
+            if k1:  # radial distortion: x_u = x_d (1 + k1 r_d^2), r_d in the image's half-width
+                rays = _rotate(pix, np.linalg.inv(K))  # (per frame: no BLAS threads)
+                scale = width / 2 / K[0, 0]
+                r2 = (rays[:, 0] ** 2 + rays[:, 1] ** 2) / scale**2
+                rays[:, :2] *= (1.0 + k1 * r2)[:, None]
+                norm = np.sqrt(rays[:, 0] ** 2 + rays[:, 1] ** 2 + rays[:, 2] ** 2)
+                return (rays / norm[:, None]).astype(np.float32)
             rays = pix @ np.linalg.inv(K).T
             rays = (rays / np.linalg.norm(rays, axis=1, keepdims=True)).astype(np.float32)
             if len(self._ray_cache) > 8:
@@ -362,8 +379,13 @@ class Renderer:
         chosen = [v for v, k in zip(self._movers, keep) if k]
         return _Scene(vehicle_mesh_part(self.world, chosen, xy[keep], heading[keep]))
 
-    def _mover_pixels(self, movers: _Scene, K, R_wc, t_wc, width: int, height: int):
-        """Flat indices of the pixels whose rays may hit a moving vehicle (None: all)."""
+    def _mover_pixels(
+        self, movers: _Scene, K, R_wc, t_wc, width: int, height: int, dirs_c=None, k1=0.0
+    ):
+        """Flat indices of the pixels whose rays may hit a moving vehicle (None: all).
+
+        With lens distortion (``k1``), the pixels whose camera rays ``dirs_c`` fall in each
+        vehicle's box of normalised image coordinates (a pixel's margin added)."""
         mesh = movers.intersector.mesh
         X_c = (np.asarray(mesh.vertices) - t_wc) @ R_wc
         faces = np.asarray(mesh.faces)
@@ -377,8 +399,22 @@ class Renderer:
                 continue  # behind the camera
             if not front.all():
                 return None  # straddles the image plane: cast all rays
+            if k1:
+                xy = P[:, :2] / P[:, 2:3]
+                boxes.append((*xy.min(0), *xy.max(0)))
+                continue
             uv = P[:, :2] / P[:, 2:3] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
             boxes.append((*uv.min(0), *uv.max(0)))
+        if k1:
+            if not boxes:
+                return np.zeros(0, dtype=np.int64)
+            rx = dirs_c[:, 0] / dirs_c[:, 2]
+            ry = dirs_c[:, 1] / dirs_c[:, 2]
+            mx, my = 2.0 / K[0, 0], 2.0 / K[1, 1]  # margin: two pixels
+            hit = np.zeros(len(rx), dtype=bool)
+            for x0, y0, x1, y1 in boxes:
+                hit |= (rx > x0 - mx) & (rx < x1 + mx) & (ry > y0 - my) & (ry < y1 + my)
+            return np.nonzero(hit)[0]
         mask = np.zeros((height, width), dtype=bool)
         for u0, v0, u1, v1 in boxes:
             c0, r0 = max(int(np.floor(u0)), 0), max(int(np.floor(v0)), 0)
@@ -437,7 +473,9 @@ class Renderer:
         return hits
 
     # ---- shading ---------------------------------------------------------------------------
-    def _shade(self, hits, dirs_c, dirs_w, K, R_wc, t_wc, size, cond: Condition, time_s) -> Frame:
+    def _shade(
+        self, hits, dirs_c, dirs_w, K, R_wc, t_wc, size, cond: Condition, time_s, var=None
+    ) -> Frame:
         width, height = size
         n = len(hits.t)
         hit = hits.kind != _NO_HIT
@@ -478,6 +516,8 @@ class Renderer:
                 (ROAD, SIDEWALK, TERRAIN),
                 np.asarray(cond.ground_tint),
             )
+            if var is not None:
+                _vary_ground(albedo, g, cls, var)
 
         f = np.nonzero(kind == SurfaceKind.FACADE)[0]
         if len(f):
@@ -485,10 +525,11 @@ class Renderer:
             rel = X[f, :2] - self._f_p0[row]
             u = rel[:, 0] * self._f_dir[row, 0] + rel[:, 1] * self._f_dir[row, 1]
             v = X[f, 2] - self._styles.base_z[row]
-            albedo[f], emissive[f] = textures.facade_albedo(
-                u, v, row, self._styles, cond.window_light
-            )
-        self._shade_objects(kind, X, hits.instance[idx], albedo, emissive, cond)
+            styles = self._styles if var is None else self._varied_styles(var)
+            albedo[f], emissive[f] = textures.facade_albedo(u, v, row, styles, cond.window_light)
+            if var is not None:
+                self._vary_facades(u, v, row, f, styles, var, albedo, emissive)
+        self._shade_objects(kind, X, hits.instance[idx], albedo, emissive, cond, var)
 
         # normals towards the camera, camera frame
         facing = (
@@ -514,7 +555,7 @@ class Renderer:
         light = ambient[:, None] * np.asarray(cond.ambient_color, dtype=np.float32)
         if cond.sun_strength > 0 and sun[2] > 0:
             lambert = np.clip(_rotate(normal_w, sun[None].astype(np.float32))[:, 0], 0.0, 1.0)
-            if cond.shadows and self.shadows:
+            if cond.shadows and (self.shadows or (var is not None and var.shadows)):
                 lit = np.nonzero(lambert > 0)[0]
                 origin = X[lit] + 0.03 * normal_w[lit]
                 hit_s, tri_s, _, _ = self._static.cast(origin, np.broadcast_to(sun, origin.shape))
@@ -540,6 +581,8 @@ class Renderer:
             sun,
             np.asarray(cond.sun_color),
             cond.sun_strength if sun[2] > -0.05 else 0.0,
+            cloud_cover=0.0 if var is None else var.cloud_cover,
+            seed=0 if var is None else var.seed % 100003,
         )
         rgb[idx] = color
         np.clip(rgb, 0.0, 1.0, out=rgb)
@@ -566,7 +609,46 @@ class Renderer:
             time_s=float(time_s),
         )
 
-    def _shade_objects(self, kind, X, instance, albedo, emissive, cond: Condition) -> None:
+    def _varied_styles(self, var: Variation) -> textures.FacadeStyles:
+        """The facade styles with a share of the facades repainted (``var.paint_share``)."""
+        if var.paint_share <= 0:
+            return self._styles
+        rows = np.arange(len(self._styles.length))
+        paint = textures.hash01(rows, seed=var.seed + 201) < var.paint_share
+        colours = random_colours(rows, var.seed + 202, 0.6)
+        colours = 0.12 + 0.85 * colours  # no black walls
+        material = self._styles.material.copy()
+        new_material = (textures.hash_u32(rows, seed=var.seed + 203) % 4).astype(np.int64)
+        material[paint] = new_material[paint]
+        tint = self._styles.tint.copy()
+        tint[paint] = colours[paint]
+        frame_rgb = self._styles.frame_rgb.copy()
+        frame_rgb[paint] = random_colours(rows, var.seed + 204, 0.3)[paint]
+        return dataclasses.replace(self._styles, tint=tint, material=material, frame_rgb=frame_rgb)
+
+    def _vary_facades(self, u, v, row, f, styles, var: Variation, albedo, emissive) -> None:
+        """Shop fronts and drainpipes on the facade hits ``f`` (rows of ``albedo``)."""
+        if var.shopfront_share > 0:
+            shop = textures.hash01(row, seed=var.seed + 205) < var.shopfront_share
+            s = np.nonzero(shop)[0]
+            if len(s):
+                inside, shop_albedo = textures.shopfront_albedo(
+                    u[s], v[s], row[s], styles, var.seed % 100003
+                )
+                s = s[inside]
+                albedo[f[s]] = shop_albedo[inside]
+                emissive[f[s]] = 0.0
+        if var.paint_share > 0:  # drainpipes on some repainted facades
+            pipe = textures.hash01(row, seed=var.seed + 206) < 0.5 * var.paint_share
+            at = 0.25 + 0.5 * textures.hash01(row, seed=var.seed + 207)
+            near_end = textures.hash01(row, seed=var.seed + 208) < 0.5
+            at = np.where(near_end, styles.length[row] - at, at)
+            p = np.nonzero(pipe & (np.abs(u - at) < 0.06))[0]
+            albedo[f[p]] = np.float32([0.2, 0.2, 0.21])
+
+    def _shade_objects(
+        self, kind, X, instance, albedo, emissive, cond: Condition, var=None
+    ) -> None:
         """Albedo (and lamp emission) of roofs, trees, vehicles and street furniture."""
 
         def where(k: SurfaceKind) -> np.ndarray:
@@ -581,10 +663,15 @@ class Renderer:
             albedo[c] = textures.bark_albedo(X[c]) * 0.8
         tr = where(SurfaceKind.TRUNK)
         albedo[tr] = textures.bark_albedo(X[tr])
+        colours = self._vehicle_color
+        if var is not None and var.vehicle_colour_share > 0:
+            ids = np.arange(len(colours))
+            new = textures.hash01(ids, seed=var.seed + 209) < var.vehicle_colour_share
+            colours = np.where(new[:, None], random_colours(ids, var.seed + 210, 0.3), colours)
         vb = where(SurfaceKind.VEHICLE_BODY)
-        albedo[vb] = self._vehicle_color[instance[vb]]
+        albedo[vb] = colours[instance[vb]]
         vg = where(SurfaceKind.VEHICLE_GLASS)
-        albedo[vg] = np.float32([0.1, 0.12, 0.15]) + 0.1 * self._vehicle_color[instance[vg]]
+        albedo[vg] = np.float32([0.1, 0.12, 0.15]) + 0.1 * colours[instance[vg]]
         vw = where(SurfaceKind.VEHICLE_WHEEL)
         albedo[vw] = np.float32([0.06, 0.06, 0.06])
         p = where(SurfaceKind.POLE)
@@ -596,6 +683,20 @@ class Renderer:
             emissive[pa[high]] = np.float32([1.0, 0.9, 0.6])
         sg = where(SurfaceKind.SHELTER_GLASS)
         albedo[sg] = np.float32([0.55, 0.62, 0.66])
+
+
+def _vary_ground(albedo: np.ndarray, g: np.ndarray, cls: np.ndarray, var: Variation) -> None:
+    """Road tone and marking brightness, paving colour (rows ``g`` of ``albedo``)."""
+    if var.road_gain != 1.0 or var.marking_gain != 1.0:
+        r = g[cls == ROAD]
+        value = albedo[r]
+        marking = value[:, 0] > 0.6
+        value[marking] *= var.marking_gain
+        value[~marking] *= var.road_gain
+        albedo[r] = value
+    if var.walk_rgb != (1.0, 1.0, 1.0):
+        w = g[cls == SIDEWALK]
+        albedo[w] *= np.asarray(var.walk_rgb, dtype=np.float32)
 
 
 def _rebuild_renderer(world: World, drop: tuple[str, ...], shadows: bool) -> Renderer:
@@ -620,6 +721,7 @@ def render(
     *,
     time_s: float = 0.0,
     drop: Sequence[str] = (),
+    variation: Variation | None = None,
 ) -> Frame:
     """Render one frame of ``world`` (the :class:`Renderer` is cached on the world).
 
@@ -632,6 +734,7 @@ def render(
         condition: appearance condition name or object.
         time_s: world time (moving vehicles), seconds.
         drop: occluder categories to leave out (see :class:`Renderer`).
+        variation: a domain-randomisation draw (:mod:`geoseg.synth.realism`), or None.
 
     Returns:
         The frame (see :class:`Frame` for the conventions).
@@ -643,4 +746,4 @@ def render(
     if renderer is None:
         renderer = Renderer(world, drop=key)
         world._renderers[key] = renderer
-    return renderer.render(K, R_wc, t_wc, image_size, condition, time_s=time_s)
+    return renderer.render(K, R_wc, t_wc, image_size, condition, time_s=time_s, variation=variation)

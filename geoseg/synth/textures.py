@@ -244,6 +244,84 @@ def facade_albedo(
     return albedo, emissive
 
 
+def shopfront_albedo(
+    u: np.ndarray, v: np.ndarray, row: np.ndarray, styles: FacadeStyles, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shop-front ground floors (realism option): a fascia board with letter-like marks across
+    the facade, display windows with coloured goods behind the glass between pilasters, a stall
+    riser, and on some facades a striped awning painted over the windows.
+
+    Args:
+        u, v, row: as in :func:`facade_albedo` (only hits on shop-front facades).
+        styles: per-facade parameters.
+        seed: varies the colours and the awnings.
+
+    Returns:
+        ``(inside, albedo)``: `(N,)` bool, True for hits on the ground floor (the only ones
+        changed), and `(N, 3)` float32 albedo of those hits (rows where ``inside`` is False are
+        undefined).
+    """
+    from geoseg.synth.realism import random_colours
+
+    u = u.astype(np.float32)
+    v = v.astype(np.float32)
+    n = len(u)
+    ground_h = 1.3 * styles.storey_height[row]
+    inside = v < ground_h - 0.15
+    albedo = np.zeros((n, 3), dtype=np.float32)
+    fascia_bottom = ground_h - 1.0
+    spacing = styles.spacing[row]
+    rel = u - styles.u0[row]
+    col = np.floor(rel / spacing)
+    du = np.abs(rel - (col + 0.5) * spacing)
+    in_cols = (col >= 0) & (col < styles.n_cols[row])
+    fascia_rgb = random_colours(row, seed + 101, 0.75)
+    pier_rgb = random_colours(row, seed + 102, 0.3)
+
+    # fascia board and its lettering
+    fascia = inside & (v >= fascia_bottom)
+    albedo[fascia] = fascia_rgb[fascia]
+    lum = 0.3 * fascia_rgb[:, 0] + 0.59 * fascia_rgb[:, 1] + 0.11 * fascia_rgb[:, 2]
+    letter_rgb = np.where((lum > 0.45)[:, None], np.float32(0.08), np.float32(0.95))
+    text = fascia & (v > fascia_bottom + 0.2) & (v < ground_h - 0.35) & in_cols
+    text &= du < spacing * (0.2 + 0.2 * hash01(row, col, seed=seed + 103))
+    cell_u = np.floor(rel / 0.11)
+    cell_v = np.floor((v - fascia_bottom) / 0.12)
+    text &= (hash01(row, cell_u, cell_v, seed=seed + 104) < 0.55) & (cell_u % 4 != 3)
+    albedo[text] = letter_rgb[text]
+
+    # below the fascia: pilasters, stall riser, display windows, door
+    lower = inside & ~fascia
+    pier = lower & (~in_cols | (du > spacing * 0.44))
+    riser = lower & ~pier & (v < 0.55)
+    glass = lower & ~pier & ~riser
+    albedo[pier] = pier_rgb[pier]
+    albedo[riser] = 0.6 * pier_rgb[riser]
+    goods = random_colours(
+        hash_u32(row, np.floor(u / 0.35), np.floor(v / 0.3), seed=seed + 105).view(np.int32),
+        seed + 106,
+        0.7,
+    )
+    depth = np.clip((v - 0.55) / np.maximum(fascia_bottom - 0.55, 0.1), 0.0, 1.0)
+    reflection = (0.18 + 0.25 * depth)[:, None] * np.float32([0.85, 0.92, 1.0])
+    mix = 0.35 + 0.4 * hash01(row, col, seed=seed + 107)[:, None]
+    albedo[glass] = (mix * goods * 0.8 + (1 - mix) * reflection)[glass]
+    door = glass & (col == styles.door_col[row]) & (du < 0.6) & (v < 2.3)
+    albedo[door] = 0.5 * albedo[door] + 0.5 * pier_rgb[door] * 0.5
+
+    # striped awnings over the windows of some facades
+    has_awning = hash01(row, seed=seed + 108) < 0.45
+    awning = lower & has_awning & (v > fascia_bottom - 0.75) & in_cols & (du < spacing * 0.47)
+    stripe = (np.floor(u / 0.3) % 2) == 0
+    awning_rgb = random_colours(row, seed + 109, 0.85)
+    shade = (0.75 + 0.25 * (v - (fascia_bottom - 0.75)) / 0.75)[:, None]
+    on = awning & stripe
+    albedo[on] = (awning_rgb * shade)[on]
+    off = awning & ~stripe
+    albedo[off] = (np.float32([0.92, 0.9, 0.86]) * shade)[off]
+    return inside, albedo
+
+
 # --------------------------------------------------------------------------------------------
 # Ground
 # --------------------------------------------------------------------------------------------
@@ -381,8 +459,10 @@ def sky_color(
     sun_direction: np.ndarray,
     sun_color: np.ndarray,
     sun_strength: float,
+    cloud_cover: float = 0.0,
+    seed: int = 0,
 ) -> np.ndarray:
-    """Sky gradient with a sun glow.
+    """Sky gradient with a sun glow and optional clouds.
 
     Args:
         directions_w: `(N, 3)` unit ray directions, world frame.
@@ -391,6 +471,8 @@ def sky_color(
         sun_direction: `(3,)` unit vector to the sun.
         sun_color: `(3,)` RGB.
         sun_strength: glow strength.
+        cloud_cover: 0 (clear) .. 1 (overcast): value-noise clouds, white to grey.
+        seed: places the clouds.
 
     Returns:
         `(N, 3)` float32 RGB.
@@ -406,4 +488,19 @@ def sky_color(
         cos_sun = np.clip(cos_sun, 0.0, 1.0).astype(np.float32)
         glow = 0.6 * cos_sun**64 + 0.15 * cos_sun**8
         rgb = rgb + (sun_strength * glow)[:, None] * sun_color.astype(np.float32)
+    if cloud_cover > 0:
+        # clouds on a plane above the camera, seen through the ray's slope
+        z = np.maximum(directions_w[:, 2], 0.04).astype(np.float32)
+        px = directions_w[:, 0] / z * 2.0 + (seed % 1000)
+        py = directions_w[:, 1] / z * 2.0
+        fbm = (
+            0.5 * value_noise(px, py, seed=seed + 81)
+            + 0.3 * value_noise(2.1 * px, 2.1 * py, seed=seed + 82)
+            + 0.2 * value_noise(4.3 * px, 4.3 * py, seed=seed + 83)
+        )
+        edge = 1.0 - cloud_cover
+        amount = np.clip((fbm - edge + 0.15) / 0.3, 0.0, 1.0) * 0.95
+        tone = 0.72 + 0.25 * value_noise(3 * px, 3 * py, seed=seed + 84)
+        cloud = tone[:, None] * np.float32([1.0, 1.0, 1.02])
+        rgb = rgb * (1 - amount[:, None]) + cloud * amount[:, None]
     return rgb

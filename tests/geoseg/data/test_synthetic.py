@@ -1,5 +1,7 @@
 """Synthetic frames: aligned typed samples, determinism, the cache, held-out data, patches."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -159,3 +161,24 @@ def test_patch_dataset_is_class_balanced_and_centred():
     assert set(np.unique(labels)) <= set(present)
     assert len(np.unique(labels)) >= min(3, len(present))  # not dominated by the big classes
     assert torch.equal(patches[5]["image"], PatchDataset(frames, patches_per_frame=40)[5]["image"])
+
+
+def test_realism_draws_per_index_and_keeps_the_plain_cache_keys():
+    from geoseg.synth.realism import REALISTIC
+
+    plain = SyntheticDataset(_config(), size=SIZE)
+    assert plain.spec(0).variation is None
+    real = SyntheticDataset(_config(realism=REALISTIC), size=SIZE)
+    spec = real.spec(0)
+    assert spec.variation is not None and spec.variation == real.spec(0).variation
+    assert real.spec(1).variation != spec.variation
+    # the same pose and condition: the draw alone changes the cache key
+    assert dataclasses.replace(spec, variation=None) == plain.spec(0)
+    assert real.cache_key(spec) != plain.cache_key(plain.spec(0))
+    # the labels are the plain frame's wherever the geometry options did not fire
+    no_geometry = dataclasses.replace(REALISTIC, p_bare_trees=0.0, p_lens=0.0)
+    varied = SyntheticDataset(_config(realism=no_geometry), size=SIZE)
+    assert torch.equal(varied[2]["labels"], plain[2]["labels"])
+    assert not torch.equal(varied[2]["image"], plain[2]["image"])
+    config = synthetic_config({"realism": {"p_sky": 0.5}}, split="train")
+    assert config.realism.p_sky == 0.5

@@ -112,6 +112,15 @@ def test_full_training_pipeline_keeps_alignment() -> None:
     assert seen == {True, False}
 
 
+def test_scale_jitter_zooms_in_from_the_output_size() -> None:
+    # scale >= 1 on a frame of the output size: a zoom and a crop, never padding
+    tf = build_transforms(AugmentConfig(hflip=0.0, scale=(1.0, 1.3)), size=(H, W), train=True)
+    for seed in range(4):
+        torch.manual_seed(seed)
+        out = tf(_sample())
+        assert out["labels"].shape == (H, W) and not (out["labels"] == 255).any()
+
+
 def test_colour_jitter_only_touches_the_image() -> None:
     s = _sample()
     torch.manual_seed(0)

@@ -1,0 +1,271 @@
+"""Domain randomisation of the synthetic world's appearance: per-frame variations that make the
+rendered city look less like one procedural style and more like real streets.
+
+A :class:`RealismConfig` holds probabilities and ranges; :func:`draw_variation` draws one
+:class:`Variation` from it (one per training frame, from a seeded generator), and
+:meth:`geoseg.synth.renderer.Renderer.render` takes that variation. Every option is off by
+default (``RealismConfig()`` draws the identity variation, and ``render(..., variation=None)``
+renders exactly as before); :data:`REALISTIC` turns them all on.
+
+Pure appearance options (the rendered colours change, the labels, depth, normals and instance
+ids do not):
+
+- ``p_shopfront`` / ``shopfront_share``: a share of the facades get a shop-front ground floor:
+  a facade-wide fascia board in a bold colour with letter-like marks, large display windows
+  with coloured goods behind the glass, pilasters, a stall riser and, on some, a striped awning
+  painted on the wall; all of it labelled building (real shop fronts and signs are);
+- ``p_paint`` / ``paint_share``: a share of the facades are repainted a random colour (any hue,
+  low to medium saturation, dark to white) and may switch wall material; some get a dark
+  drainpipe (a thin vertical stripe that is building, not object);
+- ``p_vehicle_colour`` / ``vehicle_colour_share``: a share of the vehicles get a new colour
+  (mostly the white, silver, grey and black of real traffic, some saturated hues);
+- ``p_ground``: the tone of the asphalt, the colour and tone of the paving and the brightness
+  of the road markings change (sidewalks as grey as the road included);
+- ``p_light``: the sun's direction and strength, the sky light and the haze change;
+- ``p_sky``: the sky's colours change (clear blue to flat white and grey) and clouds appear
+  (``cloud_cover``);
+- ``p_shadows``: cast shadows (a second ray cast, ~20 % slower per frame that draws them).
+
+Options that change the geometry, with labels that follow it (rendered from the same rays):
+
+- ``p_bare_trees``: the tree crowns are leafless (rays pass between the branches and get the
+  label of what lies behind, as in the ``winter`` condition) under any light;
+- ``p_lens`` / ``lens_k1``: radial lens distortion, ``x_u = x_d (1 + k1 r_d^2)`` in normalised
+  image coordinates (``k1 > 0``: barrel, straight lines bow outwards). Such a frame is not a
+  pinhole image: its ``K`` is the undistorted camera's.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from geoseg.config import check_range
+from geoseg.errors import ConfigError
+from geoseg.synth.conditions import Condition
+
+_PROBABILITIES = (
+    "p_shopfront",
+    "p_paint",
+    "p_vehicle_colour",
+    "p_ground",
+    "p_light",
+    "p_sky",
+    "p_shadows",
+    "p_bare_trees",
+    "p_lens",
+)
+
+
+@dataclass
+class RealismConfig:
+    """Probabilities (``p_*``, per frame; 0 = off) and ranges of the appearance variations.
+
+    Attributes:
+        p_shopfront: probability that a frame has shop fronts.
+        shopfront_share: range of the share of facades with a shop front in such a frame.
+        p_paint: probability that a frame repaints facades.
+        paint_share: range of the share of facades repainted.
+        p_vehicle_colour: probability that a frame recolours vehicles.
+        vehicle_colour_share: range of the share of vehicles recoloured.
+        p_ground: probability of new road / sidewalk tones.
+        road_gain: range of the asphalt brightness multiplier.
+        p_light: probability of a new sun direction and light strengths.
+        sun_elevation_deg: range of the sun elevation (degrees) in such a frame.
+        p_sky: probability of new sky colours and clouds.
+        cloud_cover: range of the cloud cover (0 = clear, 1 = overcast).
+        p_shadows: probability of cast shadows.
+        p_bare_trees: probability of leafless crowns.
+        p_lens: probability of lens distortion.
+        lens_k1: range of the radial coefficient ``k1``.
+    """
+
+    p_shopfront: float = 0.0
+    shopfront_share: tuple[float, float] = (0.3, 0.8)
+    p_paint: float = 0.0
+    paint_share: tuple[float, float] = (0.2, 0.7)
+    p_vehicle_colour: float = 0.0
+    vehicle_colour_share: tuple[float, float] = (0.5, 1.0)
+    p_ground: float = 0.0
+    road_gain: tuple[float, float] = (0.75, 1.6)
+    p_light: float = 0.0
+    sun_elevation_deg: tuple[float, float] = (6.0, 65.0)
+    p_sky: float = 0.0
+    cloud_cover: tuple[float, float] = (0.0, 1.0)
+    p_shadows: float = 0.0
+    p_bare_trees: float = 0.0
+    p_lens: float = 0.0
+    lens_k1: tuple[float, float] = (-0.08, 0.25)
+
+    def __post_init__(self) -> None:
+        for name in _PROBABILITIES:
+            check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
+        ranges = {
+            "shopfront_share": (0.0, 1.0),
+            "paint_share": (0.0, 1.0),
+            "vehicle_colour_share": (0.0, 1.0),
+            "road_gain": (0.0, None),
+            "sun_elevation_deg": (0.5, 89.0),
+            "cloud_cover": (0.0, 1.0),
+            "lens_k1": (-0.2, 0.6),
+        }
+        for name, (low, high) in ranges.items():
+            lo, hi = getattr(self, name)
+            check_range(f"realism.{name}[0]", lo, low, high)
+            check_range(f"realism.{name}[1]", hi, low, high)
+            if lo > hi:
+                raise ConfigError(f"realism.{name}: expected low <= high, got {(lo, hi)}")
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any variation can be drawn."""
+        return any(getattr(self, name) > 0 for name in _PROBABILITIES)
+
+
+REALISTIC = RealismConfig(
+    p_shopfront=0.7,
+    p_paint=0.7,
+    p_vehicle_colour=0.7,
+    p_ground=0.7,
+    p_light=0.7,
+    p_sky=0.7,
+    p_shadows=0.5,
+    p_bare_trees=0.15,
+    p_lens=0.3,
+)
+"""Every variation on (configs: copy its values)."""
+
+
+@dataclass(frozen=True)
+class Variation:
+    """One frame's drawn appearance (the identity when built with no arguments but a seed).
+
+    Attributes:
+        seed: keys the per-facade and per-vehicle choices.
+        shopfront_share: share of facades with a shop front.
+        paint_share: share of facades repainted.
+        vehicle_colour_share: share of vehicles recoloured.
+        road_gain: asphalt brightness multiplier.
+        walk_rgb: `(3,)` paving colour multiplier.
+        marking_gain: road marking brightness multiplier.
+        sun: ``(azimuth_deg, elevation_deg, strength_gain)`` replacing the condition's sun
+            direction and scaling its strength, or None.
+        ambient_gain: multiplier of the sky light.
+        haze_gain: multiplier of the haze distance.
+        sky: ``(zenith rgb, horizon rgb)`` replacing the condition's, or None.
+        cloud_cover: 0..1.
+        shadows: cast shadows.
+        bare_trees: leafless crowns.
+        lens_k1: radial distortion coefficient (0: none).
+    """
+
+    seed: int = 0
+    shopfront_share: float = 0.0
+    paint_share: float = 0.0
+    vehicle_colour_share: float = 0.0
+    road_gain: float = 1.0
+    walk_rgb: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    marking_gain: float = 1.0
+    sun: tuple[float, float, float] | None = None
+    ambient_gain: float = 1.0
+    haze_gain: float = 1.0
+    sky: tuple[tuple[float, float, float], tuple[float, float, float]] | None = None
+    cloud_cover: float = 0.0
+    shadows: bool = False
+    bare_trees: bool = False
+    lens_k1: float = 0.0
+
+    def condition(self, cond: Condition) -> Condition:
+        """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
+        conditions only: dusk and night keep theirs)."""
+        changes: dict = {}
+        daylight = cond.sun_elevation_deg > 8.0  # not dusk nor night
+        if self.sun is not None and daylight and cond.sun_strength > 0:
+            az, el, gain = self.sun
+            changes.update(
+                sun_azimuth_deg=az,
+                sun_elevation_deg=el,
+                sun_strength=min(cond.sun_strength * gain, 1.2),
+            )
+        if self.ambient_gain != 1.0:
+            changes["ambient_strength"] = cond.ambient_strength * self.ambient_gain
+        if self.haze_gain != 1.0:
+            changes["haze"] = cond.haze * self.haze_gain
+        if self.sky is not None and daylight:
+            changes.update(sky_zenith=self.sky[0], sky_horizon=self.sky[1])
+        if self.bare_trees:
+            changes["leaves_on"] = False
+        return dataclasses.replace(cond, **changes) if changes else cond
+
+
+def _rgb(values) -> tuple[float, float, float]:
+    return tuple(float(v) for v in np.clip(values, 0.0, 1.0))
+
+
+def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
+    """One frame's :class:`Variation` drawn from ``cfg`` (the same draws for the same ``rng``
+    state, whatever options are on)."""
+    u = rng.random(len(_PROBABILITIES))
+    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_PROBABILITIES)}
+    r = rng.random(18)  # always drawn, so one option's draws do not depend on another's
+
+    def pick(i: int, low_high: tuple[float, float]) -> float:
+        return float(low_high[0] + (low_high[1] - low_high[0]) * r[i])
+
+    kw: dict = {"seed": int(rng.integers(2**31))}
+    if fires["p_shopfront"]:
+        kw["shopfront_share"] = pick(0, cfg.shopfront_share)
+    if fires["p_paint"]:
+        kw["paint_share"] = pick(1, cfg.paint_share)
+    if fires["p_vehicle_colour"]:
+        kw["vehicle_colour_share"] = pick(2, cfg.vehicle_colour_share)
+    if fires["p_ground"]:
+        kw["road_gain"] = pick(3, cfg.road_gain)
+        hue, sat, val = r[4], 0.25 * r[5] ** 2, 0.7 + 0.55 * r[6]
+        kw["walk_rgb"] = _rgb(np.array(colorsys.hsv_to_rgb(hue, sat, 1.0)) * val)
+        kw["marking_gain"] = 0.55 + 0.5 * float(r[7])
+    if fires["p_light"]:
+        el = pick(8, cfg.sun_elevation_deg)
+        kw["sun"] = (360.0 * float(r[9]), el, 0.6 + 0.7 * float(r[10]))
+        kw["ambient_gain"] = 0.7 + 0.6 * float(r[11])
+        kw["haze_gain"] = 0.5 + 1.5 * float(r[12])
+    if fires["p_sky"]:
+        grey = float(r[13])  # 0: clear blue, 1: flat white-grey
+        blue = np.array([0.22 + 0.2 * r[14], 0.42 + 0.15 * r[14], 0.85])
+        white = np.full(3, 0.62 + 0.36 * r[15])
+        zenith = blue * (1 - grey) + white * grey
+        horizon = np.clip(zenith + 0.25 * (1 - grey) + 0.08, 0.0, 1.0)
+        kw["sky"] = (_rgb(zenith), _rgb(horizon))
+        kw["cloud_cover"] = pick(17, cfg.cloud_cover)
+    kw["shadows"] = fires["p_shadows"]
+    kw["bare_trees"] = fires["p_bare_trees"]
+    if fires["p_lens"]:
+        kw["lens_k1"] = pick(16, cfg.lens_k1)
+    return Variation(**kw)
+
+
+def random_colours(key: np.ndarray, seed: int, saturated_share: float) -> np.ndarray:
+    """`(N, 3)` float32 colours from integer keys: neutral (white..black) or, for a share
+    ``saturated_share``, a random hue of medium saturation."""
+    from geoseg.synth.textures import hash01
+
+    hue = hash01(key, seed=seed * 7 + 1)
+    sat_pick = hash01(key, seed=seed * 7 + 2)
+    val = hash01(key, seed=seed * 7 + 3)
+    saturated = sat_pick < saturated_share
+    sat = np.where(saturated, 0.35 + 0.5 * hash01(key, seed=seed * 7 + 4), 0.04 * sat_pick)
+    val = np.where(saturated, 0.3 + 0.65 * val, 0.06 + 0.88 * val)
+    return hsv_to_rgb(hue, sat, val)
+
+
+def hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectorised HSV (each in [0, 1]) to `(N, 3)` float32 RGB."""
+    h6 = (np.asarray(h, np.float32) % 1.0) * 6.0
+    s = np.asarray(s, np.float32)
+    v = np.asarray(v, np.float32)
+    k = np.stack([(5.0 + h6) % 6.0, (3.0 + h6) % 6.0, (1.0 + h6) % 6.0], axis=1)
+    f = np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
+    return (v[:, None] * (1.0 - s[:, None] * f)).astype(np.float32)

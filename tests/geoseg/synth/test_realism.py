@@ -1,0 +1,156 @@
+"""Realism options: each appearance option changes the image only; geometry options keep the
+labels consistent; draws are deterministic and off by default."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from geoseg.classes import BUILDING, ROAD, SIDEWALK, SKY, VEGETATION, VEHICLE
+from geoseg.errors import ConfigError
+from geoseg.synth.conditions import get_condition
+from geoseg.synth.realism import REALISTIC, RealismConfig, Variation, draw_variation
+from geoseg.synth.renderer import Renderer
+from geoseg.synth.trajectory import drive
+
+GEOMETRY = ("labels", "depth", "normals", "instance", "normal_valid")
+
+# one appearance option at a time, and the class whose pixels it must recolour
+APPEARANCE = {
+    "shopfront": (Variation(seed=4, shopfront_share=1.0), BUILDING),
+    "paint": (Variation(seed=4, paint_share=1.0), BUILDING),
+    "vehicle_colour": (Variation(seed=4, vehicle_colour_share=1.0), VEHICLE),
+    "road": (Variation(seed=4, road_gain=1.4, marking_gain=0.6), ROAD),
+    "paving": (Variation(seed=4, walk_rgb=(0.7, 0.75, 0.8)), SIDEWALK),
+    "light": (Variation(seed=4, sun=(300.0, 15.0, 1.2), ambient_gain=0.8), BUILDING),
+    "sky": (Variation(seed=4, sky=((0.7, 0.7, 0.72), (0.85, 0.85, 0.85))), SKY),
+    "clouds": (Variation(seed=4, cloud_cover=0.7), SKY),
+    "shadows": (Variation(seed=4, shadows=True), ROAD),
+}
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_world):
+    renderer = Renderer(tiny_world)
+    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+    # a frame that shows every class the options recolour
+    for i in range(len(traj)):
+        pose = (traj.K, traj.R_wc[i], traj.t_wc[i], traj.image_size)
+        base = renderer.render(*pose, time_s=float(traj.timestamps[i]))
+        if all((base.labels == c).sum() > 20 for c in (BUILDING, ROAD, SIDEWALK, SKY, VEHICLE)):
+            return renderer, pose, float(traj.timestamps[i]), base
+    raise AssertionError("no frame shows every class")
+
+
+@pytest.mark.parametrize("name", sorted(APPEARANCE))
+def test_appearance_option_changes_the_image_not_the_geometry(scene, name):
+    renderer, pose, time_s, base = scene
+    variation, cls = APPEARANCE[name]
+    frame = renderer.render(*pose, time_s=time_s, variation=variation)
+    for key in GEOMETRY:
+        np.testing.assert_array_equal(getattr(frame, key), getattr(base, key), err_msg=key)
+    changed = np.abs(frame.rgb.astype(int) - base.rgb.astype(int)).max(axis=2) > 2
+    assert changed[base.labels == cls].mean() > 0.05, name
+
+
+def test_identity_variation_renders_as_before(scene):
+    renderer, pose, time_s, base = scene
+    frame = renderer.render(*pose, time_s=time_s, variation=Variation(seed=9))
+    np.testing.assert_array_equal(frame.rgb, base.rgb)
+
+
+def test_bare_trees_labels_follow_the_leafless_crowns(scene):
+    renderer, pose, time_s, base = scene
+    bare = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True))
+    leafless = dataclasses.replace(get_condition("summer_day"), leaves_on=False)
+    expected = renderer.render(*pose, leafless, time_s=time_s)
+    for key in GEOMETRY:
+        np.testing.assert_array_equal(getattr(bare, key), getattr(expected, key), err_msg=key)
+    assert (bare.labels == VEGETATION).sum() < (base.labels == VEGETATION).sum()
+    kept = base.labels != VEGETATION
+    np.testing.assert_array_equal(bare.labels[kept], base.labels[kept])
+
+
+def test_lens_distortion_moves_pixels_with_their_labels(scene):
+    renderer, pose, time_s, base = scene
+    frame = renderer.render(*pose, time_s=time_s, variation=Variation(lens_k1=0.25))
+    h, w = base.labels.shape
+    K = pose[0]
+    cy, cx = int(K[1, 2]), int(K[0, 2])
+    # the principal point does not move; the edges do
+    assert frame.labels[cy, cx] == base.labels[cy, cx]
+    assert frame.depth[cy, cx] == pytest.approx(base.depth[cy, cx], rel=1e-5)
+    assert (frame.labels != base.labels).mean() > 0.02
+    # every channel comes from the same rays: sky has no depth and no normal, surfaces do
+    sky = frame.labels == SKY
+    np.testing.assert_array_equal(sky, frame.depth == 0)
+    np.testing.assert_array_equal(~sky, frame.normal_valid)
+    # barrel distortion (k1 > 0) shows more of the scene: the horizon's building band shrinks
+    assert (frame.labels == BUILDING).sum() != (base.labels == BUILDING).sum()
+
+
+def test_draws_are_deterministic_and_off_by_default():
+    off = RealismConfig()
+    assert not off.enabled and REALISTIC.enabled
+    v = draw_variation(off, np.random.default_rng(0))
+    assert dataclasses.replace(v, seed=0) == Variation()
+    a = draw_variation(REALISTIC, np.random.default_rng(5))
+    assert a == draw_variation(REALISTIC, np.random.default_rng(5))
+    draws = [draw_variation(REALISTIC, np.random.default_rng(s)) for s in range(40)]
+    assert 0 < sum(d.shopfront_share > 0 for d in draws) < 40
+    assert any(d.lens_k1 != 0 for d in draws) and any(d.shadows for d in draws)
+    always = RealismConfig(p_sky=1.0, cloud_cover=(0.4, 0.4))
+    assert draw_variation(always, np.random.default_rng(1)).cloud_cover == 0.4
+
+
+def test_variation_keeps_dusk_and_night_light():
+    v = Variation(sun=(10.0, 40.0, 1.0), sky=((1.0, 1.0, 1.0), (1.0, 1.0, 1.0)))
+    for name in ("dusk", "night"):
+        assert v.condition(get_condition(name)) == get_condition(name)
+    day = v.condition(get_condition("summer_day"))
+    assert day.sun_elevation_deg == 40.0 and day.sky_zenith == (1.0, 1.0, 1.0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, key",
+    [
+        ({"p_shopfront": 1.5}, "p_shopfront"),
+        ({"paint_share": (0.8, 0.2)}, "paint_share"),
+        ({"lens_k1": (-0.5, 0.1)}, "lens_k1"),
+    ],
+)
+def test_bad_realism_values_are_named(kwargs, key):
+    with pytest.raises(ConfigError, match=key):
+        RealismConfig(**kwargs)
+
+
+def test_lens_distortion_finds_every_moving_vehicle_pixel(tiny_world, monkeypatch):
+    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+    renderer = Renderer(tiny_world)
+    lens = Variation(lens_k1=0.2)
+    frames = [
+        renderer.render(
+            traj.K,
+            traj.R_wc[i],
+            traj.t_wc[i],
+            traj.image_size,
+            time_s=float(traj.timestamps[i]),
+            variation=lens,
+        )
+        for i in range(len(traj))
+    ]
+    # the same frames with every ray cast against the moving vehicles
+    monkeypatch.setattr(Renderer, "_mover_pixels", lambda self, *args: None)
+    for i, frame in enumerate(frames):
+        full = renderer.render(
+            traj.K,
+            traj.R_wc[i],
+            traj.t_wc[i],
+            traj.image_size,
+            time_s=float(traj.timestamps[i]),
+            variation=lens,
+        )
+        np.testing.assert_array_equal(frame.instance, full.instance)
+    assert any((f.labels == VEHICLE).any() for f in frames)
