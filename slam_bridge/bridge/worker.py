@@ -13,8 +13,8 @@ At each keyframe it
    the camera centre each is seen from) to the association: of the points seen in the last
    ``recent_keyframes`` keyframes only, since the fusion constrains the points of its window
    and an association is per point (the final association, :meth:`BridgeWorker.finish`, covers
-   them all). The snapshot is taken in the loop's thread, so its cost must not grow with the
-   map.
+   them all). The loop's thread gathers only those rows (:class:`PointRows`); the association's
+   thread spreads them over the map's points.
 
 The SLAM never waits: a job that is not finished is applied at a later keyframe (its *lag*, in
 keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
