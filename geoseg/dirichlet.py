@@ -297,6 +297,35 @@ class _ScoreFilter:
         # the running sums leave ~1e-16 negatives where a probability is 0
         return np.maximum(uniform_filter(arr, size=size, mode="nearest"), 0.0)
 
+    def smooth_at(self, probs: Any, rows: Any, cols: Any) -> np.ndarray:
+        """:meth:`smooth`'s vectors at a few pixels only: the same box means (edge pixels
+        repeat), without smoothing the whole map (the bridge samples a few hundred pixels of
+        each keyframe's map).
+
+        Args:
+            probs: ``(H, W, K)`` probability map.
+            rows: ``(N,)`` pixel rows in ``[0, H)``.
+            cols: ``(N,)`` pixel columns in ``[0, W)``.
+
+        Returns:
+            ``(N, K)`` float64 probability vectors.
+        """
+        arr = np.asarray(probs.detach().cpu().numpy() if hasattr(probs, "detach") else probs)
+        if arr.ndim != 3:
+            raise GeosegError(f"probs: expected a map of shape (H, W, K), got {arr.shape}")
+        rows = np.asarray(rows, dtype=np.int64).reshape(-1)
+        cols = np.asarray(cols, dtype=np.int64).reshape(-1)
+        H, W = arr.shape[:2]
+        if rows.shape != cols.shape:
+            raise GeosegError(f"rows {rows.shape} and cols {cols.shape} differ")
+        if rows.size and (rows.min() < 0 or rows.max() >= H or cols.min() < 0 or cols.max() >= W):
+            raise GeosegError(f"rows/cols: pixels outside the {W}x{H} map")
+        offsets = np.arange(self.window) - self.window // 2
+        rr = np.clip(rows[:, None] + offsets, 0, H - 1)  # (N, window): clipping repeats edges
+        cc = np.clip(cols[:, None] + offsets, 0, W - 1)
+        boxes = _as_probs("probs", arr[rr[:, :, None], cc[:, None, :]], self.num_classes)
+        return np.maximum(boxes.mean(axis=(1, 2)), 0.0)
+
     def threshold_for_false_rejection(self, probs_true_building: Any, rate: float) -> float:
         """Pick and store the threshold that rejects a fraction ``rate`` of true building pixels.
 

@@ -219,7 +219,7 @@ def build_bridge(
         NUM_CLASSES,
         rule,
         constraints,
-        smooth=dirichlet_filter.smooth if uses_network else None,
+        smooth_at=dirichlet_filter.smooth_at if uses_network else None,
         associate_every=cfg.associate_every,
         infer_every=cfg.infer_every,
         asynchronous=cfg.asynchronous,

@@ -15,26 +15,29 @@ the observed points' running sums, kept as per-point attributes of the
 * ``bridge.samples`` / ``bridge.normal_samples`` ``(P,)``: how many vectors each sum holds.
 
 Points gain evidence as they are re-observed; each keyframe is added once. Probabilities are
-sampled from the maps as given: pass the ``smooth`` of the Dirichlet filter that will score them
-(:meth:`geoseg.dirichlet.DirichletFilter.smooth`, a 5x5 mean for the shipped filter) so that
-the points see the vectors the filter was calibrated on.
+sampled from the maps as given: pass the ``smooth_at`` of the Dirichlet filter that will score
+them (:meth:`geoseg.dirichlet.DirichletFilter.smooth_at`, 5x5 means for the shipped filter) so
+that the points see the vectors the filter was calibrated on.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
 
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.map import Map
 
-__all__ = ["OutputSamples", "PointEvidence", "sample_outputs"]
+__all__ = ["OutputSamples", "PixelSampler", "PointEvidence", "sample_outputs"]
 
 PROB_SUM, VOTES, SAMPLES = "bridge.prob_sum", "bridge.votes", "bridge.samples"
 NORMAL_SUM, NORMAL_SAMPLES = "bridge.normal_sum", "bridge.normal_samples"
 SUM_TOL = 1e-3  # a probability vector must sum to 1 within this
+#: ``(probs (h, w, K), rows (N,), cols (N,)) -> (N, K)``: the vectors a map gives at some pixels
+PixelSampler: TypeAlias = Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray]
 
 
 @dataclass(frozen=True)
@@ -60,7 +63,7 @@ def sample_outputs(
     R_wc: np.ndarray,
     image_size: tuple[int, int],
     num_classes: int,
-    smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+    smooth_at: PixelSampler | None = None,
 ) -> OutputSamples:
     """Sample one keyframe's network maps at its observation pixels (nearest map pixel).
 
@@ -73,14 +76,15 @@ def sample_outputs(
             finite: a keyframe the SLAM could not place, whose normals are left out).
         image_size: ``(W, H)`` of the image.
         num_classes: ``K``.
-        smooth: applied to ``probs`` first (None: as given).
+        smooth_at: the vectors at the sampled pixels (e.g. the box means of
+            :meth:`geoseg.dirichlet.DirichletFilter.smooth_at`; None: the pixels' own).
 
     Raises:
         SlamError: maps of another aspect ratio or class count, normals of another size,
             non-finite values, probability vectors that are negative or do not sum to 1.
     """
     W, H = image_size
-    probs = np.asarray(probs, dtype=np.float64)
+    probs = np.asarray(probs)
     if probs.ndim != 3 or probs.shape[2] != num_classes:
         raise SlamError(f"probs: expected (h, w, {num_classes}) maps, got shape {probs.shape}")
     h, w = probs.shape[:2]
@@ -88,12 +92,11 @@ def sample_outputs(
         raise SlamError(f"probs: {w}x{h} maps for {W}x{H} images (not the same aspect ratio)")
     if not np.isfinite(probs).all():
         raise SlamError("probs: the probability map holds NaN or infinite values")
-    if smooth is not None:
-        probs = np.asarray(smooth(probs), dtype=np.float64)
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     cols = np.clip(np.rint((uv[:, 0] + 0.5) * w / W - 0.5).astype(np.int64), 0, w - 1)
     rows = np.clip(np.rint((uv[:, 1] + 0.5) * h / H - 0.5).astype(np.int64), 0, h - 1)
-    p = probs[rows, cols]
+    sampled = probs[rows, cols] if smooth_at is None else smooth_at(probs, rows, cols)
+    p = np.asarray(sampled, dtype=np.float64)
     if np.any(np.abs(p.sum(axis=1) - 1.0) > SUM_TOL) or np.any(p < 0):
         raise SlamError("probs: probability vectors must be >= 0 and sum to 1")
     R_wc = np.asarray(R_wc, dtype=np.float64)
@@ -118,20 +121,21 @@ class PointEvidence:
     Args:
         slam_map: the map; the attributes are registered on it.
         num_classes: ``K``, the length of the probability vectors.
-        smooth: applied to each ``(H, W, K)`` probability map before sampling (None: as given).
+        smooth_at: the vectors a probability map gives at the sampled pixels (None: the
+            pixels' own; :func:`sample_outputs`).
     """
 
     def __init__(
         self,
         slam_map: Map,
         num_classes: int,
-        smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+        smooth_at: PixelSampler | None = None,
     ) -> None:
         if not isinstance(num_classes, int) or num_classes < 2:
             raise SlamError(f"num_classes: expected an int >= 2, got {num_classes!r}")
         self.map = slam_map
         self.num_classes = num_classes
-        self.smooth = smooth
+        self.smooth_at = smooth_at
         slam_map.add_attribute(PROB_SUM, (num_classes,), np.float64, 0.0)
         slam_map.add_attribute(VOTES, (num_classes,), np.int64, 0)
         slam_map.add_attribute(SAMPLES, (), np.int64, 0)
@@ -162,8 +166,9 @@ class PointEvidence:
         obs = m.keyframe_observations(k)
         obs = obs[m.obs_active[obs]]
         samples = sample_outputs(
-            probs, normals, m.obs_uv[obs], m.R_wc[k], m.image_size, self.num_classes, self.smooth
-        )
+            probs, normals, m.obs_uv[obs], m.R_wc[k], m.image_size, self.num_classes,
+            self.smooth_at,
+        )  # fmt: skip
         self.add_samples(k, m.obs_point[obs], samples)
         return int(obs.size)
 

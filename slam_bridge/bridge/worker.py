@@ -45,7 +45,7 @@ import numpy as np
 
 from slam_bridge.bridge.association import Association
 from slam_bridge.bridge.constraints import BuildingConstraints
-from slam_bridge.bridge.evidence import PointEvidence, sample_outputs
+from slam_bridge.bridge.evidence import PixelSampler, PointEvidence, sample_outputs
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.map import Map
 
@@ -60,7 +60,7 @@ InferenceJob = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 def infer_and_sample(
-    network: NetworkOutputs, job: InferenceJob, num_classes: int, smooth
+    network: NetworkOutputs, job: InferenceJob, num_classes: int, smooth_at: PixelSampler | None
 ) -> tuple[object, float]:
     """The network's outputs at a keyframe's observations (:func:`~slam_bridge.bridge.evidence.
     sample_outputs`) and the seconds it took."""
@@ -68,7 +68,7 @@ def infer_and_sample(
     t0 = time.perf_counter()
     probs, normals = network(image)
     size = (image.shape[1], image.shape[0])
-    out = sample_outputs(probs, normals, uv, R_wc, size, num_classes, smooth)
+    out = sample_outputs(probs, normals, uv, R_wc, size, num_classes, smooth_at)
     return out, time.perf_counter() - t0
 
 
@@ -79,10 +79,12 @@ _CHILD: dict = {}
 CHILD_NICENESS = 10
 
 
-def _child_start(make_network: Callable[[], NetworkOutputs], num_classes: int, smooth) -> None:
+def _child_start(
+    make_network: Callable[[], NetworkOutputs], num_classes: int, smooth_at: PixelSampler | None
+) -> None:
     if hasattr(os, "nice"):  # the loop first: the network gets the cycles the loop leaves
         os.nice(CHILD_NICENESS)
-    _CHILD.update(num_classes=num_classes, smooth=smooth)
+    _CHILD.update(num_classes=num_classes, smooth_at=smooth_at)
     try:
         _CHILD["network"] = make_network()
     except Exception as exc:  # raised by the first job, in the parent (an initializer's error
@@ -96,7 +98,7 @@ def _child_network() -> NetworkOutputs:
 
 
 def _child_infer(job: InferenceJob) -> tuple[object, float]:
-    return infer_and_sample(_child_network(), job, _CHILD["num_classes"], _CHILD["smooth"])
+    return infer_and_sample(_child_network(), job, _CHILD["num_classes"], _CHILD["smooth_at"])
 
 
 def _child_call(fn: Callable[[NetworkOutputs], object]) -> object:
@@ -157,7 +159,8 @@ class BridgeWorker:
         associate: an association of a snapshot (e.g. :func:`~slam_bridge.bridge.association.
             associate_bayes` over the model's facades).
         constraints: the fusion's building provider, given each new association.
-        smooth: applied to each probability map before sampling (the Dirichlet filter's).
+        smooth_at: the vectors a probability map gives at the sampled pixels (the Dirichlet
+            filter's box means, :meth:`geoseg.dirichlet.DirichletFilter.smooth_at`).
         associate_every: keyframes between associations.
         infer_every: keyframes between inferences (1: every keyframe). A map point is seen in
             many keyframes, so a slow network labelling every few still reaches most points,
@@ -182,7 +185,7 @@ class BridgeWorker:
         associate: Callable[[AssociationInputs], Association],
         constraints: BuildingConstraints,
         *,
-        smooth: Callable[[np.ndarray], np.ndarray] | None = None,
+        smooth_at: PixelSampler | None = None,
         associate_every: int = 5,
         infer_every: int = 1,
         max_pending: int = 4,
@@ -197,7 +200,7 @@ class BridgeWorker:
             raise SlamError(f"recent_keyframes: expected >= 1 or None, got {recent_keyframes}")
         self.recent_keyframes = recent_keyframes
         self.num_classes = num_classes
-        self.associate, self.constraints, self.smooth = associate, constraints, smooth
+        self.associate, self.constraints, self.smooth_at = associate, constraints, smooth_at
         self.associate_every, self.max_pending = associate_every, max_pending
         self.infer_every = infer_every
         self.asynchronous, self.image_at = asynchronous, image_at
@@ -220,7 +223,7 @@ class BridgeWorker:
                     1,
                     mp_context=multiprocessing.get_context("spawn"),
                     initializer=_child_start,
-                    initargs=(make_network, num_classes, smooth),
+                    initargs=(make_network, num_classes, smooth_at),
                 )
                 try:
                     self.call_network(_built)  # started and built now: its errors raise here
@@ -236,7 +239,7 @@ class BridgeWorker:
         :class:`~slam_bridge.frontend.base.KeyframeObservations`, or None (a start keyframe)."""
         t0 = time.perf_counter()
         if self.evidence is None:
-            self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth)
+            self.evidence = PointEvidence(slam_map, self.num_classes, self.smooth_at)
         self._apply(slam_map, k, wait=False)
         infer = (self.network is not None or self.in_process) and k % self.infer_every == 0
         image = None if obs is None or not infer else obs.image
@@ -294,7 +297,7 @@ class BridgeWorker:
         self._pending[kind].append((k, payload, fut))
 
     def _infer(self, job: InferenceJob) -> tuple[object, float]:
-        return infer_and_sample(self.network, job, self.num_classes, self.smooth)
+        return infer_and_sample(self.network, job, self.num_classes, self.smooth_at)
 
     def _associate(self, rows: PointRows) -> tuple[Association, float]:
         t0 = time.perf_counter()

@@ -345,6 +345,26 @@ def test_window_smooths_box_means_and_round_trips(tmp_path, cls) -> None:
         f.smooth(probs[0])
 
 
+@pytest.mark.parametrize("window", [1, 3, 5])
+def test_smooth_at_equals_the_smoothed_map_at_the_pixels(window: int) -> None:
+    rng = np.random.default_rng(window)
+    probs = rng.dirichlet(np.ones(NUM_CLASSES), size=(7, 9)).astype(np.float32)
+    f = MaxProbabilityFilter(window=window)
+    rows, cols = np.array([0, 3, 6, 6, 2]), np.array([0, 4, 8, 0, 8])  # corners and edges
+    np.testing.assert_allclose(f.smooth_at(probs, rows, cols), f.smooth(probs)[rows, cols])
+    assert f.smooth_at(probs, rows[:0], cols[:0]).shape == (0, NUM_CLASSES)
+    with pytest.raises(GeosegError, match="outside"):
+        f.smooth_at(probs, np.array([7]), np.array([0]))
+    with pytest.raises(GeosegError, match="differ"):
+        f.smooth_at(probs, rows, cols[:2])
+    with pytest.raises(GeosegError, match="H, W, K"):
+        f.smooth_at(probs[0], rows, cols)
+    bad = probs.copy()
+    bad[3, 4, 0] = np.nan
+    with pytest.raises(GeosegError, match="NaN"):
+        f.smooth_at(bad, rows, cols)
+
+
 @pytest.mark.parametrize(
     ("key", "value", "message"),
     [

@@ -78,7 +78,7 @@ def test_build_bridge_wires_the_association_and_the_constraints(facades):
         BridgeConfig(window_weight=3.0, asynchronous=False), facades, image_size=(640, 480),
         segmenter=FakeSegmenter(),
     )  # fmt: skip
-    assert worker.constraints.window_weight == 3.0 and worker.smooth is not None
+    assert worker.constraints.window_weight == 3.0 and worker.smooth_at is not None
     probs, normals = worker.network(np.zeros((480, 640, 3), np.uint8))
     assert probs.shape == (240, 320, NUM_CLASSES) and normals.shape == (240, 320, 3)
     # a building-labelled point 1 m in front of the facade, its normal towards the street

@@ -75,9 +75,15 @@ def test_maps_at_half_the_image_size():
 def test_points_added_later_and_smoothing():
     m = _map()
     calls = []
-    ev = PointEvidence(m, K_CLASSES, smooth=lambda p: calls.append(p.shape) or p)
+
+    def first_class(probs, rows, cols):  # a sampler that sees the map and the pixels
+        calls.append((probs.shape, rows.size))
+        return np.eye(K_CLASSES)[np.zeros(rows.size, np.int64)]
+
+    ev = PointEvidence(m, K_CLASSES, smooth_at=first_class)
     ev.add_keyframe(1, _probs(True))
-    assert calls == [(SIZE[1], SIZE[0], K_CLASSES)]
+    assert calls == [((SIZE[1], SIZE[0], K_CLASSES), 3)]
+    np.testing.assert_array_equal(ev.labels()[:3], [0, 0, 0])
     m.add_keyframe(2.0, np.array([5]), np.array([[0.0, 0.0]]))  # the map grows
     ev.add_keyframe(2, _probs(True))
     np.testing.assert_array_equal(ev.samples, [1, 1, 1, 0, 0, 1])
