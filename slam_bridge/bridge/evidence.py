@@ -28,6 +28,7 @@ from typing import TypeAlias
 
 import numpy as np
 
+from geoseg.errors import GeosegError
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.map import Map
 
@@ -95,7 +96,10 @@ def sample_outputs(
     uv = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     cols = np.clip(np.rint((uv[:, 0] + 0.5) * w / W - 0.5).astype(np.int64), 0, w - 1)
     rows = np.clip(np.rint((uv[:, 1] + 0.5) * h / H - 0.5).astype(np.int64), 0, h - 1)
-    sampled = probs[rows, cols] if smooth_at is None else smooth_at(probs, rows, cols)
+    try:
+        sampled = probs[rows, cols] if smooth_at is None else smooth_at(probs, rows, cols)
+    except GeosegError as exc:  # the sampler's own checks (a filter's): this module's error
+        raise SlamError(f"probs: {exc}") from exc
     p = np.asarray(sampled, dtype=np.float64)
     if np.any(np.abs(p.sum(axis=1) - 1.0) > SUM_TOL) or np.any(p < 0):
         raise SlamError("probs: probability vectors must be >= 0 and sum to 1")

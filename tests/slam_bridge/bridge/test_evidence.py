@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from geoseg.dirichlet import MaxProbabilityFilter
 from slam_bridge.bridge.evidence import PointEvidence
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.map import Map
@@ -122,8 +123,15 @@ def test_rejected_observations_are_not_sampled():
         (lambda p: np.where(p > 0.5, np.nan, p), "NaN"),
     ],
 )
-def test_bad_probability_maps(change, message):
-    ev = PointEvidence(_map(), K_CLASSES)
+@pytest.mark.parametrize("window", [None, 3])
+def test_bad_probability_maps(change, message, window):
+    """The same errors with the pixels' own vectors and with a filter's box means."""
+    smooth_at = (
+        None
+        if window is None
+        else MaxProbabilityFilter(num_classes=K_CLASSES, building_class=1, window=window).smooth_at
+    )
+    ev = PointEvidence(_map(), K_CLASSES, smooth_at=smooth_at)
     with pytest.raises(SlamError, match=message):
         ev.add_keyframe(0, change(_probs(True)))
 
