@@ -32,6 +32,8 @@ ids do not):
 - ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
   sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
   joints, tone per slab and dirt, where the default paving is plain tiles;
+- ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
+  single white or yellow line), on some street sides, worn to a varying brightness;
 - ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
   sun, in daylight conditions (grey skies beside grey facades: the sky class must be learnt
   from more than its colour).
@@ -77,6 +79,7 @@ _PROBABILITIES = (
 )
 # drawn after the options above (their draws, and so the older variations, stay as they were)
 _PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
+_PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
 
 
 @dataclass
@@ -105,6 +108,7 @@ class RealismConfig:
         p_kerb: probability of kerbs, gutters and slab paving.
         slab_m: range of the paving slab edge, metres.
         p_overcast: probability of a flat grey overcast sky with a weak sun.
+        p_kerb_lines: probability of painted lines along the kerbs.
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
@@ -129,6 +133,7 @@ class RealismConfig:
     p_kerb: float = 0.0
     slab_m: tuple[float, float] = (0.4, 0.9)
     p_overcast: float = 0.0
+    p_kerb_lines: float = 0.0
     bare_crown_label: bool = False
 
     def __post_init__(self) -> None:
@@ -136,7 +141,7 @@ class RealismConfig:
             raise ConfigError(
                 f"realism.bare_crown_label: expected true or false, got {self.bare_crown_label!r}"
             )
-        for name in _PROBABILITIES + _PROBABILITIES_2:
+        for name in _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3:
             check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
         ranges = {
             "shopfront_share": (0.0, 1.0),
@@ -159,7 +164,7 @@ class RealismConfig:
     @property
     def enabled(self) -> bool:
         """Whether any variation can be drawn (or the bare crowns' labels change)."""
-        probabilities = _PROBABILITIES + _PROBABILITIES_2
+        probabilities = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3
         return self.bare_crown_label or any(getattr(self, n) > 0 for n in probabilities)
 
 
@@ -212,6 +217,7 @@ class Variation:
         twig_density: share of the background each bare crown surface covers (0: none).
         kerb_face: brightness of the kerb's face relative to its top stone (0: no kerb drawn).
         slab_m: paving slab edge, metres (0: the default tiles).
+        kerb_lines: brightness of the paint along the kerbs (0: none).
         bare_crown_label: bare crowns' whole silhouettes are ``vegetation``.
     """
 
@@ -233,6 +239,7 @@ class Variation:
     twig_density: float = 0.0
     kerb_face: float = 0.0
     slab_m: float = 0.0
+    kerb_lines: float = 0.0
     bare_crown_label: bool = False
 
     def condition(self, cond: Condition) -> Condition:
@@ -306,28 +313,32 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
 
 
 def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
-    """The :class:`Variation` fields of twigs, kerbs, overcast skies and crown labels."""
+    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines and crown
+    labels (options left at 0 draw nothing: the earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
-    if not any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
-        return kw  # (no draws: a config without them draws exactly as before)
-    u = rng.random(len(_PROBABILITIES_2))
-    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_PROBABILITIES_2)}
-    r = rng.random(8)
-    if fires["p_twigs"]:
-        lo, hi = cfg.twig_density
-        kw["twig_density"] = float(lo + (hi - lo) * r[0])
-    if fires["p_kerb"]:
-        kw["kerb_face"] = float(0.35 + 0.5 * r[1])  # in shade to half lit
-        lo, hi = cfg.slab_m
-        kw["slab_m"] = float(lo + (hi - lo) * r[2])
-    if fires["p_overcast"]:
-        grey = 0.55 + 0.4 * r[3]
-        tint = np.array([0.97, 0.99, 1.03]) * grey
-        kw["sky"] = (_rgb(tint * (0.9 + 0.06 * r[4])), _rgb(tint))
-        kw["cloud_cover"] = float(0.6 + 0.4 * r[5])
-        # a weak, high sun: soft light with hardly any shading
-        kw["sun"] = (360.0 * float(r[6]), 50.0, 0.15 + 0.25 * float(r[7]))
-        kw["shadows"] = False
+    if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
+        u = rng.random(len(_PROBABILITIES_2))
+        fires = {n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_PROBABILITIES_2)}
+        r = rng.random(8)
+        if fires["p_twigs"]:
+            lo, hi = cfg.twig_density
+            kw["twig_density"] = float(lo + (hi - lo) * r[0])
+        if fires["p_kerb"]:
+            kw["kerb_face"] = float(0.35 + 0.5 * r[1])  # in shade to half lit
+            lo, hi = cfg.slab_m
+            kw["slab_m"] = float(lo + (hi - lo) * r[2])
+        if fires["p_overcast"]:
+            grey = 0.55 + 0.4 * r[3]
+            tint = np.array([0.97, 0.99, 1.03]) * grey
+            kw["sky"] = (_rgb(tint * (0.9 + 0.06 * r[4])), _rgb(tint))
+            kw["cloud_cover"] = float(0.6 + 0.4 * r[5])
+            # a weak, high sun: soft light with hardly any shading
+            kw["sun"] = (360.0 * float(r[6]), 50.0, 0.15 + 0.25 * float(r[7]))
+            kw["shadows"] = False
+    if cfg.p_kerb_lines > 0:
+        u3 = rng.random(2)
+        if u3[0] < cfg.p_kerb_lines:
+            kw["kerb_lines"] = float(0.45 + 0.5 * u3[1])  # worn to fresh paint
     return kw
 
 

@@ -535,6 +535,17 @@ class Renderer:
                         var.slab_m,
                         tone=0.6 * float(np.mean(var.walk_rgb)),
                     )
+                if var.kerb_lines > 0:
+                    textures.kerb_lines(
+                        albedo,
+                        g,
+                        cls,
+                        side,
+                        np.maximum(street, 0),
+                        self._half_width,
+                        var.kerb_lines,
+                        var.seed % 100003,
+                    )
 
         f = np.nonzero(kind == SurfaceKind.FACADE)[0]
         if len(f):

@@ -462,6 +462,43 @@ def kerb_and_paving(
         albedo[g[r]] *= np.where(grate, 0.45, grime)[:, None].astype(np.float32)
 
 
+def kerb_lines(
+    albedo: np.ndarray,
+    g: np.ndarray,
+    cls: np.ndarray,
+    side: np.ndarray,
+    street: np.ndarray,
+    half_width: float,
+    brightness: float,
+    seed: int,
+) -> None:
+    """Paint along the kerbs on the ground rows ``g`` of ``albedo`` (in place; road stays
+    road): per street side none, a double yellow line, a single yellow or a single white one.
+
+    Args:
+        albedo: `(M, 3)` float32 albedo of all hits; rows ``g`` `(N,)` are the ground hits.
+        g: `(N,)` rows of the ground hits.
+        cls: `(N,)` their class.
+        side: `(N,)` signed distance to the centreline, metres.
+        street: `(N,)` index of the nearest street.
+        half_width: half the carriageway width (the kerb line), metres.
+        brightness: paint brightness (worn < 1).
+        seed: keys the style of each street side.
+    """
+    from_kerb = half_width - np.abs(side).astype(np.float32)
+    r = np.nonzero((cls == ROAD) & (from_kerb > 0.15) & (from_kerb < 0.45))[0]
+    if len(r) == 0:
+        return
+    style = hash_u32(street[r], (side[r] > 0).astype(np.int64), seed=seed) % 6  # 0-1: none
+    near = from_kerb[r] < 0.25
+    far = from_kerb[r] > 0.35
+    paint = ((style >= 2) & near) | ((style <= 3) & (style >= 2) & far)  # 2-3: double
+    yellow = np.float32([0.85, 0.66, 0.12])
+    colour = np.where((style == 5)[:, None], np.float32([0.82, 0.82, 0.8]), yellow)
+    rows = g[r[paint]]
+    albedo[rows] = colour[paint] * np.float32(brightness)
+
+
 # --------------------------------------------------------------------------------------------
 # Trees, roofs, vehicles, street furniture, sky
 # --------------------------------------------------------------------------------------------

@@ -80,6 +80,21 @@ def test_bare_trees_labels_follow_the_leafless_crowns(scene):
     np.testing.assert_array_equal(bare.labels[kept], base.labels[kept])
 
 
+def test_kerb_lines_paint_the_road_along_the_kerbs(scene):
+    renderer, pose, time_s, base = scene
+    changed_any = 0
+    for seed in range(4):  # each street side draws its style: try a few
+        frame = renderer.render(
+            *pose, time_s=time_s, variation=Variation(seed=seed, kerb_lines=0.9)
+        )
+        for key in GEOMETRY:
+            np.testing.assert_array_equal(getattr(frame, key), getattr(base, key), err_msg=key)
+        changed = np.abs(frame.rgb.astype(int) - base.rgb.astype(int)).max(axis=2) > 2
+        assert not changed[base.labels != ROAD].any()
+        changed_any += int(changed.sum())
+    assert changed_any > 10
+
+
 def test_twigs_veil_what_shows_through_bare_crowns(scene):
     renderer, pose, time_s, base = scene
     bare = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True))
@@ -113,13 +128,19 @@ def test_bare_crown_label_draws_the_whole_crown_vegetation(scene):
 def test_second_round_options_keep_the_first_rounds_draws():
     fields = [f.name for f in dataclasses.fields(Variation)]
     first = fields[: fields.index("twig_density")]
-    both = dataclasses.replace(REALISTIC, p_twigs=1.0, p_kerb=1.0, bare_crown_label=True)
+    both = dataclasses.replace(
+        REALISTIC, p_twigs=1.0, p_kerb=1.0, p_kerb_lines=1.0, bare_crown_label=True
+    )
     for seed in range(10):
         a = draw_variation(REALISTIC, np.random.default_rng(seed))
         b = draw_variation(both, np.random.default_rng(seed))
         assert [getattr(a, f) for f in first] == [getattr(b, f) for f in first]
         assert a.twig_density == a.kerb_face == 0 and not a.bare_crown_label
         assert b.twig_density > 0 and b.kerb_face > 0 and b.slab_m > 0 and b.bare_crown_label
+        assert b.kerb_lines > 0 and a.kerb_lines == 0
+        # the kerb lines are drawn last: the other second-round draws stay
+        c = draw_variation(dataclasses.replace(both, p_kerb_lines=0.0), np.random.default_rng(seed))
+        assert dataclasses.replace(b, kerb_lines=0.0) == c
     assert RealismConfig(bare_crown_label=True).enabled
     assert REALISTIC_2.enabled and REALISTIC_2.bare_crown_label
 
@@ -183,6 +204,7 @@ def test_variation_keeps_dusk_and_night_light():
         ({"paint_share": (0.8, 0.2)}, "paint_share"),
         ({"lens_k1": (-0.5, 0.1)}, "lens_k1"),
         ({"p_kerb": -0.1}, "p_kerb"),
+        ({"p_kerb_lines": 2.0}, "p_kerb_lines"),
         ({"slab_m": (0.0, 0.5)}, "slab_m"),
         ({"bare_crown_label": "yes"}, "bare_crown_label"),
     ],
