@@ -24,7 +24,26 @@ ids do not):
 - ``p_light``: the sun's direction and strength, the sky light and the haze change;
 - ``p_sky``: the sky's colours change (clear blue to flat white and grey) and clouds appear
   (``cloud_cover``);
-- ``p_shadows``: cast shadows (a second ray cast, ~20 % slower per frame that draws them).
+- ``p_shadows``: cast shadows (a second ray cast, ~20 % slower per frame that draws them);
+- ``p_twigs`` / ``twig_density``: bare crowns get a haze of fine twigs, finer than a pixel:
+  each crown surface a ray passes through covers ``twig_density`` of what lies behind with a
+  dull grey-brown (a leafless tree reads as a textured veil against the sky, not as sparse
+  dots);
+- ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
+  sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
+  joints, tone per slab and dirt, where the default paving is plain tiles;
+- ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
+  single white or yellow line), on some street sides, worn to a varying brightness;
+- ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
+  sun, in daylight conditions (grey skies beside grey facades: the sky class must be learnt
+  from more than its colour).
+
+Label option (the image, depth and normals do not change; the labels do):
+
+- ``bare_crown_label``: every pixel whose ray meets a bare crown first is ``vegetation``, the
+  crown's whole silhouette, as real datasets label a leafless tree (CamVid's ``Tree`` covers
+  the sky between the branches); off, such a pixel takes the label of what its ray reaches
+  between the branches. It acts wherever crowns are bare (``p_bare_trees``, ``winter``).
 
 Options that change the geometry, with labels that follow it (rendered from the same rays):
 
@@ -58,6 +77,9 @@ _PROBABILITIES = (
     "p_bare_trees",
     "p_lens",
 )
+# drawn after the options above (their draws, and so the older variations, stay as they were)
+_PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
+_PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
 
 
 @dataclass
@@ -81,6 +103,13 @@ class RealismConfig:
         p_bare_trees: probability of leafless crowns.
         p_lens: probability of lens distortion.
         lens_k1: range of the radial coefficient ``k1``.
+        p_twigs: probability that bare crowns get a haze of fine twigs.
+        twig_density: range of the share of the background each crown surface covers.
+        p_kerb: probability of kerbs, gutters and slab paving.
+        slab_m: range of the paving slab edge, metres.
+        p_overcast: probability of a flat grey overcast sky with a weak sun.
+        p_kerb_lines: probability of painted lines along the kerbs.
+        bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
     p_shopfront: float = 0.0
@@ -99,9 +128,20 @@ class RealismConfig:
     p_bare_trees: float = 0.0
     p_lens: float = 0.0
     lens_k1: tuple[float, float] = (-0.08, 0.25)
+    p_twigs: float = 0.0
+    twig_density: tuple[float, float] = (0.15, 0.45)
+    p_kerb: float = 0.0
+    slab_m: tuple[float, float] = (0.4, 0.9)
+    p_overcast: float = 0.0
+    p_kerb_lines: float = 0.0
+    bare_crown_label: bool = False
 
     def __post_init__(self) -> None:
-        for name in _PROBABILITIES:
+        if not isinstance(self.bare_crown_label, bool):
+            raise ConfigError(
+                f"realism.bare_crown_label: expected true or false, got {self.bare_crown_label!r}"
+            )
+        for name in _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3:
             check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
         ranges = {
             "shopfront_share": (0.0, 1.0),
@@ -111,6 +151,8 @@ class RealismConfig:
             "sun_elevation_deg": (0.5, 89.0),
             "cloud_cover": (0.0, 1.0),
             "lens_k1": (-0.2, 0.6),
+            "twig_density": (0.0, 1.0),
+            "slab_m": (0.1, 3.0),
         }
         for name, (low, high) in ranges.items():
             lo, hi = getattr(self, name)
@@ -121,8 +163,9 @@ class RealismConfig:
 
     @property
     def enabled(self) -> bool:
-        """Whether any variation can be drawn."""
-        return any(getattr(self, name) > 0 for name in _PROBABILITIES)
+        """Whether any variation can be drawn (or the bare crowns' labels change)."""
+        probabilities = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3
+        return self.bare_crown_label or any(getattr(self, n) > 0 for n in probabilities)
 
 
 REALISTIC = RealismConfig(
@@ -136,7 +179,18 @@ REALISTIC = RealismConfig(
     p_bare_trees=0.15,
     p_lens=0.3,
 )
-"""Every variation on (configs: copy its values)."""
+"""Every variation of the first round on (configs: copy its values)."""
+
+REALISTIC_2 = dataclasses.replace(
+    REALISTIC,
+    p_bare_trees=0.4,
+    p_twigs=0.8,
+    p_kerb=0.7,
+    p_overcast=0.25,
+    bare_crown_label=True,
+)
+""":data:`REALISTIC` with the second round on: more bare trees, labelled as real datasets
+label them, twig haze, kerbs and slab paving, overcast skies."""
 
 
 @dataclass(frozen=True)
@@ -160,6 +214,11 @@ class Variation:
         shadows: cast shadows.
         bare_trees: leafless crowns.
         lens_k1: radial distortion coefficient (0: none).
+        twig_density: share of the background each bare crown surface covers (0: none).
+        kerb_face: brightness of the kerb's face relative to its top stone (0: no kerb drawn).
+        slab_m: paving slab edge, metres (0: the default tiles).
+        kerb_lines: brightness of the paint along the kerbs (0: none).
+        bare_crown_label: bare crowns' whole silhouettes are ``vegetation``.
     """
 
     seed: int = 0
@@ -177,6 +236,11 @@ class Variation:
     shadows: bool = False
     bare_trees: bool = False
     lens_k1: float = 0.0
+    twig_density: float = 0.0
+    kerb_face: float = 0.0
+    slab_m: float = 0.0
+    kerb_lines: float = 0.0
+    bare_crown_label: bool = False
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -244,7 +308,38 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
     kw["bare_trees"] = fires["p_bare_trees"]
     if fires["p_lens"]:
         kw["lens_k1"] = pick(16, cfg.lens_k1)
+    kw.update(_draw_second_round(cfg, rng))
     return Variation(**kw)
+
+
+def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
+    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines and crown
+    labels (options left at 0 draw nothing: the earlier options' draws stay as they were)."""
+    kw: dict = {"bare_crown_label": cfg.bare_crown_label}
+    if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
+        u = rng.random(len(_PROBABILITIES_2))
+        fires = {n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_PROBABILITIES_2)}
+        r = rng.random(8)
+        if fires["p_twigs"]:
+            lo, hi = cfg.twig_density
+            kw["twig_density"] = float(lo + (hi - lo) * r[0])
+        if fires["p_kerb"]:
+            kw["kerb_face"] = float(0.35 + 0.5 * r[1])  # in shade to half lit
+            lo, hi = cfg.slab_m
+            kw["slab_m"] = float(lo + (hi - lo) * r[2])
+        if fires["p_overcast"]:
+            grey = 0.55 + 0.4 * r[3]
+            tint = np.array([0.97, 0.99, 1.03]) * grey
+            kw["sky"] = (_rgb(tint * (0.9 + 0.06 * r[4])), _rgb(tint))
+            kw["cloud_cover"] = float(0.6 + 0.4 * r[5])
+            # a weak, high sun: soft light with hardly any shading
+            kw["sun"] = (360.0 * float(r[6]), 50.0, 0.15 + 0.25 * float(r[7]))
+            kw["shadows"] = False
+    if cfg.p_kerb_lines > 0:
+        u3 = rng.random(2)
+        if u3[0] < cfg.p_kerb_lines:
+            kw["kerb_lines"] = float(0.45 + 0.5 * u3[1])  # worn to fresh paint
+    return kw
 
 
 def random_colours(key: np.ndarray, seed: int, saturated_share: float) -> np.ndarray:

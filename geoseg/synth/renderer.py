@@ -175,6 +175,8 @@ class _Hits:
     kind: np.ndarray  # (N,) uint8 SurfaceKind, 255 = sky
     instance: np.ndarray  # (N,) int32, -1 = sky
     normal: np.ndarray  # (N, 3) float32 world geometric normal
+    crown: np.ndarray | None = None  # (N,) bool: the ray met a bare crown first (or None)
+    passes: np.ndarray | None = None  # (N,) int: bare crown surfaces the ray went through
 
 
 class Renderer:
@@ -453,7 +455,9 @@ class Renderer:
             return hits
         # bare crowns: rays go on through the crown except where they hit a branch
         travelled = np.zeros(len(hits.t))
-        active = np.nonzero(hits.kind == SurfaceKind.CROWN)[0]
+        hits.crown = hits.kind == SurfaceKind.CROWN
+        hits.passes = np.zeros(len(hits.t), dtype=np.int32)
+        active = np.nonzero(hits.crown)[0]
         for _ in range(MAX_CROWN_PASSES):
             if len(active) == 0:
                 break
@@ -462,6 +466,7 @@ class Renderer:
             active = active[through]
             if len(active) == 0:
                 break
+            hits.passes[active] += 1
             travelled[active] += hits.t[active] + CROWN_STEP
             sub = self._cast_all(X[through] + CROWN_STEP * dirs[active], dirs[active], movers)
             hits.t[active] = sub.t
@@ -518,6 +523,29 @@ class Renderer:
             )
             if var is not None:
                 _vary_ground(albedo, g, cls, var)
+                if var.kerb_face > 0:
+                    textures.kerb_and_paving(
+                        albedo,
+                        g,
+                        cls,
+                        side,
+                        s,
+                        self._half_width,
+                        var.kerb_face,
+                        var.slab_m,
+                        tone=0.6 * float(np.mean(var.walk_rgb)),
+                    )
+                if var.kerb_lines > 0:
+                    textures.kerb_lines(
+                        albedo,
+                        g,
+                        cls,
+                        side,
+                        np.maximum(street, 0),
+                        self._half_width,
+                        var.kerb_lines,
+                        var.seed % 100003,
+                    )
 
         f = np.nonzero(kind == SurfaceKind.FACADE)[0]
         if len(f):
@@ -585,12 +613,16 @@ class Renderer:
             seed=0 if var is None else var.seed % 100003,
         )
         rgb[idx] = color
+        if var is not None and var.twig_density > 0 and hits.passes is not None:
+            _twig_haze(rgb, hits.passes, var.twig_density, cond)
         np.clip(rgb, 0.0, 1.0, out=rgb)
         rgb *= 255.0
         rgb += 0.5
         rgb_u8 = rgb.astype(np.uint8)
 
         labels[idx] = lab
+        if var is not None and var.bare_crown_label and hits.crown is not None:
+            labels[hits.crown] = VEGETATION  # the crown's silhouette, as real labels draw it
         depth = np.zeros(n, dtype=np.float32)
         depth[idx] = t32 * dirs_c[idx, 2]
         normals = np.zeros((3, n), dtype=np.float32)
@@ -697,6 +729,19 @@ def _vary_ground(albedo: np.ndarray, g: np.ndarray, cls: np.ndarray, var: Variat
     if var.walk_rgb != (1.0, 1.0, 1.0):
         w = g[cls == SIDEWALK]
         albedo[w] *= np.asarray(var.walk_rgb, dtype=np.float32)
+
+
+def _twig_haze(rgb: np.ndarray, passes: np.ndarray, density: float, cond: Condition) -> None:
+    """Veil `(N, 3)` ``rgb`` where rays went through bare crowns: each of a ray's ``passes``
+    `(N,)` covers ``density`` of what lies behind with dull, softly lit twigs."""
+    r = np.nonzero(passes)[0]
+    if len(r) == 0:
+        return
+    cover = 1.0 - (1.0 - np.float32(density)) ** passes[r].astype(np.float32)
+    light = cond.ambient_strength * np.asarray(cond.ambient_color, dtype=np.float32)
+    light = light + 0.5 * max(cond.sun_strength, 0.0) * np.asarray(cond.sun_color, np.float32)
+    twig = np.float32([0.27, 0.23, 0.2]) * light  # grey-brown bark, half lit
+    rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig * cover[:, None]
 
 
 def _rebuild_renderer(world: World, drop: tuple[str, ...], shadows: bool) -> Renderer:

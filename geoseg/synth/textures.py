@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from geoseg.classes import ROAD, SIDEWALK
+
 _M1 = np.uint32(0xCC9E2D51)
 _M2 = np.uint32(0x1B873593)
 _M3 = np.uint32(0x85EBCA6B)
@@ -404,6 +406,97 @@ def ground_albedo(
         out[o] = _rgb(0.55 + 0.45 * grass, (0.3, 0.45, 0.17)) * ground_tint.astype(np.float32)
         out[o[dirt]] = _rgb(0.5 + 0.2 * grass[dirt], (0.6, 0.5, 0.38))
     return out
+
+
+def kerb_and_paving(
+    albedo: np.ndarray,
+    g: np.ndarray,
+    cls: np.ndarray,
+    side: np.ndarray,
+    s: np.ndarray,
+    half_width: float,
+    kerb_face: float,
+    slab_m: float,
+    tone: float = 0.6,
+) -> None:
+    """Kerbs, gutters and slab paving painted on the ground rows ``g`` of ``albedo`` (in place;
+    the labels stay: the kerb's face and top are sidewalk, the gutter is road).
+
+    Args:
+        albedo: `(M, 3)` float32 albedo of all hits; rows ``g`` `(N,)` are the ground hits.
+        g: `(N,)` rows of the ground hits.
+        cls: `(N,)` their class (ROAD / SIDEWALK / other).
+        side: `(N,)` signed distance to the centreline, metres.
+        s: `(N,)` arc length along the street, metres.
+        half_width: half the carriageway width (the kerb line), metres.
+        kerb_face: brightness of the kerb's face (0.12 m band) relative to its top stone.
+        slab_m: paving slab edge, metres (0: keep the tiles).
+        tone: mean brightness of the slabs (their hue stays the frame's paving hue).
+    """
+    dist = np.abs(side).astype(np.float32)
+    sr = s.astype(np.float32)
+    w = np.nonzero(cls == SIDEWALK)[0]
+    if len(w) and slab_m > 0:
+        across = dist[w] - half_width
+        a_cell, s_cell = np.floor(across / slab_m), np.floor(sr[w] / slab_m)
+        joint = (across - a_cell * slab_m < 0.025) | (sr[w] - s_cell * slab_m < 0.025)
+        slab = 0.9 + 0.2 * hash01(a_cell, s_cell, np.floor(side[w] / 50.0), seed=37)
+        dirt = 0.85 + 0.3 * value_noise(sr[w] / 2.3, across / 2.3, seed=38)
+        rows = g[w]
+        base = albedo[rows].mean(axis=1, keepdims=True)  # the frame's paving tone and colour
+        colour = albedo[rows] / np.maximum(base, 1e-3) * np.float32(tone)
+        value = (slab * dirt * np.where(joint, 0.6, 1.0)).astype(np.float32)
+        albedo[rows] = colour * value[:, None]
+        kerb = across < 0.32
+        top = np.float32([0.72, 0.71, 0.68])
+        albedo[rows[kerb]] = top
+        albedo[rows[kerb & (across < 0.12)]] = top * np.float32(kerb_face)
+    elif len(w):
+        across = dist[w] - half_width
+        top = albedo[g[w][across < 0.12]]
+        albedo[g[w][across < 0.12]] = top * np.float32(kerb_face)
+    r = np.nonzero((cls == ROAD) & (dist > half_width - 0.35))[0]
+    if len(r):
+        grime = 0.7 + 0.15 * value_noise(sr[r] / 1.5, dist[r] * 3.0, seed=39)
+        grate = ((sr[r] % 11.0) < 0.5) & (dist[r] > half_width - 0.3)
+        albedo[g[r]] *= np.where(grate, 0.45, grime)[:, None].astype(np.float32)
+
+
+def kerb_lines(
+    albedo: np.ndarray,
+    g: np.ndarray,
+    cls: np.ndarray,
+    side: np.ndarray,
+    street: np.ndarray,
+    half_width: float,
+    brightness: float,
+    seed: int,
+) -> None:
+    """Paint along the kerbs on the ground rows ``g`` of ``albedo`` (in place; road stays
+    road): per street side none, a double yellow line, a single yellow or a single white one.
+
+    Args:
+        albedo: `(M, 3)` float32 albedo of all hits; rows ``g`` `(N,)` are the ground hits.
+        g: `(N,)` rows of the ground hits.
+        cls: `(N,)` their class.
+        side: `(N,)` signed distance to the centreline, metres.
+        street: `(N,)` index of the nearest street.
+        half_width: half the carriageway width (the kerb line), metres.
+        brightness: paint brightness (worn < 1).
+        seed: keys the style of each street side.
+    """
+    from_kerb = half_width - np.abs(side).astype(np.float32)
+    r = np.nonzero((cls == ROAD) & (from_kerb > 0.15) & (from_kerb < 0.45))[0]
+    if len(r) == 0:
+        return
+    style = hash_u32(street[r], (side[r] > 0).astype(np.int64), seed=seed) % 6  # 0-1: none
+    near = from_kerb[r] < 0.25
+    far = from_kerb[r] > 0.35
+    paint = ((style >= 2) & near) | ((style <= 3) & (style >= 2) & far)  # 2-3: double
+    yellow = np.float32([0.85, 0.66, 0.12])
+    colour = np.where((style == 5)[:, None], np.float32([0.82, 0.82, 0.8]), yellow)
+    rows = g[r[paint]]
+    albedo[rows] = colour[paint] * np.float32(brightness)
 
 
 # --------------------------------------------------------------------------------------------

@@ -11,7 +11,13 @@ import pytest
 from geoseg.classes import BUILDING, ROAD, SIDEWALK, SKY, VEGETATION, VEHICLE
 from geoseg.errors import ConfigError
 from geoseg.synth.conditions import get_condition
-from geoseg.synth.realism import REALISTIC, RealismConfig, Variation, draw_variation
+from geoseg.synth.realism import (
+    REALISTIC,
+    REALISTIC_2,
+    RealismConfig,
+    Variation,
+    draw_variation,
+)
 from geoseg.synth.renderer import Renderer
 from geoseg.synth.trajectory import drive
 
@@ -28,6 +34,7 @@ APPEARANCE = {
     "sky": (Variation(seed=4, sky=((0.7, 0.7, 0.72), (0.85, 0.85, 0.85))), SKY),
     "clouds": (Variation(seed=4, cloud_cover=0.7), SKY),
     "shadows": (Variation(seed=4, shadows=True), ROAD),
+    "kerb": (Variation(seed=4, kerb_face=0.5, slab_m=0.6), SIDEWALK),
 }
 
 
@@ -71,6 +78,83 @@ def test_bare_trees_labels_follow_the_leafless_crowns(scene):
     assert (bare.labels == VEGETATION).sum() < (base.labels == VEGETATION).sum()
     kept = base.labels != VEGETATION
     np.testing.assert_array_equal(bare.labels[kept], base.labels[kept])
+
+
+def test_kerb_lines_paint_the_road_along_the_kerbs(scene):
+    renderer, pose, time_s, base = scene
+    changed_any = 0
+    for seed in range(4):  # each street side draws its style: try a few
+        frame = renderer.render(
+            *pose, time_s=time_s, variation=Variation(seed=seed, kerb_lines=0.9)
+        )
+        for key in GEOMETRY:
+            np.testing.assert_array_equal(getattr(frame, key), getattr(base, key), err_msg=key)
+        changed = np.abs(frame.rgb.astype(int) - base.rgb.astype(int)).max(axis=2) > 2
+        assert not changed[base.labels != ROAD].any()
+        changed_any += int(changed.sum())
+    assert changed_any > 10
+
+
+def test_twigs_veil_what_shows_through_bare_crowns(scene):
+    renderer, pose, time_s, base = scene
+    bare = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True))
+    twigs = Variation(bare_trees=True, twig_density=0.4)
+    frame = renderer.render(*pose, time_s=time_s, variation=twigs)
+    for key in GEOMETRY:
+        np.testing.assert_array_equal(getattr(frame, key), getattr(bare, key), err_msg=key)
+    changed = np.abs(frame.rgb.astype(int) - bare.rgb.astype(int)).max(axis=2) > 2
+    crown = (base.labels == VEGETATION) & (bare.labels != VEGETATION)  # seen through a crown
+    assert crown.sum() > 20 and changed[crown].mean() > 0.5
+    assert not changed[base.labels != VEGETATION].any()  # nothing outside the crowns
+
+
+def test_bare_crown_label_draws_the_whole_crown_vegetation(scene):
+    renderer, pose, time_s, base = scene
+    bare = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True))
+    labelled = renderer.render(
+        *pose, time_s=time_s, variation=Variation(bare_trees=True, bare_crown_label=True)
+    )
+    # the image and the geometry are the bare crowns'; the labels are the leafy crowns'
+    for key in ("rgb", "depth", "normals", "instance", "normal_valid"):
+        np.testing.assert_array_equal(getattr(labelled, key), getattr(bare, key), err_msg=key)
+    np.testing.assert_array_equal(labelled.labels, base.labels)
+    assert (labelled.labels == VEGETATION).sum() > (bare.labels == VEGETATION).sum()
+    # leafy crowns: nothing to change
+    leafy = renderer.render(*pose, time_s=time_s, variation=Variation(bare_crown_label=True))
+    np.testing.assert_array_equal(leafy.labels, base.labels)
+    np.testing.assert_array_equal(leafy.rgb, base.rgb)
+
+
+def test_second_round_options_keep_the_first_rounds_draws():
+    fields = [f.name for f in dataclasses.fields(Variation)]
+    first = fields[: fields.index("twig_density")]
+    both = dataclasses.replace(
+        REALISTIC, p_twigs=1.0, p_kerb=1.0, p_kerb_lines=1.0, bare_crown_label=True
+    )
+    for seed in range(10):
+        a = draw_variation(REALISTIC, np.random.default_rng(seed))
+        b = draw_variation(both, np.random.default_rng(seed))
+        assert [getattr(a, f) for f in first] == [getattr(b, f) for f in first]
+        assert a.twig_density == a.kerb_face == 0 and not a.bare_crown_label
+        assert b.twig_density > 0 and b.kerb_face > 0 and b.slab_m > 0 and b.bare_crown_label
+        assert b.kerb_lines > 0 and a.kerb_lines == 0
+        # the kerb lines are drawn last: the other second-round draws stay
+        c = draw_variation(dataclasses.replace(both, p_kerb_lines=0.0), np.random.default_rng(seed))
+        assert dataclasses.replace(b, kerb_lines=0.0) == c
+    assert RealismConfig(bare_crown_label=True).enabled
+    assert REALISTIC_2.enabled and REALISTIC_2.bare_crown_label
+
+
+def test_overcast_draws_a_flat_grey_sky_and_a_weak_sun():
+    cfg = RealismConfig(p_overcast=1.0)
+    for seed in range(10):
+        v = draw_variation(cfg, np.random.default_rng(seed))
+        zenith, horizon = np.array(v.sky[0]), np.array(v.sky[1])
+        assert np.ptp(zenith) < 0.06 and np.ptp(horizon) < 0.06  # grey, not blue
+        assert np.abs(zenith - horizon).max() < 0.1 and v.cloud_cover >= 0.6
+        assert v.sun[2] <= 0.4 and not v.shadows
+    day = v.condition(get_condition("summer_day"))
+    assert day.sun_strength < get_condition("summer_day").sun_strength
 
 
 def test_lens_distortion_moves_pixels_with_their_labels(scene):
@@ -119,6 +203,10 @@ def test_variation_keeps_dusk_and_night_light():
         ({"p_shopfront": 1.5}, "p_shopfront"),
         ({"paint_share": (0.8, 0.2)}, "paint_share"),
         ({"lens_k1": (-0.5, 0.1)}, "lens_k1"),
+        ({"p_kerb": -0.1}, "p_kerb"),
+        ({"p_kerb_lines": 2.0}, "p_kerb_lines"),
+        ({"slab_m": (0.0, 0.5)}, "slab_m"),
+        ({"bare_crown_label": "yes"}, "bare_crown_label"),
     ],
 )
 def test_bad_realism_values_are_named(kwargs, key):
