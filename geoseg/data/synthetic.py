@@ -52,7 +52,7 @@ from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
 from geoseg.config import from_dict, to_dict
 from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
-from geoseg.synth.realism import RealismConfig, Variation, draw_variation
+from geoseg.synth.realism import RealismConfig, Variation, cache_fields, draw_variation
 from geoseg.vectors import vector_length
 
 logger = logging.getLogger(__name__)
@@ -367,6 +367,9 @@ class SyntheticDataset(Dataset):
         }
         if spec.variation is not None:  # (absent when off: the older keys stay valid)
             payload["variation"] = repr(spec.variation)
+            later = cache_fields(spec.variation)  # later options, at their defaults: absent
+            if later:
+                payload["variation_later"] = repr(sorted(later.items()))
         return hashlib.sha256(json.dumps(payload, sort_keys=True).encode()).hexdigest()
 
     def _cache_path(self, key: str) -> Path | None:

@@ -49,6 +49,9 @@ Options that change the geometry, with labels that follow it (rendered from the 
 
 - ``p_bare_trees``: the tree crowns are leafless (rays pass between the branches and get the
   label of what lies behind, as in the ``winter`` condition) under any light;
+- ``p_furniture`` / ``furniture_spacing_m``: extra street furniture near the camera (sign
+  posts with plates, traffic lights, lamp posts, bollards, utility cabinets), mostly at the
+  kerb, labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
 - ``p_lens`` / ``lens_k1``: radial lens distortion, ``x_u = x_d (1 + k1 r_d^2)`` in normalised
   image coordinates (``k1 > 0``: barrel, straight lines bow outwards). Such a frame is not a
   pinhole image: its ``K`` is the undistorted camera's.
@@ -80,6 +83,8 @@ _PROBABILITIES = (
 # drawn after the options above (their draws, and so the older variations, stay as they were)
 _PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
 _PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
+_PROBABILITIES_4 = ("p_furniture",)  # (and these last)
+_ALL = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3 + _PROBABILITIES_4
 
 
 @dataclass
@@ -109,6 +114,9 @@ class RealismConfig:
         slab_m: range of the paving slab edge, metres.
         p_overcast: probability of a flat grey overcast sky with a weak sun.
         p_kerb_lines: probability of painted lines along the kerbs.
+        p_furniture: probability of extra street furniture (poles, signs, traffic lights,
+            lamp posts, bollards, cabinets; :mod:`geoseg.synth.street_furniture`).
+        furniture_spacing_m: range of the mean distance between two items along a street side.
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
@@ -135,13 +143,15 @@ class RealismConfig:
     p_overcast: float = 0.0
     p_kerb_lines: float = 0.0
     bare_crown_label: bool = False
+    p_furniture: float = 0.0
+    furniture_spacing_m: tuple[float, float] = (4.0, 12.0)
 
     def __post_init__(self) -> None:
         if not isinstance(self.bare_crown_label, bool):
             raise ConfigError(
                 f"realism.bare_crown_label: expected true or false, got {self.bare_crown_label!r}"
             )
-        for name in _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3:
+        for name in _ALL:
             check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
         ranges = {
             "shopfront_share": (0.0, 1.0),
@@ -153,6 +163,7 @@ class RealismConfig:
             "lens_k1": (-0.2, 0.6),
             "twig_density": (0.0, 1.0),
             "slab_m": (0.1, 3.0),
+            "furniture_spacing_m": (1.0, None),
         }
         for name, (low, high) in ranges.items():
             lo, hi = getattr(self, name)
@@ -164,8 +175,7 @@ class RealismConfig:
     @property
     def enabled(self) -> bool:
         """Whether any variation can be drawn (or the bare crowns' labels change)."""
-        probabilities = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3
-        return self.bare_crown_label or any(getattr(self, n) > 0 for n in probabilities)
+        return self.bare_crown_label or any(getattr(self, n) > 0 for n in _ALL)
 
 
 REALISTIC = RealismConfig(
@@ -191,6 +201,9 @@ REALISTIC_2 = dataclasses.replace(
 )
 """:data:`REALISTIC` with the second round on: more bare trees, labelled as real datasets
 label them, twig haze, kerbs and slab paving, overcast skies."""
+
+REALISTIC_3 = dataclasses.replace(REALISTIC_2, p_kerb_lines=0.6, p_furniture=0.7)
+""":data:`REALISTIC_2` with kerb lines and the third round's extra street furniture."""
 
 
 @dataclass(frozen=True)
@@ -219,6 +232,9 @@ class Variation:
         slab_m: paving slab edge, metres (0: the default tiles).
         kerb_lines: brightness of the paint along the kerbs (0: none).
         bare_crown_label: bare crowns' whole silhouettes are ``vegetation``.
+        furniture_spacing: mean distance between two items of extra street furniture along a
+            street side, metres (0: none). Left out of ``repr`` (and so of the frame cache
+            keys) at its default; :func:`cache_fields` gives such fields.
     """
 
     seed: int = 0
@@ -241,6 +257,7 @@ class Variation:
     slab_m: float = 0.0
     kerb_lines: float = 0.0
     bare_crown_label: bool = False
+    furniture_spacing: float = dataclasses.field(default=0.0, repr=False)
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -313,8 +330,8 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
 
 
 def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
-    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines and crown
-    labels (options left at 0 draw nothing: the earlier options' draws stay as they were)."""
+    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels
+    and street furniture (options left at 0 draw nothing: the earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
     if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
         u = rng.random(len(_PROBABILITIES_2))
@@ -339,7 +356,22 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
         u3 = rng.random(2)
         if u3[0] < cfg.p_kerb_lines:
             kw["kerb_lines"] = float(0.45 + 0.5 * u3[1])  # worn to fresh paint
+    if cfg.p_furniture > 0:
+        u4 = rng.random(2)
+        if u4[0] < cfg.p_furniture:
+            lo, hi = cfg.furniture_spacing_m
+            kw["furniture_spacing"] = float(lo + (hi - lo) * u4[1])
     return kw
+
+
+def cache_fields(variation: Variation) -> dict:
+    """The fields of ``variation`` left out of its ``repr`` (options added after the frame
+    caches were keyed by ``repr``) that differ from their defaults: ``{name: value}``."""
+    return {
+        f.name: getattr(variation, f.name)
+        for f in dataclasses.fields(variation)
+        if not f.repr and getattr(variation, f.name) != f.default
+    }
 
 
 def random_colours(key: np.ndarray, seed: int, saturated_share: float) -> np.ndarray:

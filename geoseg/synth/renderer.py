@@ -43,6 +43,7 @@ from geoseg.errors import GeosegError, check_finite, check_shape
 from geoseg.synth import textures
 from geoseg.synth.conditions import Condition, get_condition
 from geoseg.synth.realism import Variation, random_colours
+from geoseg.synth.street_furniture import furniture_part, pole_albedo
 from geoseg.synth.trajectory import Trajectory, check_image_size
 from geoseg.synth.world import (
     SURFACE_CLASS,
@@ -281,9 +282,12 @@ class Renderer:
         k1 = 0.0 if variation is None else float(variation.lens_k1)
         dirs_c = self._camera_rays(K, width, height, k1)
         dirs_w = _rotate(dirs_c, R_wc.astype(np.float32))
-        movers = self._mover_scene(R_wc, t_wc, float(time_s))
+        extra = None  # the frame's street furniture, cast with the moving vehicles
+        if variation is not None and variation.furniture_spacing > 0:
+            extra = furniture_part(self.world, variation.seed, variation.furniture_spacing, t_wc)
+        movers = self._mover_scene(R_wc, t_wc, float(time_s), extra)
         mover_rays = None
-        if movers is not None:
+        if movers is not None and extra is None:
             mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height, dirs_c, k1)
         hits = self._trace(t_wc, dirs_w, movers, cond, mover_rays)
         return self._shade(
@@ -368,18 +372,20 @@ class Renderer:
         return rays
 
     # ---- ray casting -----------------------------------------------------------------------
-    def _mover_scene(self, R_wc: np.ndarray, t_wc: np.ndarray, time_s: float) -> _Scene | None:
+    def _mover_scene(self, R_wc, t_wc, time_s: float, extra=None) -> _Scene | None:
+        """The moving vehicles near the camera, with the :class:`MeshPart` ``extra`` if any."""
         if not self._with_movers or not self._movers:
-            return None
+            return None if extra is None else _Scene(extra)
         xy, heading = self.world.vehicle_poses(time_s)
         xy, heading = xy[self._mover_index], heading[self._mover_index]
         dist = np.linalg.norm(xy - t_wc[:2], axis=1)
         ahead = (xy - t_wc[:2]) @ R_wc[:2, 2] > -self._mover_length  # not behind the camera
         keep = (dist < MOVING_VEHICLE_RANGE) & (dist > self._mover_length / 2 + 1.0) & ahead
-        if not keep.any():
-            return None
-        chosen = [v for v, k in zip(self._movers, keep) if k]
-        return _Scene(vehicle_mesh_part(self.world, chosen, xy[keep], heading[keep]))
+        parts = [] if extra is None else [extra]
+        if keep.any():
+            chosen = [v for v, k in zip(self._movers, keep) if k]
+            parts.insert(0, vehicle_mesh_part(self.world, chosen, xy[keep], heading[keep]))
+        return _Scene(concat_parts(parts)) if parts else None
 
     def _mover_pixels(
         self, movers: _Scene, K, R_wc, t_wc, width: int, height: int, dirs_c=None, k1=0.0
@@ -707,7 +713,7 @@ class Renderer:
         vw = where(SurfaceKind.VEHICLE_WHEEL)
         albedo[vw] = np.float32([0.06, 0.06, 0.06])
         p = where(SurfaceKind.POLE)
-        albedo[p] = np.float32([0.42, 0.44, 0.46])
+        albedo[p] = pole_albedo(instance[p], len(self.world.instance_class), [0.42, 0.44, 0.46])
         pa = where(SurfaceKind.PANEL)
         albedo[pa] = textures.panel_albedo(X[pa], instance[pa])
         if cond.lamps_on and len(pa):
