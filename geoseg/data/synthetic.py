@@ -49,7 +49,7 @@ from torch.utils.data import Dataset
 from tqdm.auto import tqdm
 
 from geoseg.classes import IGNORE_INDEX, NUM_CLASSES
-from geoseg.config import from_dict, to_dict
+from geoseg.config import check_range, from_dict, to_dict
 from geoseg.data.npz_cache import read_npz, write_npz
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.synth.realism import RealismConfig, Variation, cache_fields, draw_variation
@@ -93,6 +93,11 @@ class SyntheticConfig:
         realism: per-frame appearance randomisation
             (:class:`~geoseg.synth.realism.RealismConfig`, all off by default): each sample
             draws its :class:`~geoseg.synth.realism.Variation` from ``(sample_seed, i)``.
+        kerb_lane_share: share of each city's car drives that run nearer the kerb (0: none):
+            the first ``round(kerb_lane_share * drives_per_city)`` drive ids.
+        kerb_lane_m: range of their shift towards the kerb from the middle of the lane, metres
+            (spread evenly over those drives; at most 1.4 m, which keeps the camera clear of the
+            parked cars of the default 2.2 m parking strip).
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -110,6 +115,8 @@ class SyntheticConfig:
     sample_seed: int = 0
     hfov_deg: float | None = None
     realism: RealismConfig = field(default_factory=RealismConfig)
+    kerb_lane_share: float = 0.0
+    kerb_lane_m: tuple[float, float] = (0.6, 1.4)
 
     def __post_init__(self) -> None:
         from geoseg.synth.conditions import CONDITIONS
@@ -147,7 +154,21 @@ class SyntheticConfig:
                     f"synth.conditions: {conds} are held-out conditions "
                     "(synth.heldout_conditions); training data must not use them"
                 )
+        check_range("synth.kerb_lane_share", self.kerb_lane_share, 0.0, 1.0)
+        for i, value in enumerate(self.kerb_lane_m):
+            check_range(f"synth.kerb_lane_m[{i}]", value, 0.0, 1.4)
+        if self.kerb_lane_m[0] > self.kerb_lane_m[1]:
+            raise ConfigError(f"synth.kerb_lane_m: expected low <= high, got {self.kerb_lane_m}")
         self.world_config(self.seeds[0])  # validate the shared world keys now
+
+    def lane_shift(self, rig: str, drive_id: int) -> float:
+        """How far drive ``drive_id`` of ``rig`` runs from the middle of its lane towards the
+        kerb, metres (0 for the tram, and for the car unless :attr:`kerb_lane_share`)."""
+        n = round(self.kerb_lane_share * self.drives_per_city)
+        if rig != "car" or drive_id >= n:
+            return 0.0
+        lo, hi = self.kerb_lane_m
+        return float(lo + (hi - lo) * (drive_id + 0.5) / n)
 
     def world_config(self, seed: int) -> Any:
         """The :class:`~geoseg.synth.world.WorldConfig` of city ``seed``."""
@@ -232,7 +253,8 @@ def get_world(config: Any) -> Any:
 def _get_drive(world: Any, world_key: str, rig: str, drive_id: int, cfg: SyntheticConfig, size):
     from geoseg.synth.trajectory import drive
 
-    key = (world_key, rig, drive_id, cfg.drive_length_m, tuple(size), cfg.hfov_deg)
+    shift = cfg.lane_shift(rig, drive_id)
+    key = (world_key, rig, drive_id, cfg.drive_length_m, tuple(size), cfg.hfov_deg, shift)
     traj = _DRIVES.get(key)
     if traj is None:
         length = cfg.drive_length_m
@@ -246,6 +268,7 @@ def _get_drive(world: Any, world_key: str, rig: str, drive_id: int, cfg: Synthet
                     seed=drive_id,
                     image_size=(size[1], size[0]),
                     hfov_deg=cfg.hfov_deg,
+                    lane_offset=world.config.lane_offset + shift if shift else None,
                 )
                 break
             except GeosegError:
@@ -365,6 +388,9 @@ class SyntheticDataset(Dataset):
             "size": list(self.size),
             "version": RENDER_VERSION,
         }
+        shift = self.config.lane_shift(spec.rig, spec.drive_id)
+        if shift:  # (absent when off: the older keys stay valid)
+            payload["drive"].append(repr(shift))
         if spec.variation is not None:  # (absent when off: the older keys stay valid)
             payload["variation"] = repr(spec.variation)
             later = cache_fields(spec.variation)  # later options, at their defaults: absent

@@ -182,3 +182,32 @@ def test_realism_draws_per_index_and_keeps_the_plain_cache_keys():
     assert not torch.equal(varied[2]["image"], plain[2]["image"])
     config = synthetic_config({"realism": {"p_sky": 0.5}}, split="train")
     assert config.realism.p_sky == 0.5
+
+
+def test_kerb_lane_drives_move_the_car_camera_towards_the_kerb():
+    plain = SyntheticDataset(_config(rigs=["car"], frames=6), size=SIZE)
+    near = SyntheticDataset(
+        _config(rigs=["car"], frames=6, kerb_lane_share=0.5, kerb_lane_m=(1.0, 1.0)), size=SIZE
+    )
+    assert near.config.lane_shift("car", 0) == 1.0  # drive 0 of 2 runs near the kerb
+    assert near.config.lane_shift("car", 1) == 0.0 and near.config.lane_shift("tram", 0) == 0.0
+    assert plain.config.lane_shift("car", 0) == 0.0
+    moved = 0
+    for i in range(6):
+        spec = near.spec(i)
+        assert spec == plain.spec(i)  # the same draws: only the drive's lane moves
+        _, _, R_wc, t_near, _ = near._camera(spec)
+        _, _, _, t_plain, _ = plain._camera(spec)
+        same_key = near.cache_key(spec) == plain.cache_key(spec)
+        if spec.drive_id == 0:
+            # to the right of the travel direction (the right-hand lane's kerb): camera +x
+            assert (t_near - t_plain) @ R_wc[:, 0] > 0.5 and not same_key
+            moved += 1
+        else:
+            np.testing.assert_array_equal(t_near, t_plain)
+            assert same_key
+    assert moved
+    with pytest.raises(ConfigError, match="kerb_lane_m"):
+        _config(kerb_lane_m=(0.5, 2.0))
+    with pytest.raises(ConfigError, match="kerb_lane_share"):
+        _config(kerb_lane_share=1.5)
