@@ -32,6 +32,10 @@ ids do not):
 - ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
   sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
   joints, tone per slab and dirt, where the default paving is plain tiles;
+- ``p_road_texture`` / ``road_texture``: the asphalt's mottling, grit and repair patches are
+  toned down (to flat at 0) around the frame's median asphalt tone, markings kept (real
+  asphalt at 320x240 is smoother than the rendered one: texture must not be what tells road
+  from pavement);
 - ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
   single white or yellow line), on some street sides, worn to a varying brightness;
 - ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
@@ -83,7 +87,7 @@ _PROBABILITIES = (
 # drawn after the options above (their draws, and so the older variations, stay as they were)
 _PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
 _PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
-_PROBABILITIES_4 = ("p_furniture",)  # (and these last)
+_PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these last, in this order)
 _ALL = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3 + _PROBABILITIES_4
 
 
@@ -117,6 +121,8 @@ class RealismConfig:
         p_furniture: probability of extra street furniture (poles, signs, traffic lights,
             lamp posts, bollards, cabinets; :mod:`geoseg.synth.street_furniture`).
         furniture_spacing_m: range of the mean distance between two items along a street side.
+        p_road_texture: probability of a smoother (or flat) asphalt.
+        road_texture: range of the asphalt's texture contrast (1: as rendered, 0: flat).
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
@@ -145,6 +151,8 @@ class RealismConfig:
     bare_crown_label: bool = False
     p_furniture: float = 0.0
     furniture_spacing_m: tuple[float, float] = (4.0, 12.0)
+    p_road_texture: float = 0.0
+    road_texture: tuple[float, float] = (0.1, 0.8)
 
     def __post_init__(self) -> None:
         if not isinstance(self.bare_crown_label, bool):
@@ -164,6 +172,7 @@ class RealismConfig:
             "twig_density": (0.0, 1.0),
             "slab_m": (0.1, 3.0),
             "furniture_spacing_m": (1.0, None),
+            "road_texture": (0.0, 1.0),
         }
         for name, (low, high) in ranges.items():
             lo, hi = getattr(self, name)
@@ -235,6 +244,8 @@ class Variation:
         furniture_spacing: mean distance between two items of extra street furniture along a
             street side, metres (0: none). Left out of ``repr`` (and so of the frame cache
             keys) at its default; :func:`cache_fields` gives such fields.
+        road_texture: contrast of the asphalt's mottling, grit and patches around the frame's
+            median asphalt tone (1: as rendered; left out of ``repr`` as above).
     """
 
     seed: int = 0
@@ -258,6 +269,7 @@ class Variation:
     kerb_lines: float = 0.0
     bare_crown_label: bool = False
     furniture_spacing: float = dataclasses.field(default=0.0, repr=False)
+    road_texture: float = dataclasses.field(default=1.0, repr=False)
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -361,6 +373,11 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
         if u4[0] < cfg.p_furniture:
             lo, hi = cfg.furniture_spacing_m
             kw["furniture_spacing"] = float(lo + (hi - lo) * u4[1])
+    if cfg.p_road_texture > 0:
+        u5 = rng.random(2)
+        if u5[0] < cfg.p_road_texture:
+            lo, hi = cfg.road_texture
+            kw["road_texture"] = float(lo + (hi - lo) * u5[1])
     return kw
 
 

@@ -725,10 +725,13 @@ class Renderer:
 
 def _vary_ground(albedo: np.ndarray, g: np.ndarray, cls: np.ndarray, var: Variation) -> None:
     """Road tone and marking brightness, paving colour (rows ``g`` of ``albedo``)."""
-    if var.road_gain != 1.0 or var.marking_gain != 1.0:
+    if var.road_gain != 1.0 or var.marking_gain != 1.0 or var.road_texture != 1.0:
         r = g[cls == ROAD]
         value = albedo[r]
         marking = value[:, 0] > 0.6
+        if var.road_texture != 1.0 and (~marking).any():
+            tone = np.median(value[~marking], axis=0)
+            value[~marking] = tone + np.float32(var.road_texture) * (value[~marking] - tone)
         value[marking] *= var.marking_gain
         value[~marking] *= var.road_gain
         albedo[r] = value

@@ -35,6 +35,7 @@ APPEARANCE = {
     "clouds": (Variation(seed=4, cloud_cover=0.7), SKY),
     "shadows": (Variation(seed=4, shadows=True), ROAD),
     "kerb": (Variation(seed=4, kerb_face=0.5, slab_m=0.6), SIDEWALK),
+    "road_texture": (Variation(seed=4, road_texture=0.2), ROAD),
 }
 
 

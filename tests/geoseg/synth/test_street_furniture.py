@@ -1,6 +1,6 @@
 """Extra street furniture (realism option ``p_furniture``): labels follow the new geometry,
 the rest of the frame is unchanged, draws are deterministic, off by default and kept out of
-the frame cache keys at their default."""
+the frame cache keys at their default (and so is the road texture, drawn after it)."""
 
 from __future__ import annotations
 
@@ -98,13 +98,20 @@ def test_furniture_draw_is_last_and_off_by_default():
         )
         assert a.furniture_spacing == 0 and 4.0 <= b.furniture_spacing <= 12.0
         assert dataclasses.replace(b, furniture_spacing=0.0) == a
+        # the road texture is drawn after the furniture: its draws stay
+        both = dataclasses.replace(REALISTIC_2, p_furniture=1.0, p_road_texture=1.0)
+        c = draw_variation(both, np.random.default_rng(seed))
+        assert 0.1 <= c.road_texture <= 0.8 and a.road_texture == b.road_texture == 1.0
+        assert dataclasses.replace(c, road_texture=1.0) == b
     assert not RealismConfig().enabled and RealismConfig(p_furniture=0.5).enabled
     assert REALISTIC_3.p_furniture > 0 and REALISTIC_3.p_kerb_lines > 0
 
 
 def test_furniture_stays_out_of_the_cache_key_at_its_default():
     var = Variation(seed=3, kerb_lines=0.5)
-    assert "furniture" not in repr(var) and cache_fields(var) == {}
+    assert "furniture" not in repr(var) and "texture" not in repr(var)
+    assert cache_fields(var) == {}
+    assert cache_fields(dataclasses.replace(var, road_texture=0.5)) == {"road_texture": 0.5}
     assert cache_fields(dataclasses.replace(var, furniture_spacing=6.0)) == {
         "furniture_spacing": 6.0
     }
@@ -124,6 +131,8 @@ def test_furniture_stays_out_of_the_cache_key_at_its_default():
         ({"p_furniture": 1.5}, "p_furniture"),
         ({"furniture_spacing_m": (0.5, 4.0)}, "furniture_spacing_m"),
         ({"furniture_spacing_m": (9.0, 4.0)}, "furniture_spacing_m"),
+        ({"p_road_texture": -0.5}, "p_road_texture"),
+        ({"road_texture": (0.5, 1.5)}, "road_texture"),
     ],
 )
 def test_bad_furniture_values_are_named(kwargs, key):
