@@ -60,6 +60,9 @@ class TrackSet:
         vel: ``(N, 2)`` float32 last frame-to-frame displacement (NaN: not tracked yet).
         uv_kf: ``(N, 2)`` float32 pixels at the last keyframe.
         A: ``(N, 2, 2)`` local linear map of the image accumulated since the track's birth.
+        ref_kf: ``(N,)`` int64 the keyframe whose patch is the track's reference (-1: none
+            yet; :mod:`slam_bridge.frontend.patch_alignment`).
+        ref_uv: ``(N, 2)`` float32 the track's pixel in that keyframe.
     """
 
     ids: np.ndarray
@@ -67,17 +70,20 @@ class TrackSet:
     vel: np.ndarray
     uv_kf: np.ndarray
     A: np.ndarray
+    ref_kf: np.ndarray
+    ref_uv: np.ndarray
 
     @classmethod
     def empty(cls) -> TrackSet:
         z = np.zeros((0, 2), dtype=np.float32)
-        return cls(np.zeros(0, np.int64), z, z.copy(), z.copy(), np.zeros((0, 2, 2)))
+        ids = np.zeros(0, np.int64)
+        return cls(ids, z, z.copy(), z.copy(), np.zeros((0, 2, 2)), ids.copy(), z.copy())
 
     def __len__(self) -> int:
         return int(self.ids.size)
 
     def keep(self, mask: np.ndarray) -> None:
-        for name in ("ids", "uv", "vel", "uv_kf", "A"):
+        for name in ("ids", "uv", "vel", "uv_kf", "A", "ref_kf", "ref_uv"):
             setattr(self, name, getattr(self, name)[mask])
 
     def append(self, ids: np.ndarray, uv: np.ndarray) -> None:
@@ -87,6 +93,8 @@ class TrackSet:
         self.vel = np.concatenate([self.vel, np.full_like(uv, np.nan)])
         self.uv_kf = np.concatenate([self.uv_kf, uv])
         self.A = np.concatenate([self.A, np.broadcast_to(np.eye(2), (len(ids), 2, 2))])
+        self.ref_kf = np.concatenate([self.ref_kf, np.full(len(ids), -1, dtype=np.int64)])
+        self.ref_uv = np.concatenate([self.ref_uv, uv])
 
 
 class GammaNormaliser:

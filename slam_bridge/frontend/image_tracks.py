@@ -51,16 +51,24 @@ keyframe, the live tracks are checked, in order:
    renewal at ``max_shear = 0.4`` took the bad share from 0.09 / 0.10 to 0.06 / 0.02 and the
    error from 0.21 / 0.18 m to 0.28 / 1.07 m, with tracking failures; the drift left is along
    the epipolar lines, a slightly wrong depth of a consistent point);
-8. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
+8. **alignment** (``align``): every track that started at an earlier keyframe is moved to where
+   the patch around its pixel in that keyframe (its *reference*), warped by the track's local
+   linear map since then (the least-squares map of its neighbours' displacements), matches the
+   image best (:mod:`slam_bridge.frontend.patch_alignment`: translation and brightness, a
+   ``2 align_half_window + 1`` window, accepted when it moves the track at most
+   ``align_max_shift_px`` with a correlation of at least ``align_min_zncc``; otherwise the
+   track is left where LK put it). The frame-to-frame drift then does not accumulate over a
+   track's life (measured in ``docs/frontend_accuracy.md``);
+9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
    points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.pnp`, RANSAC +
    refinement) on those tracks; the tracks it does not explain within
    ``map_check_threshold_px`` are dropped. The pose is kept in :attr:`ImageTracks.pose_estimate`.
 
 Then new observations:
 
-9. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) ``min_distance_px`` from
+10. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) ``min_distance_px`` from
    each other and from the live tracks, with the eigenvalue ratio of step 5;
-10. **re-observation** (``reobserve``, :mod:`slam_bridge.frontend.reobservation`): the map's
+11. **re-observation** (``reobserve``, :mod:`slam_bridge.frontend.reobservation`): the map's
     triangulated points of the current segment that no track follows and no check dropped
     (*retired* points) are projected with the map-check pose (search radius
     ``match_radius_pnp_px``) or, without it, with :meth:`slam_bridge.slam.map.Map.predict_pose`
@@ -71,12 +79,12 @@ Then new observations:
     ratio test ``match_ratio``, one point per candidate). Both are verified against the
     map-check pose, or by a PnP of their own with the tracked points, within
     ``map_check_threshold_px``, and then tracked on with the point's old id;
-11. **top-up**: the other candidates, strongest first, fill the grid (``grid`` cells,
+12. **top-up**: the other candidates, strongest first, fill the grid (``grid`` cells,
     ``max_tracks / cells`` tracks each, then what is left of ``max_tracks`` up to twice that);
-12. **centring**: new and re-observed tracks start at the fixed point of LK under a change of
+13. **centring**: new and re-observed tracks start at the fixed point of LK under a change of
     scale (:func:`slam_bridge.frontend.features.centre`), so that they do not drift while the
     vehicle approaches their surface;
-13. **descriptors**: upright ORB for the new tracks and (``refresh_descriptors``) every live
+14. **descriptors**: upright ORB for the new tracks and (``refresh_descriptors``) every live
     track: a lost point is then matched by its latest appearance.
 
 New corners go preferably where corners survive: a grid cell's quota is scaled by the recent
@@ -128,6 +136,7 @@ from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import FrameSequence, check_intrinsics
 from slam_bridge.frontend.keyframes import DistanceFn, KeyframeRule
 from slam_bridge.frontend.motion import GlobalMotion
+from slam_bridge.frontend.patch_alignment import align_patches, reference_patches
 from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.frontend.tracks_config import ImageTracksConfig
 from slam_bridge.geometry import PnPResult, pnp
@@ -160,9 +169,9 @@ class ImageTracks:
             ``tracks``, ``gap``; :mod:`slam_bridge.frontend.keyframes`).
         timings: CPU seconds of the process (``time.process_time``: all its threads; a busy
             shared machine does not inflate them) per stage (``read``, ``gray``, ``track``,
-            ``epipolar``, ``checks``, ``map_check``, ``detect``, ``reobserve``, ``describe``,
-            ``topup``, ``keyframe``: all the keyframe stages, ``total``) and counts (``frames``,
-            ``keyframes``).
+            ``epipolar``, ``checks``, ``align``, ``map_check``, ``detect``, ``reobserve``,
+            ``describe``, ``topup``, ``keyframe``: all the keyframe stages, ``total``) and
+            counts (``frames``, ``keyframes``).
         stats: how many tracks each check dropped (``fb_lost``, ``epipolar_frame``,
             ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``map_rejected``,
             ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
@@ -215,6 +224,8 @@ class ImageTracks:
         self._next_frame = 0
         self._prev_gray: np.ndarray | None = None
         self._kf_frame = -1
+        self._kf_count = 0  # keyframes made so far
+        self._ref_grays: dict[int, np.ndarray] = {}  # keyframe -> image, while a track refers to it
         self._kf_time = math.nan
         self._gamma = ft.GammaNormaliser(cfg.gamma_target) if cfg.gamma_target else None
         self._clahe = None
@@ -297,7 +308,9 @@ class ImageTracks:
         n = max(self.timings.get("frames", 0), 1)
         k = max(self.timings.get("keyframes", 0), 1)
         per_frame = ("read", "gray", "track", "epipolar", "total")
-        per_kf = ("checks", "map_check", "detect", "reobserve", "describe", "topup", "keyframe")
+        per_kf = (
+            "checks", "align", "map_check", "detect", "reobserve", "describe", "topup", "keyframe"
+        )  # fmt: skip
         out = {f"{s}_ms_per_frame": 1e3 * self.timings.get(s, 0.0) / n for s in per_frame}
         out.update({f"{s}_ms_per_keyframe": 1e3 * self.timings.get(s, 0.0) / k for s in per_kf})
         out["frontend_ms_per_frame"] = out["total_ms_per_frame"] - out["read_ms_per_frame"]
@@ -490,6 +503,10 @@ class ImageTracks:
         self._check_tracks(grads)
         t1 = time.process_time()
         self.timings["checks"] += t1 - t0
+        if self.config.align:
+            with self._clock("align"):
+                self._align(gray)
+            t1 = time.process_time()
         self.pose_estimate = None
         if slam_map is not None and self.config.map_check:
             self.pose_estimate = self._map_check(slam_map)
@@ -498,6 +515,13 @@ class ImageTracks:
         tr = self._tracks
         tr.uv_kf = tr.uv.copy()
         self._memory.remember(gray, tr.ids, tr.uv)
+        if self.config.align:
+            fresh = tr.ref_kf < 0
+            tr.ref_kf[fresh], tr.ref_uv[fresh] = self._kf_count, tr.uv[fresh]
+            self._ref_grays[self._kf_count] = gray
+            used = set(np.unique(tr.ref_kf).tolist())
+            self._ref_grays = {k: g for k, g in self._ref_grays.items() if k in used}
+        self._kf_count += 1
         established = np.isfinite(tr.vel[:, 0])
         self._established = tr.ids[established] if established.any() else None
         self._n_kf = int(established.sum())
@@ -513,7 +537,8 @@ class ImageTracks:
         )
 
     def _check_tracks(self, grads: ft.Gradients) -> None:
-        """Stages 4-7 on the live tracks (module docstring)."""
+        """Stages 4-7 on the live tracks (module docstring); with ``align``, the local linear
+        maps of stage 7 are accumulated for the alignment (stage 8)."""
         cfg, tr = self.config, self._tracks
         if len(tr) and cfg.epipolar in ("keyframe", "both"):
             t0 = time.process_time()
@@ -530,7 +555,7 @@ class ImageTracks:
             tr.uv_kf, tr.uv, nb, self._flow_abs, cfg.flow_rel, radius=self._flow_radius
         )
         renewing = cfg.max_deformation is not None or cfg.max_shear is not None
-        if renewing:
+        if renewing or cfg.align:
             tr.A = ft.local_affine(tr.uv_kf, tr.uv, nb) @ tr.A
         self._drop(ok, "flow_rejected")
         if not renewing or len(tr) == 0:
@@ -547,11 +572,35 @@ class ImageTracks:
             self._memory.retire(tr.ids[idx])
             r = idx[good]
             tr.ids[r] = self._new_ids(r.size)
-            tr.uv[r], tr.vel[r], tr.A[r] = uv[good], np.nan, np.eye(2)
+            tr.uv[r], tr.vel[r], tr.A[r], tr.ref_kf[r] = uv[good], np.nan, np.eye(2), -1
             keep = np.ones(len(tr), dtype=bool)
             keep[idx[~good]] = False
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
+
+    def _align(self, gray: np.ndarray) -> None:
+        """Stage 8: align the tracks that started at an earlier keyframe to their reference patches
+        (:mod:`slam_bridge.frontend.patch_alignment`)."""
+        cfg, tr = self.config, self._tracks
+        sel = np.flatnonzero(tr.ref_kf >= 0)
+        if sel.size == 0:
+            return
+        P = (2 * cfg.align_half_window + 1) ** 2
+        T = np.zeros((sel.size, P))
+        warp_ok = np.zeros(sel.size, dtype=bool)
+        for k in np.unique(tr.ref_kf[sel]).tolist():
+            g = np.flatnonzero(tr.ref_kf[sel] == k)
+            i = sel[g]
+            T[g], warp_ok[g] = reference_patches(
+                self._ref_grays[k], tr.ref_uv[i], tr.A[i], cfg.align_half_window
+            )
+        res = align_patches(
+            T, gray, tr.uv[sel], max_shift=cfg.align_max_shift_px, min_zncc=cfg.align_min_zncc
+        )
+        ok = res.ok & warp_ok & self._inside(res.uv)
+        tr.uv[sel[ok]] = res.uv[ok]
+        self.stats["aligned"] += int(ok.sum())
+        self.stats["align_failed"] += int((~ok).sum())
 
     def _drop(self, keep: np.ndarray, reason: str) -> None:
         """Drop the tracks outside ``keep`` ``(N,)`` for ``reason`` (a stats key): their points
@@ -562,7 +611,7 @@ class ImageTracks:
         tr.keep(keep)
 
     def _map_check(self, slam_map: Map) -> tuple[np.ndarray, np.ndarray] | None:
-        """Stage 8: PnP on the tracks of triangulated points, dropping those it rejects.
+        """Stage 9: PnP on the tracks of triangulated points, dropping those it rejects.
 
         Returns:
             The keyframe's estimated ``(R_wc, t_wc)``, or None (too few points, PnP failed).
@@ -606,7 +655,7 @@ class ImageTracks:
     def _add_tracks(
         self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: Map | None
     ) -> None:
-        """Stages 9-13: candidates, re-observation, top-up, centring, descriptors."""
+        """Stages 10-14: candidates, re-observation, top-up, centring, descriptors."""
         cfg, tr = self.config, self._tracks
         with self._clock("detect"):
             cand = ft.detect_corners(
@@ -706,7 +755,7 @@ class ImageTracks:
         return np.ceil(cfg.max_tracks / ncell * share).astype(np.int64)
 
     def _centred(self, grads: ft.Gradients, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Stage 12: ``(uv (M, 2) float32, ok (M,))``, ok when centring moved the point at most
+        """Stage 13: ``(uv (M, 2) float32, ok (M,))``, ok when centring moved the point at most
         ``centre_max_shift_px`` and it stays inside the border."""
         cfg = self.config
         c = ft.centre(grads, uv, cfg.window_px, cfg.centre_iterations)

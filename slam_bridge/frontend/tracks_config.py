@@ -74,10 +74,16 @@ class ImageTracksConfig:
         max_shear: a track is renewed when the ratio of those singular values exceeds
             ``exp(max_shear)`` (anisotropic deformation: ground and oblique surfaces; None:
             never).
-        map_check: the PnP check of the tracks of triangulated points (stage 8).
+        align: at each keyframe, align every track that started at an earlier keyframe to its
+            reference patch (stage 8, :mod:`slam_bridge.frontend.patch_alignment`): the drift
+            of frame-to-frame tracking does not accumulate.
+        align_half_window: the alignment window is ``2 h + 1`` pixels square.
+        align_min_zncc: least correlation of an accepted alignment.
+        align_max_shift_px: an alignment that moves a track further is not accepted.
+        map_check: the PnP check of the tracks of triangulated points (stage 9).
         map_check_threshold_px: reprojection error above which a track fails it.
         min_map_points: fewer tracked triangulated points: no map check.
-        reobserve: match untracked map points at keyframes (stage 10).
+        reobserve: match untracked map points at keyframes (stage 11).
         reacquire_keyframes: keyframe images kept to re-acquire, by LK, the untracked map points
             that one of them observed (0: descriptors only).
         match_radius_px: search radius around a point projected with the predicted pose (at
@@ -125,6 +131,10 @@ class ImageTracksConfig:
     flow_radius_px: float | None = 60.0
     max_deformation: float | None = None
     max_shear: float | None = None
+    align: bool = True
+    align_half_window: int = 4
+    align_min_zncc: float = 0.8
+    align_max_shift_px: float = 2.0
     map_check: bool = True
     map_check_threshold_px: float = 1.5
     min_map_points: int = 12
@@ -163,7 +173,7 @@ _NON_NEGATIVE = (lambda v: _number(v) and v >= 0, "a number >= 0")
 # fmt: off
 _CHECKS = {
     **dict.fromkeys(("max_tracks", "block_size", "lk_iterations", "reference_width",
-                     "equalize_tiles"),
+                     "equalize_tiles", "align_half_window"),
                     _POSITIVE_INT),
     **dict.fromkeys(("pyramid_levels", "centre_iterations", "min_epipolar_tracks",
                      "reacquire_keyframes", "recover_min_tracks", "recover_keyframe_tracks"),
@@ -172,7 +182,8 @@ _CHECKS = {
                     _NON_NEGATIVE),
     **dict.fromkeys(("min_distance_px", "quality_level", "lk_epsilon", "fb_threshold_px",
                      "flow_abs_px", "ransac_threshold_px", "match_radius_px",
-                     "match_radius_pnp_px", "centre_max_shift_px", "map_check_threshold_px"),
+                     "match_radius_pnp_px", "centre_max_shift_px", "map_check_threshold_px",
+                     "align_max_shift_px"),
                     _POSITIVE),
     "flow_neighbours": (lambda v: _integer(v) and v >= 2, "an integer >= 2"),
     "window_px": (lambda v: _integer(v) and v >= 5 and v % 2 == 1, "an odd integer >= 5"),
@@ -190,6 +201,7 @@ _CHECKS = {
                     (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)")),
     **dict.fromkeys(("max_deformation", "max_shear"),
                     (lambda v: v is None or (_number(v) and v > 0), "None or a number > 0")),
+    "align_min_zncc": (lambda v: _number(v) and -1 <= v <= 1, "a number in [-1, 1]"),
     "match_ratio": (lambda v: _number(v) and 0 < v <= 1, "a number in (0, 1]"),
     "max_descriptor_distance": (lambda v: _integer(v) and 0 <= v <= 256,
                                 "an integer in [0, 256]"),
