@@ -29,14 +29,15 @@ __all__ = ["Alignment", "reference_patches", "align_patches"]
 
 @dataclass
 class Alignment:
-    """Result of :func:`align_to_reference` for ``N`` tracks.
+    """Result of :func:`align_patches` for ``N`` tracks.
 
     Attributes:
         uv: ``(N, 2)`` float32 aligned pixels (the input where not ``ok``).
         shift: ``(N,)`` distance the alignment moved each track (pixels; where not ``ok``,
             the move it found and that was not applied).
         zncc: ``(N,)`` zero-mean normalised cross-correlation of the warped reference patch
-            and the current one at ``uv`` (in ``[-1, 1]``; -1 where it was not computed).
+            and the current one where the alignment ended (in ``[-1, 1]``; 0 for a flat
+            patch).
         ok: ``(N,)`` bool: converged, moved at most ``max_shift`` and ``zncc >= min_zncc``.
     """
 
