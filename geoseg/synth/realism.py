@@ -342,8 +342,9 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
 
 
 def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
-    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels
-    and street furniture (options left at 0 draw nothing: the earlier options' draws stay as they were)."""
+    """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels,
+    street furniture and road texture (options left at 0 draw nothing: the earlier options'
+    draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
     if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
         u = rng.random(len(_PROBABILITIES_2))

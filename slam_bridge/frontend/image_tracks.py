@@ -505,7 +505,7 @@ class ImageTracks:
         self.timings["checks"] += t1 - t0
         if self.config.align:
             with self._clock("align"):
-                self._align(gray)
+                self._align(gray, grads)
             t1 = time.process_time()
         self.pose_estimate = None
         if slam_map is not None and self.config.map_check:
@@ -578,7 +578,7 @@ class ImageTracks:
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
 
-    def _align(self, gray: np.ndarray) -> None:
+    def _align(self, gray: np.ndarray, grads: ft.Gradients) -> None:
         """Stage 8: align the tracks that started at an earlier keyframe to their reference patches
         (:mod:`slam_bridge.frontend.patch_alignment`)."""
         cfg, tr = self.config, self._tracks
@@ -595,8 +595,9 @@ class ImageTracks:
                 self._ref_grays[k], tr.ref_uv[i], tr.A[i], cfg.align_half_window
             )
         res = align_patches(
-            T, gray, tr.uv[sel], max_shift=cfg.align_max_shift_px, min_zncc=cfg.align_min_zncc
-        )
+            T, gray, tr.uv[sel], grads=grads, max_shift=cfg.align_max_shift_px,
+            min_zncc=cfg.align_min_zncc,
+        )  # fmt: skip
         ok = res.ok & warp_ok & self._inside(res.uv)
         tr.uv[sel[ok]] = res.uv[ok]
         self.stats["aligned"] += int(ok.sum())

@@ -24,6 +24,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from slam_bridge.frontend.features import Gradients, gradients
+
 __all__ = ["Alignment", "reference_patches", "align_patches"]
 
 
@@ -104,6 +106,7 @@ def align_patches(
     current: np.ndarray,
     uv: np.ndarray,
     *,
+    grads: Gradients | None = None,
     iterations: int = 10,
     max_shift: float = 2.0,
     min_zncc: float = 0.8,
@@ -115,6 +118,8 @@ def align_patches(
         T: ``(N, P)`` the tracks' reference patches (:func:`reference_patches`).
         current: ``(H, W)`` the current image.
         uv: ``(N, 2)`` their tracked pixels in ``current`` (the starting point).
+        grads: ``current``'s 3x3 Sobel gradients
+            (:func:`slam_bridge.frontend.features.gradients`), when already computed.
         iterations: Gauss-Newton iterations (steps clipped to 1 pixel).
         max_shift: a track moved further than this (pixels) is not aligned.
         min_zncc: least ZNCC of the aligned patches.
@@ -129,8 +134,8 @@ def align_patches(
         return Alignment(np.zeros((0, 2), np.float32), z, z, np.zeros(0, dtype=bool))
     ox, oy = _offsets(int(round(np.sqrt(T.shape[1]))) // 2)
     cur = np.asarray(current, dtype=np.float32)
-    gx_img = cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy_img = cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    grads = gradients(cur) if grads is None else grads
+    gx_img, gy_img = grads.Ix / 8.0, grads.Iy / 8.0  # a 3x3 Sobel is 8x the derivative
     p = uv0.copy()
     gain, bias = np.ones(n), np.zeros(n)
     step = np.full(n, np.inf)
