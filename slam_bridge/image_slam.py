@@ -43,9 +43,15 @@ from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
+from slam_bridge.frontend.vertical_lines import VerticalLinesConfig
 from slam_bridge.sensor_logs import read_columns, read_dem_csv, read_gps_csv, read_odometry_csv
 from slam_bridge.slam.config import SlamConfig
-from slam_bridge.slam.fusion import DemConstraints, GpsConstraints, OdometryConstraints
+from slam_bridge.slam.fusion import (
+    DemConstraints,
+    GpsConstraints,
+    OdometryConstraints,
+    VerticalConstraints,
+)
 from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
 from slam_bridge.slam.loop import SlamResult, run_slam
 from slam_bridge.slam.windows import METHODS
@@ -79,6 +85,9 @@ class ImageSlamConfig:
             this far apart (None: not).
         gps_weight: weight of a GPS fix in the fusion (per square metre).
         dem_weight: weight of the terrain-elevation term (per square metre).
+        vertical: the tilt from each keyframe's vertical line segments joins the fusion
+            (:class:`slam_bridge.slam.fusion.VerticalConstraints`).
+        vertical_lines: how those segments are found and fitted.
         bridge: the network bridge, when a building model is given (``--buildings``).
     """
 
@@ -90,6 +99,8 @@ class ImageSlamConfig:
     gps_interpolate_gap_s: float | None = 1.5
     gps_weight: float = 1.0
     dem_weight: float = 1.0
+    vertical: bool = True
+    vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
 
     def __post_init__(self) -> None:
@@ -355,12 +366,14 @@ def run_on_images(
         )
     if inputs.odometry is not None:
         providers.append(OdometryConstraints(inputs.odometry))
+    source = _Progress(tracks, progress)
+    if cfg.vertical:
+        providers.append(VerticalConstraints(source.image_at, tracks.K, cfg.vertical_lines))
     if bridge is not None:
         providers.append(bridge.constraints)
         if bridge.image_at is None:
             frames = inputs.frames
             bridge.image_at = lambda t: frames[int(np.searchsorted(frames.timestamps, t))][1]
-    source = _Progress(tracks, progress)
     try:
         result = run_slam(
             source, cfg.method, start, providers, cfg.slam, distance=inputs.odometry,
@@ -385,9 +398,15 @@ class _Progress:
         self.tracks = tracks
         self.K, self.image_size = tracks.K, tracks.image_size
         self.bar = tqdm(total=len(tracks.frames), unit="frame", desc="slam", disable=not enabled)
+        self.last: KeyframeObservations | None = None
+
+    def image_at(self, timestamp: float) -> np.ndarray | None:
+        """The image of the keyframe given last, when it is the one at ``timestamp``."""
+        last = self.last
+        return last.image if last is not None and last.timestamp == timestamp else None
 
     def next_keyframe(self, slam_map) -> KeyframeObservations | None:
-        obs = self.tracks.next_keyframe(slam_map)
+        obs = self.last = self.tracks.next_keyframe(slam_map)
         self.bar.n = len(self.tracks.frames) if obs is None else obs.frame_index + 1
         self.bar.refresh()
         return obs

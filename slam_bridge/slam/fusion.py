@@ -8,7 +8,9 @@ Sherman-Morrison, so a provider must add no dense term, appendix B). A provider 
 with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
 keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
 constraints plug in the same way (:class:`DemConstraints`: terrain elevation;
-:class:`OdometryConstraints`: the distance driven between the newest keyframes). A keyframe for which no provider has a constraint keeps
+:class:`OdometryConstraints`: the distance driven between the newest keyframes;
+:class:`VerticalConstraints`: the vertical seen in the keyframe's image). A keyframe for which no
+provider has a constraint keeps
 ``X*`` (a GPS dropout, for instance).
 """
 
@@ -26,8 +28,16 @@ from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import Factor
 from slam_bridge.factors.dem import DEMFactor
 from slam_bridge.factors.gps import GPSFactor
+from slam_bridge.factors.vertical import VerticalFactor
+from slam_bridge.frontend.vertical_lines import (
+    VerticalEstimate,
+    VerticalLinesConfig,
+    detect_segments,
+    vertical_direction,
+)
 from slam_bridge.slam.map import Map
 from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
+from slam_bridge.solvers.robust import HuberKernel
 
 logger = logging.getLogger(__name__)
 
@@ -36,6 +46,7 @@ __all__ = [
     "GpsConstraints",
     "DemConstraints",
     "OdometryConstraints",
+    "VerticalConstraints",
     "FusionConfig",
     "FusionOutcome",
     "fuse",
@@ -225,6 +236,72 @@ class OdometryConstraints:
             return []
         sigma = max(self.sigma_rel * d, self.sigma_min_m)
         return [BaselineLengthFactor(np.array([[i, j]]), np.array([d]), sigma)]
+
+
+class VerticalConstraints:
+    """World down as each keyframe's vertical line segments show it
+    (:mod:`slam_bridge.frontend.vertical_lines`): a constraint on the tilt of every camera of
+    the window that has one (:class:`slam_bridge.factors.vertical.VerticalFactor`).
+
+    GPS and DEM hold positions only, so they leave the roll about a straight stretch of road
+    free, and a DEM whose error slopes tilts the map to follow it. The newest keyframe's
+    segments are gated around the vertical the k-BA predicts for it, so the measurement refines
+    the SLAM's tilt rather than replacing it; it is kept on the map (``Map.down_c``, which the
+    georeferencing's refits lean on) and constrains the keyframe while it is in the window. A
+    keyframe without enough vertical segments (night, open country) has no row.
+
+    Args:
+        image_at: ``timestamp -> (H, W, 3) uint8`` image of a keyframe, or None.
+        K: ``(3, 3)`` intrinsics of those images.
+        config: the segment thresholds.
+        huber_delta: Huber threshold of the whitened residual (a fit to the wrong segments is
+            an outlier).
+    """
+
+    name = "vertical"
+    world_frame = True
+
+    def __init__(
+        self,
+        image_at,
+        K: np.ndarray,
+        config: VerticalLinesConfig | None = None,
+        *,
+        huber_delta: float = 2.0,
+    ) -> None:
+        self.K = np.asarray(K, dtype=np.float64)
+        check_shape("K", self.K, (3, 3))
+        self.image_at = image_at
+        self.config = config or VerticalLinesConfig()
+        self.kernel = HuberKernel(huber_delta)
+        self._measured: dict[int, VerticalEstimate] = {}  # keyframe id -> its vertical
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """Keyframe ``k``'s vertical is measured; one :class:`VerticalFactor` over the free
+        cameras of the window that have one."""
+        st = problem.state
+        image = self.image_at(float(slam_map.timestamps[k]))
+        if image is not None and k not in self._measured:
+            cam = int(st.free_cameras[-1])
+            predicted = st.R_wc[cam].T @ np.array([0.0, 0.0, -1.0])
+            est = vertical_direction(detect_segments(image), self.K, predicted, self.config)
+            if est is not None:
+                self._measured[k] = est
+                slam_map.down_c[k] = est.down_c
+        free = st.free_cameras
+        ids = np.asarray(problem.camera_ids)[free]
+        has = np.array([int(i) in self._measured for i in ids], dtype=bool)
+        if not has.any():
+            return []
+        ests = [self._measured[int(i)] for i in ids[has]]
+        return [
+            VerticalFactor(
+                free[has],
+                np.stack([e.basis for e in ests]),
+                np.stack([e.covariance for e in ests]),
+                kernel=self.kernel,
+            )
+        ]
 
 
 @dataclass

@@ -96,6 +96,10 @@ class InitConfig:
         up_weight: weight of the up-axis pair against the positions in the similarity fit:
             small, so that it only pins what the positions leave free (the roll about a straight
             start); the cameras' -y axes lean with the road's slope.
+        measured_up_weight: the same weight when at least ``min_fixes`` of the segment's
+            keyframes have a measured vertical (``Map.down_c``): their mean up replaces the
+            cameras' axes and, being a measurement, holds the tilt that a DEM with a sloping
+            error would otherwise give the fit.
         refit_distance_m: the similarity is fitted again at every keyframe, to all the
             segment's fixes, until its fixes spread over this distance: the map keeps the
             orientation it is given (the fusion moves the newest camera only, within the
@@ -110,6 +114,7 @@ class InitConfig:
     min_fixes: int = 8
     min_distance_m: float = 25.0
     up_weight: float = 0.05
+    measured_up_weight: float = 5.0
     refit_distance_m: float = 200.0
 
     def __post_init__(self) -> None:
@@ -122,6 +127,7 @@ class InitConfig:
         check_positive("threshold_px", self.threshold_px)
         check_positive("min_distance_m", self.min_distance_m)
         check_positive("up_weight", self.up_weight, strict=False)
+        check_positive("measured_up_weight", self.measured_up_weight, strict=False)
 
 
 class OdometryDistance:
@@ -294,7 +300,7 @@ class TwoViewStart:
         z = np.full(kf.size, self.rig.camera_height_m)
         if self.dem is not None:
             z = z + np.asarray(self.dem.altitude_at(xy), dtype=np.float64)
-        up_local = -np.mean(m.R_wc[kf][:, :, 1], axis=0)  # the cameras' -y axes
+        up_local, up_weight = self._up(m, seg, kf)
         antenna = np.asarray(self.rig.antenna_c, dtype=np.float64)
         fix_scale = self.odometry is not None
         s, R, T = 1.0, np.eye(3), np.zeros(3)
@@ -302,7 +308,7 @@ class TwoViewStart:
             offset = np.einsum("ij,kjl,l->ki", R, m.R_wc[kf], antenna)[:, :2]
             target = np.column_stack([xy - offset, z])
             s, R, T = fit_similarity(
-                m.t_wc[kf], target, up_src=up_local, up_weight=cfg.up_weight, fix_scale=fix_scale
+                m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
             )
         self._transform(m, seg, s, R, T)
         resid = np.linalg.norm((m.t_wc[kf, :2] + offset) - xy, axis=1)
@@ -317,6 +323,17 @@ class TwoViewStart:
         return True
 
     # ------------------------------------------------------------------------- internals
+    def _up(self, m: Map, seg: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, float]:
+        """The segment's up direction in the map frame and its weight in the fit: from the
+        measured verticals when enough keyframes have one, else the cameras' -y axes."""
+        down = m.down_c[seg]
+        has = np.all(np.isfinite(down), axis=1)
+        if has.sum() >= self.config.min_fixes:
+            return -np.einsum(
+                "kij,kj->i", m.R_wc[seg[has]], down[has]
+            ), self.config.measured_up_weight
+        return -np.mean(m.R_wc[kf][:, :, 1], axis=0), self.config.up_weight
+
     def _two_views(
         self, m: Map, source: ObservationSource, a: int, speed: float | None
     ) -> StartResult | None:

@@ -68,6 +68,7 @@ class Map:
         self._t = _Column((3,), np.float64, 0.0)
         self._R_on = _Column((3, 3), np.float64, 0.0)
         self._t_on = _Column((3,), np.float64, 0.0)
+        self._down = _Column((3,), np.float64, np.nan)
         self._starts = [0]
         self._X = _Column((3,), np.float64, np.nan)
         self._tri = _Column((), bool, False)
@@ -110,7 +111,15 @@ class Map:
             raise SlamError("point_ids: expected non-negative ids")
         if np.unique(point_ids).size != point_ids.size:
             raise SlamError(f"keyframe {C}: a point is observed twice")
-        for col in (self._timestamps, self._segment, self._R, self._t, self._R_on, self._t_on):
+        for col in (
+            self._timestamps,
+            self._segment,
+            self._R,
+            self._t,
+            self._R_on,
+            self._t_on,
+            self._down,
+        ):
             col.resize(C + 1)
         self._timestamps.view()[C] = timestamp
         self._segment.view()[C] = self._current_segment
@@ -176,6 +185,12 @@ class Map:
     def t_wc_online(self) -> np.ndarray:
         """``(C, 3)`` each keyframe's optical centre right after its own fusion."""
         return self._t_on.view()
+
+    @property
+    def down_c(self) -> np.ndarray:
+        """``(C, 3)`` world down as measured in each keyframe's camera frame (writable view;
+        NaN where not measured: :mod:`slam_bridge.frontend.vertical_lines`)."""
+        return self._down.view()
 
     @property
     def starts(self) -> np.ndarray:
