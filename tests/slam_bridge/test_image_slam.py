@@ -80,6 +80,7 @@ def test_slam_run_writes_a_georeferenced_trajectory(drive, tmp_path, capsys):
     log = list(csv.DictReader(open(out / "keyframes.csv")))
     assert [r["tracking"] for r in log[:2]] == ["start", "start"]
     assert any("gps" in r["constraints"] for r in log)
+    assert any("vertical" in r["constraints"] for r in log)  # the line segments' tilt
     # a second run into the same folder is allowed (its own outputs); a foreign folder is not
     assert main(slam_args(folder, gps, out)) == 0
     foreign = tmp_path / "foreign"
