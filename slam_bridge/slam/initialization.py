@@ -329,9 +329,8 @@ class TwoViewStart:
         down = m.down_c[seg]
         has = np.all(np.isfinite(down), axis=1)
         if has.sum() >= self.config.min_fixes:
-            return -np.einsum(
-                "kij,kj->i", m.R_wc[seg[has]], down[has]
-            ), self.config.measured_up_weight
+            up = -np.einsum("kij,kj->i", m.R_wc[seg[has]], down[has])
+            return up, self.config.measured_up_weight
         return -np.mean(m.R_wc[kf][:, :, 1], axis=0), self.config.up_weight
 
     def _two_views(

@@ -4,9 +4,9 @@ One :class:`Map` holds the whole state of a run:
 
 * **keyframes** ``0..C-1`` in arrival order: timestamp, current pose (``R_wc``, ``t_wc``,
   camera-to-world, ``X_w = R_wc X_c + t_wc``), the pose right after the keyframe's own fusion
-  (``*_online``: what an online system knew then) and a *segment* id (a run restarts a segment
+  (``*_online``: what an online system knew then), a *segment* id (a run restarts a segment
   when it re-initialises after losing its tracking; keyframes of different segments share no
-  observation);
+  observation) and world down as measured in the keyframe's image (``down_c``, NaN if not);
 * **points** ``0..P-1``, addressed by the ids the observation source gives them: position
   (NaN until triangulated), a triangulated flag, and named per-point attributes that later
   stages attach (labels, normals, weights of the network bridge) without touching the loop;
