@@ -103,6 +103,9 @@ class SyntheticConfig:
             pixels and labels, its pose unchanged) and transformed by the dataset's
             ``clean_transform`` (training: no colour jitter, no camera effects), so that a
             randomised training set keeps some frames as the held-out synthetic frames look.
+        clean_keeps_labels: clean samples keep the realism label option ``bare_crown_label``
+            (a labelling convention, not an appearance variation: a clean frame's pixels are the
+            plain renderer's either way); False: the plain renderer's labels too.
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -123,6 +126,7 @@ class SyntheticConfig:
     kerb_lane_share: float = 0.0
     kerb_lane_m: tuple[float, float] = (0.6, 1.4)
     clean_share: float = 0.0
+    clean_keeps_labels: bool = True
 
     def __post_init__(self) -> None:
         from geoseg.synth.conditions import CONDITIONS
@@ -162,6 +166,10 @@ class SyntheticConfig:
                 )
         check_range("synth.kerb_lane_share", self.kerb_lane_share, 0.0, 1.0)
         check_range("synth.clean_share", self.clean_share, 0.0, 1.0)
+        if not isinstance(self.clean_keeps_labels, bool):
+            raise ConfigError(
+                f"synth.clean_keeps_labels: expected true or false, got {self.clean_keeps_labels!r}"
+            )
         for i, value in enumerate(self.kerb_lane_m):
             check_range(f"synth.kerb_lane_m[{i}]", value, 0.0, 1.4)
         if self.kerb_lane_m[0] > self.kerb_lane_m[1]:
@@ -375,8 +383,13 @@ class SyntheticDataset(Dataset):
 
     def _variation(self, index: int) -> Variation | None:
         """Sample ``index``'s appearance draw (None when the realism options are all off or
-        the sample is clean)."""
-        if not self.config.realism.enabled or self._clean(index):
+        the sample is clean, but for the label option of :attr:`SyntheticConfig.clean_keeps_labels`)."""
+        realism = self.config.realism
+        if not realism.enabled:
+            return None
+        if self._clean(index):
+            if self.config.clean_keeps_labels and realism.bare_crown_label:
+                return Variation(bare_crown_label=True)  # the plain image, the crown labels
             return None
         rng = np.random.default_rng(np.random.SeedSequence([self.config.sample_seed, index, 4343]))
         return draw_variation(self.config.realism, rng)

@@ -259,6 +259,28 @@ def test_clean_share_renders_some_samples_plain_and_transforms_them_apart():
         _config(clean_share=1.5)
 
 
+def test_clean_samples_keep_the_crown_labels_unless_told_not_to():
+    from geoseg.synth.realism import REALISTIC_2, Variation
+
+    frames = 8
+    kept = SyntheticDataset(_config(frames=frames, realism=REALISTIC_2, clean_share=0.5), size=SIZE)
+    plain_labels = SyntheticDataset(
+        _config(frames=frames, realism=REALISTIC_2, clean_share=0.5, clean_keeps_labels=False),
+        size=SIZE,
+    )
+    plain = SyntheticDataset(_config(frames=frames), size=SIZE)
+    clean = [i for i in range(frames) if kept.spec(i).clean]
+    assert clean
+    for i in clean:
+        assert kept.spec(i).variation == Variation(bare_crown_label=True)
+        assert plain_labels.spec(i).variation is None
+        # the image is the plain renderer's either way
+        assert torch.equal(kept[i]["image"], plain[i]["image"])
+        assert torch.equal(plain_labels[i]["labels"], plain[i]["labels"])
+    with pytest.raises(ConfigError, match="clean_keeps_labels"):
+        _config(clean_keeps_labels="no")
+
+
 def test_training_dataset_leaves_clean_samples_without_colour_or_camera_effects():
     from training.common import build_frame_dataset
     from training.config import DataConfig
