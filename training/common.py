@@ -14,6 +14,7 @@ Images reach the networks normalised with :data:`NORMALIZATION` (ImageNet statis
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -178,11 +179,22 @@ def build_frame_dataset(
     if data.source == "synth":
         from geoseg.data.synthetic import SyntheticDataset, synthetic_config
 
+        config = synthetic_config(data.synth, split=split)
+        clean_transform = None
+        if config.clean_share > 0:
+            # clean samples: the geometric augmentations only (no colour jitter or camera effects)
+            plain = dataclasses.replace(data.augment, brightness=0, contrast=0, saturation=0, hue=0)
+            clean_transform = Chain(
+                build_transforms(plain, size=tuple(data.size), train=augment),
+                random_crop(crop) if crop is not None else None,
+                NormalizeImage() if normalize else None,
+            )
         return SyntheticDataset(
-            synthetic_config(data.synth, split=split),
+            config,
             size=tuple(data.size),
             cache_dir=data.cache_dir,
             transform=transform,
+            clean_transform=clean_transform,
         )
     if data.source == "cityscapes":
         from geoseg.data.cityscapes import CityscapesDataset

@@ -98,6 +98,14 @@ class SyntheticConfig:
         kerb_lane_m: range of their shift towards the kerb from the middle of the lane, metres
             (spread evenly over those drives; at most 1.4 m, which keeps the camera clear of the
             parked cars of the default 2.2 m parking strip).
+        clean_share: share of the samples kept clean (0: none): drawn from ``(sample_seed, i)``,
+            such a sample is rendered without the :attr:`realism` options (the plain renderer's
+            pixels and labels, its pose unchanged) and transformed by the dataset's
+            ``clean_transform`` (training: no colour jitter, no camera effects), so that a
+            randomised training set keeps some frames as the held-out synthetic frames look.
+        clean_keeps_labels: clean samples keep the realism label option ``bare_crown_label``
+            (a labelling convention, not an appearance variation: a clean frame's pixels are the
+            plain renderer's either way); False: the plain renderer's labels too.
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -117,6 +125,8 @@ class SyntheticConfig:
     realism: RealismConfig = field(default_factory=RealismConfig)
     kerb_lane_share: float = 0.0
     kerb_lane_m: tuple[float, float] = (0.6, 1.4)
+    clean_share: float = 0.0
+    clean_keeps_labels: bool = True
 
     def __post_init__(self) -> None:
         from geoseg.synth.conditions import CONDITIONS
@@ -155,6 +165,11 @@ class SyntheticConfig:
                     "(synth.heldout_conditions); training data must not use them"
                 )
         check_range("synth.kerb_lane_share", self.kerb_lane_share, 0.0, 1.0)
+        check_range("synth.clean_share", self.clean_share, 0.0, 1.0)
+        if not isinstance(self.clean_keeps_labels, bool):
+            raise ConfigError(
+                f"synth.clean_keeps_labels: expected true or false, got {self.clean_keeps_labels!r}"
+            )
         for i, value in enumerate(self.kerb_lane_m):
             check_range(f"synth.kerb_lane_m[{i}]", value, 0.0, 1.4)
         if self.kerb_lane_m[0] > self.kerb_lane_m[1]:
@@ -293,6 +308,7 @@ class SampleSpec:
     frame_share: float
     yaw_deg: float
     variation: Variation | None = None
+    clean: bool = False
 
 
 class SyntheticDataset(Dataset):
@@ -305,6 +321,8 @@ class SyntheticDataset(Dataset):
         transform: applied to ``{"image", "labels", "normals"}`` (e.g.
             :func:`geoseg.data.transforms.build_transforms`); ``normal_valid`` is recomputed from
             the transformed normals.
+        clean_transform: applied instead of ``transform`` to the clean samples
+            (:attr:`SyntheticConfig.clean_share`; None: ``transform``).
 
     Each sample is ``{"image": (3, H, W) float32 in [0, 1], "labels": (H, W) int64,
     "normals": (3, H, W) float32 unit camera-frame normals (zero where invalid),
@@ -318,6 +336,7 @@ class SyntheticDataset(Dataset):
         size: tuple[int, int] = (240, 320),
         cache_dir: str | os.PathLike | None = None,
         transform: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
+        clean_transform: Callable[[dict[str, Any]], Mapping[str, Any]] | None = None,
     ) -> None:
         self.config = config or SyntheticConfig()
         if not isinstance(self.config, SyntheticConfig):
@@ -327,6 +346,7 @@ class SyntheticDataset(Dataset):
         self.size = (int(size[0]), int(size[1]))
         self.cache_dir = None if cache_dir is None else Path(cache_dir)
         self.transform = transform
+        self.clean_transform = clean_transform
         self._world_keys = {s: _config_key(self.config.world_config(s)) for s in self.config.seeds}
         self.renders = 0  # frames rendered by this process (not read from the cache)
 
@@ -351,11 +371,25 @@ class SyntheticDataset(Dataset):
             frame_share=float(rng.random()),
             yaw_deg=float(rng.uniform(-cfg.yaw_jitter_deg, cfg.yaw_jitter_deg)),
             variation=self._variation(index),
+            clean=self._clean(index),
         )
 
+    def _clean(self, index: int) -> bool:
+        """Whether sample ``index`` is kept clean (:attr:`SyntheticConfig.clean_share`)."""
+        if self.config.clean_share <= 0:
+            return False
+        rng = np.random.default_rng(np.random.SeedSequence([self.config.sample_seed, index, 4444]))
+        return bool(rng.random() < self.config.clean_share)
+
     def _variation(self, index: int) -> Variation | None:
-        """Sample ``index``'s appearance draw (None when the realism options are all off)."""
-        if not self.config.realism.enabled:
+        """Sample ``index``'s appearance draw (None when the realism options are all off or
+        the sample is clean, but for the label option of :attr:`SyntheticConfig.clean_keeps_labels`)."""
+        realism = self.config.realism
+        if not realism.enabled:
+            return None
+        if self._clean(index):
+            if self.config.clean_keeps_labels and realism.bare_crown_label:
+                return Variation(bare_crown_label=True)  # the plain image, the crown labels
             return None
         rng = np.random.default_rng(np.random.SeedSequence([self.config.sample_seed, index, 4343]))
         return draw_variation(self.config.realism, rng)
@@ -454,8 +488,11 @@ class SyntheticDataset(Dataset):
             "labels": torch.from_numpy(a["labels"].astype(np.int64)),
             "normals": normals,
         }
-        if self.transform is not None:
-            sample = dict(self.transform(sample))
+        transform = self.transform
+        if spec.clean and self.clean_transform is not None:
+            transform = self.clean_transform
+        if transform is not None:
+            sample = dict(transform(sample))
         sample["normal_valid"] = vector_length(sample["normals"], 0) > 0.5
         sample.update(index=index, seed=spec.seed, condition=spec.condition, rig=spec.rig)
         return sample

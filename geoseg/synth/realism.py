@@ -38,6 +38,10 @@ ids do not):
   from pavement);
 - ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
   single white or yellow line), on some street sides, worn to a varying brightness;
+- ``p_posters`` / ``poster_share``: a share of the facades get a poster hoarding over their
+  ground floor: boards covered with posters of bold colour blocks, pale backgrounds and dark
+  marks (the look of the city's advertising panels, which are ``object``), labelled building
+  as real datasets label hoardings and shop signs;
 - ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
   sun, in daylight conditions (grey skies beside grey facades: the sky class must be learnt
   from more than its colour).
@@ -55,7 +59,8 @@ Options that change the geometry, with labels that follow it (rendered from the 
   label of what lies behind, as in the ``winter`` condition) under any light;
 - ``p_furniture`` / ``furniture_spacing_m``: extra street furniture near the camera (sign
   posts with plates, traffic lights, lamp posts, bollards, utility cabinets), mostly at the
-  kerb, labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
+  kerb (``furniture_kerb_share``), labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
+  ``furniture_plain_plates`` paints their plates plain colours (image only);
 - ``p_lens`` / ``lens_k1``: radial lens distortion, ``x_u = x_d (1 + k1 r_d^2)`` in normalised
   image coordinates (``k1 > 0``: barrel, straight lines bow outwards). Such a frame is not a
   pinhole image: its ``K`` is the undistorted camera's.
@@ -87,8 +92,9 @@ _PROBABILITIES = (
 # drawn after the options above (their draws, and so the older variations, stay as they were)
 _PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
 _PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
-_PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these last, in this order)
-_ALL = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3 + _PROBABILITIES_4
+_PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these after those, in this order)
+_PROBABILITIES_5 = ("p_posters",)  # (and this last)
+_ALL = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3 + _PROBABILITIES_4 + _PROBABILITIES_5
 
 
 @dataclass
@@ -121,8 +127,15 @@ class RealismConfig:
         p_furniture: probability of extra street furniture (poles, signs, traffic lights,
             lamp posts, bollards, cabinets; :mod:`geoseg.synth.street_furniture`).
         furniture_spacing_m: range of the mean distance between two items along a street side.
+        furniture_kerb_share: share of the extra street furniture standing at the kerb (the
+            others stand at the back of the sidewalk, in front of the facades; 1: kerb only).
+        furniture_plain_plates: paint the extra furniture's sign plates and lamp heads one
+            plain colour each (white, sign blue, red, yellow, green, brown, grey, black) instead
+            of the bold stripes and blocks of the city's advertising panels.
         p_road_texture: probability of a smoother (or flat) asphalt.
         road_texture: range of the asphalt's texture contrast (1: as rendered, 0: flat).
+        p_posters: probability that a frame has poster hoardings on ground floors.
+        poster_share: range of the share of facades with a hoarding in such a frame.
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
@@ -151,14 +164,20 @@ class RealismConfig:
     bare_crown_label: bool = False
     p_furniture: float = 0.0
     furniture_spacing_m: tuple[float, float] = (4.0, 12.0)
+    furniture_kerb_share: float = 0.75
+    furniture_plain_plates: bool = False
     p_road_texture: float = 0.0
     road_texture: tuple[float, float] = (0.1, 0.8)
+    p_posters: float = 0.0
+    poster_share: tuple[float, float] = (0.1, 0.4)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.bare_crown_label, bool):
-            raise ConfigError(
-                f"realism.bare_crown_label: expected true or false, got {self.bare_crown_label!r}"
-            )
+        for name in ("bare_crown_label", "furniture_plain_plates"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(
+                    f"realism.{name}: expected true or false, got {getattr(self, name)!r}"
+                )
+        check_range("realism.furniture_kerb_share", self.furniture_kerb_share, 0.0, 1.0)
         for name in _ALL:
             check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
         ranges = {
@@ -173,6 +192,7 @@ class RealismConfig:
             "slab_m": (0.1, 3.0),
             "furniture_spacing_m": (1.0, None),
             "road_texture": (0.0, 1.0),
+            "poster_share": (0.0, 1.0),
         }
         for name, (low, high) in ranges.items():
             lo, hi = getattr(self, name)
@@ -246,6 +266,12 @@ class Variation:
             keys) at its default; :func:`cache_fields` gives such fields.
         road_texture: contrast of the asphalt's mottling, grit and patches around the frame's
             median asphalt tone (1: as rendered; left out of ``repr`` as above).
+        furniture_kerb_share: share of the extra street furniture at the kerb (the others at
+            the back of the sidewalk; left out of ``repr`` as above).
+        furniture_plain_plates: the extra furniture's plates and lamp heads in plain colours
+            (left out of ``repr`` as above).
+        poster_share: share of facades whose ground floor is a poster hoarding (0: none; left
+            out of ``repr`` as above).
     """
 
     seed: int = 0
@@ -270,6 +296,9 @@ class Variation:
     bare_crown_label: bool = False
     furniture_spacing: float = dataclasses.field(default=0.0, repr=False)
     road_texture: float = dataclasses.field(default=1.0, repr=False)
+    furniture_kerb_share: float = dataclasses.field(default=0.75, repr=False)
+    furniture_plain_plates: bool = dataclasses.field(default=False, repr=False)
+    poster_share: float = dataclasses.field(default=0.0, repr=False)
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -374,11 +403,19 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
         if u4[0] < cfg.p_furniture:
             lo, hi = cfg.furniture_spacing_m
             kw["furniture_spacing"] = float(lo + (hi - lo) * u4[1])
+            # style options: no draws of their own (the other draws stay as they were)
+            kw["furniture_kerb_share"] = float(cfg.furniture_kerb_share)
+            kw["furniture_plain_plates"] = bool(cfg.furniture_plain_plates)
     if cfg.p_road_texture > 0:
         u5 = rng.random(2)
         if u5[0] < cfg.p_road_texture:
             lo, hi = cfg.road_texture
             kw["road_texture"] = float(lo + (hi - lo) * u5[1])
+    if cfg.p_posters > 0:
+        u6 = rng.random(2)
+        if u6[0] < cfg.p_posters:
+            lo, hi = cfg.poster_share
+            kw["poster_share"] = float(lo + (hi - lo) * u6[1])
     return kw
 
 

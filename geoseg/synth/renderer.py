@@ -43,7 +43,7 @@ from geoseg.errors import GeosegError, check_finite, check_shape
 from geoseg.synth import textures
 from geoseg.synth.conditions import Condition, get_condition
 from geoseg.synth.realism import Variation, random_colours
-from geoseg.synth.street_furniture import furniture_part, pole_albedo
+from geoseg.synth.street_furniture import furniture_part, plate_albedo, pole_albedo
 from geoseg.synth.trajectory import Trajectory, check_image_size
 from geoseg.synth.world import (
     SURFACE_CLASS,
@@ -284,7 +284,13 @@ class Renderer:
         dirs_w = _rotate(dirs_c, R_wc.astype(np.float32))
         extra = None  # the frame's street furniture, cast with the moving vehicles
         if variation is not None and variation.furniture_spacing > 0:
-            extra = furniture_part(self.world, variation.seed, variation.furniture_spacing, t_wc)
+            extra = furniture_part(
+                self.world,
+                variation.seed,
+                variation.furniture_spacing,
+                t_wc,
+                variation.furniture_kerb_share,
+            )
         movers = self._mover_scene(R_wc, t_wc, float(time_s), extra)
         mover_rays = None
         if movers is not None and extra is None:
@@ -676,6 +682,16 @@ class Renderer:
                 s = s[inside]
                 albedo[f[s]] = shop_albedo[inside]
                 emissive[f[s]] = 0.0
+        if var.poster_share > 0:  # (over the shop fronts where both fall on a facade)
+            board = textures.hash01(row, seed=var.seed + 211) < var.poster_share
+            s = np.nonzero(board)[0]
+            if len(s):
+                inside, board_albedo = textures.poster_albedo(
+                    u[s], v[s], row[s], styles, var.seed % 100003
+                )
+                s = s[inside]
+                albedo[f[s]] = board_albedo[inside]
+                emissive[f[s]] = 0.0
         if var.paint_share > 0:  # drainpipes on some repainted facades
             pipe = textures.hash01(row, seed=var.seed + 206) < 0.5 * var.paint_share
             at = 0.25 + 0.5 * textures.hash01(row, seed=var.seed + 207)
@@ -716,6 +732,8 @@ class Renderer:
         albedo[p] = pole_albedo(instance[p], len(self.world.instance_class), [0.42, 0.44, 0.46])
         pa = where(SurfaceKind.PANEL)
         albedo[pa] = textures.panel_albedo(X[pa], instance[pa])
+        if var is not None and var.furniture_plain_plates:
+            albedo[pa] = plate_albedo(instance[pa], len(self.world.instance_class), albedo[pa])
         if cond.lamps_on and len(pa):
             high = X[pa, 2] - self.world.terrain.height(X[pa, :2]) > 6.0
             emissive[pa[high]] = np.float32([1.0, 0.9, 0.6])

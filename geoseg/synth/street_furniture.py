@@ -12,9 +12,15 @@ instance ids follow the new geometry (they are ``object``: surface kinds ``POLE`
 ``PANEL``). They cast no shadows (the shadow rays see the static city only).
 
 Placement, per street and side (a Poisson process of rate ``1 / furniture_spacing`` along the
-street, keeping clear of the junctions as the city's own furniture does): 75 % of the items
+street, keeping clear of the junctions as the city's own furniture does): a share
+``kerb_share`` of the items (75 % by default; the Variation field ``furniture_kerb_share``)
 stand at the kerb (0.25-0.6 m behind it), the others at the back of the sidewalk, in front of
-the facades. The same ``(world, seed, spacing)`` gives the same items whatever the camera.
+the facades. The same ``(world, seed, spacing, kerb_share)`` gives the same items whatever the
+camera, and the same kinds and sizes whatever ``kerb_share``.
+
+Plates: the sign plates and lamp heads (surface kind ``PANEL``) take the city's advertising
+panel shading (bold per-instance stripes and blocks), or with ``furniture_plain_plates``
+(:func:`plate_albedo`) one plain sign colour per item.
 
 Instance ids: the items of a frame take ids from ``len(world.instance_class)`` upwards (past
 every id of the city, so :attr:`World.instance_class` does not hold them; all are ``object``).
@@ -44,7 +50,7 @@ _POLE_RGB = np.array(
 
 
 def furniture_part(
-    world: World, seed: int, spacing_m: float, camera_xy: np.ndarray
+    world: World, seed: int, spacing_m: float, camera_xy: np.ndarray, kerb_share: float = 0.75
 ) -> MeshPart | None:
     """The street furniture of draw ``seed`` near the camera.
 
@@ -53,6 +59,7 @@ def furniture_part(
         seed: the draw (:attr:`~geoseg.synth.realism.Variation.seed`).
         spacing_m: mean distance between two items along one street side, metres (> 0).
         camera_xy: `(2,)` camera centre, world xy.
+        kerb_share: share of the items at the kerb (the others at the back of the sidewalk).
 
     Returns:
         boxes of kinds ``POLE`` and ``PANEL`` (instance ids from ``len(world.instance_class)``),
@@ -79,7 +86,7 @@ def furniture_part(
                 continue
             pts, tans = street.point_at(s_all)
             left = np.stack([-tans[:, 1], tans[:, 0]], 1) * side
-            at_kerb = draws[:, 0] < 0.75
+            at_kerb = draws[:, 0] < kerb_share
             depth = np.where(at_kerb, half + 0.25 + 0.35 * draws[:, 1], half + sw - 0.45)
             xy = pts + left * depth[:, None]
             near = np.linalg.norm(xy - camera_xy, axis=1) < FURNITURE_RADIUS
@@ -158,6 +165,33 @@ def _item(
     verts, faces = _boxes(centers, sizes, headings)
     kinds = np.repeat(np.array([b[3] for b in boxes], dtype=np.uint8), 12)
     return MeshPart(verts, faces, kinds, np.full(len(faces), instance, dtype=np.int32))
+
+
+# plain sign plate colours: white, sign blue, red, yellow, green, brown, mid grey, black
+_PLATE_RGB = np.array(
+    [
+        [0.85, 0.85, 0.83],
+        [0.06, 0.2, 0.55],
+        [0.62, 0.08, 0.07],
+        [0.85, 0.7, 0.08],
+        [0.05, 0.33, 0.18],
+        [0.35, 0.2, 0.1],
+        [0.45, 0.46, 0.47],
+        [0.06, 0.06, 0.07],
+    ],
+    dtype=np.float32,
+)
+
+
+def plate_albedo(instance: np.ndarray, first: int, albedo: np.ndarray) -> np.ndarray:
+    """`(N, 3)` float32 plate colours: the frame's furniture (``instance >= first``) in one
+    plain sign colour per item, the city's own panels keeping ``albedo`` `(N, 3)`."""
+    instance = np.asarray(instance)
+    out = np.array(albedo, dtype=np.float32, copy=True).reshape(len(instance), 3)
+    own = instance >= first
+    pick = (hash01(instance[own], seed=41) * len(_PLATE_RGB)).astype(np.int64)
+    out[own] = _PLATE_RGB[np.minimum(pick, len(_PLATE_RGB) - 1)]
+    return out
 
 
 def pole_albedo(instance: np.ndarray, first: int, albedo: np.ndarray) -> np.ndarray:

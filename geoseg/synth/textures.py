@@ -324,6 +324,60 @@ def shopfront_albedo(
     return inside, albedo
 
 
+def poster_albedo(
+    u: np.ndarray, v: np.ndarray, row: np.ndarray, styles: FacadeStyles, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Poster hoardings over ground floors (realism option): a board 2.4-3.2 m high across the
+    facade, covered with posters (1.2-3 m wide, one background colour each, mostly pale, with
+    bold colour blocks and dark marks: the look of advertising panels).
+
+    Args:
+        u, v, row: as in :func:`facade_albedo` (only hits on facades with a hoarding).
+        styles: per-facade parameters.
+        seed: varies the posters.
+
+    Returns:
+        ``(inside, albedo)`` as :func:`shopfront_albedo`: the hits on the hoarding and their
+        `(N, 3)` float32 albedo.
+    """
+    from geoseg.synth.realism import random_colours
+
+    u = u.astype(np.float32)
+    v = v.astype(np.float32)
+    n = len(u)
+    top = np.minimum(2.4 + 0.8 * hash01(row, seed=seed + 121), 1.3 * styles.storey_height[row])
+    inside = v < top
+    albedo = np.zeros((n, 3), dtype=np.float32)
+    board_rgb = random_colours(row, seed + 122, 0.25) * 0.6 + 0.1
+    albedo[:] = board_rgb
+    width = 1.2 + 1.8 * hash01(row, seed=seed + 123)  # poster width on this facade
+    col = np.floor(u / width)
+    du = u - col * width
+    bottom = 0.3 + 0.3 * hash01(row, seed=seed + 124)
+    poster = inside & (du > 0.08) & (du < width - 0.08) & (v > bottom) & (v < top - 0.15)
+    poster &= hash01(row, col, seed=seed + 125) < 0.9  # a few bare boards
+    key = hash_u32(row, col, seed=seed + 126).view(np.int32)
+    pale = hash01(row, col, seed=seed + 127) < 0.6
+    background = np.where(
+        pale[:, None],
+        0.75 + 0.2 * random_colours(key, seed + 128, 0.2),
+        random_colours(key, seed + 129, 0.8),
+    )
+    albedo[poster] = background[poster]
+    # bold blocks (pictures, bands) and dark marks (text) on a coarse grid per poster
+    cu = np.floor(du / 0.3)
+    cv = np.floor(v / 0.25)
+    block = poster & (hash01(row, col, cu, cv, seed=seed + 130) < 0.3)
+    block_key = hash_u32(row, col, np.floor(cv / 2), seed=seed + 131).view(np.int32)
+    albedo[block] = random_colours(block_key, seed + 132, 0.9)[block]
+    fine_u = np.floor(du / 0.07)
+    fine_v = np.floor(v / 0.09)
+    text_band = (cv % 3) == 0
+    mark = poster & text_band & (hash01(row, col, fine_u, fine_v, seed=seed + 133) < 0.45)
+    albedo[mark] = np.float32([0.08, 0.08, 0.1])
+    return inside, albedo.astype(np.float32)
+
+
 # --------------------------------------------------------------------------------------------
 # Ground
 # --------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ import geoseg.data.synthetic as synthetic
 import geoseg.synth.renderer as renderer_module
 import geoseg.synth.world as world_module
 from geoseg.classes import IGNORE_INDEX, NUM_CLASSES, SKY
+from geoseg.config import from_dict
 from geoseg.data.synthetic import (
     EVAL_SEEDS,
     HELDOUT_CONDITIONS,
@@ -211,3 +212,97 @@ def test_kerb_lane_drives_move_the_car_camera_towards_the_kerb():
         _config(kerb_lane_m=(0.5, 2.0))
     with pytest.raises(ConfigError, match="kerb_lane_share"):
         _config(kerb_lane_share=1.5)
+
+
+def test_clean_share_renders_some_samples_plain_and_transforms_them_apart():
+    from geoseg.synth.realism import REALISTIC
+
+    frames = 12
+    plain = SyntheticDataset(_config(frames=frames), size=SIZE)
+    real = SyntheticDataset(_config(frames=frames, realism=REALISTIC), size=SIZE)
+
+    def mark(tag):
+        def transform(sample):
+            return {**sample, "tag": tag}
+
+        return transform
+
+    mixed = SyntheticDataset(
+        _config(frames=frames, realism=REALISTIC, clean_share=0.5),
+        size=SIZE,
+        transform=mark("randomised"),
+        clean_transform=mark("clean"),
+    )
+    clean = [i for i in range(frames) if mixed.spec(i).clean]
+    assert 0 < len(clean) < frames  # about half, drawn per index
+    assert clean == [i for i in range(frames) if mixed.spec(i).clean]  # deterministic
+    for i in range(frames):
+        spec = mixed.spec(i)
+        # the same pose and condition as without the clean share
+        assert dataclasses.replace(spec, variation=None, clean=False) == plain.spec(i)
+        if spec.clean:
+            # the plain renderer's frame (pixels, labels and cache key)
+            assert spec.variation is None
+            assert mixed.cache_key(spec) == plain.cache_key(plain.spec(i))
+        else:
+            # the randomised frames keep their draws and cache keys
+            assert spec.variation == real.spec(i).variation
+            assert mixed.cache_key(spec) == real.cache_key(real.spec(i))
+    i, j = clean[0], next(k for k in range(frames) if k not in clean)
+    sample = mixed[i]
+    assert sample["tag"] == "clean"
+    assert torch.equal(sample["image"], plain[i]["image"])
+    assert torch.equal(sample["labels"], plain[i]["labels"])
+    assert mixed[j]["tag"] == "randomised"
+    assert not SyntheticDataset(_config(frames=frames, realism=REALISTIC)).spec(i).clean
+    with pytest.raises(ConfigError, match="clean_share"):
+        _config(clean_share=1.5)
+
+
+def test_clean_samples_keep_the_crown_labels_unless_told_not_to():
+    from geoseg.synth.realism import REALISTIC_2, Variation
+
+    frames = 8
+    kept = SyntheticDataset(_config(frames=frames, realism=REALISTIC_2, clean_share=0.5), size=SIZE)
+    plain_labels = SyntheticDataset(
+        _config(frames=frames, realism=REALISTIC_2, clean_share=0.5, clean_keeps_labels=False),
+        size=SIZE,
+    )
+    plain = SyntheticDataset(_config(frames=frames), size=SIZE)
+    clean = [i for i in range(frames) if kept.spec(i).clean]
+    assert clean
+    for i in clean:
+        assert kept.spec(i).variation == Variation(bare_crown_label=True)
+        assert plain_labels.spec(i).variation is None
+        # the image is the plain renderer's either way
+        assert torch.equal(kept[i]["image"], plain[i]["image"])
+        assert torch.equal(plain_labels[i]["labels"], plain[i]["labels"])
+    with pytest.raises(ConfigError, match="clean_keeps_labels"):
+        _config(clean_keeps_labels="no")
+
+
+def test_training_dataset_leaves_clean_samples_without_colour_or_camera_effects():
+    from training.common import build_frame_dataset
+    from training.config import DataConfig
+
+    synth = {"seeds": [1], "frames": 8, "drives_per_city": 2, "clean_share": 0.5}
+    data = from_dict(
+        DataConfig,
+        {
+            "source": "synth",
+            "size": list(SIZE),
+            "synth": synth,
+            "augment": {"hflip": 0.0, "saturation": 0.5, "camera": {"p_noise": 1.0}},
+        },
+    )
+    train = build_frame_dataset(data, "train", normalize=False)
+    clean = [i for i in range(8) if train.spec(i).clean]
+    noisy = [i for i in range(8) if not train.spec(i).clean]
+    assert clean and noisy and train.clean_transform is not None
+    bare = SyntheticDataset(train.config, size=SIZE)
+    for i in clean:
+        assert torch.equal(train[i]["image"], bare[i]["image"])
+    for i in noisy:
+        assert not torch.equal(train[i]["image"], bare[i]["image"])
+    data_plain = dataclasses.replace(data, synth={**synth, "clean_share": 0.0})
+    assert build_frame_dataset(data_plain, "train").clean_transform is None

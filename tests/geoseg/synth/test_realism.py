@@ -36,6 +36,7 @@ APPEARANCE = {
     "shadows": (Variation(seed=4, shadows=True), ROAD),
     "kerb": (Variation(seed=4, kerb_face=0.5, slab_m=0.6), SIDEWALK),
     "road_texture": (Variation(seed=4, road_texture=0.2), ROAD),
+    "posters": (Variation(seed=4, poster_share=1.0), BUILDING),
 }
 
 
@@ -208,6 +209,8 @@ def test_variation_keeps_dusk_and_night_light():
         ({"p_kerb_lines": 2.0}, "p_kerb_lines"),
         ({"slab_m": (0.0, 0.5)}, "slab_m"),
         ({"bare_crown_label": "yes"}, "bare_crown_label"),
+        ({"p_posters": 1.5}, "p_posters"),
+        ({"poster_share": (0.5, 0.2)}, "poster_share"),
     ],
 )
 def test_bad_realism_values_are_named(kwargs, key):
@@ -243,3 +246,18 @@ def test_lens_distortion_finds_every_moving_vehicle_pixel(tiny_world, monkeypatc
         )
         np.testing.assert_array_equal(frame.instance, full.instance)
     assert any((f.labels == VEHICLE).any() for f in frames)
+
+
+def test_posters_are_drawn_last_and_stay_out_of_the_cache_key_when_off():
+    from geoseg.synth.realism import REALISTIC_3, cache_fields
+
+    for seed in range(10):
+        a = draw_variation(REALISTIC_3, np.random.default_rng(seed))
+        b = draw_variation(
+            dataclasses.replace(REALISTIC_3, p_posters=1.0), np.random.default_rng(seed)
+        )
+        assert a.poster_share == 0 and 0.1 <= b.poster_share <= 0.4
+        assert dataclasses.replace(b, poster_share=0.0) == a
+        assert cache_fields(b)["poster_share"] == b.poster_share
+        assert "poster_share" not in cache_fields(a)
+    assert RealismConfig(p_posters=0.5).enabled

@@ -21,7 +21,12 @@ from geoseg.synth.realism import (
     draw_variation,
 )
 from geoseg.synth.renderer import Renderer
-from geoseg.synth.street_furniture import FURNITURE_RADIUS, furniture_part, pole_albedo
+from geoseg.synth.street_furniture import (
+    FURNITURE_RADIUS,
+    furniture_part,
+    plate_albedo,
+    pole_albedo,
+)
 from geoseg.synth.trajectory import drive
 from geoseg.synth.world import SURFACE_CLASS
 
@@ -138,3 +143,87 @@ def test_furniture_stays_out_of_the_cache_key_at_its_default():
 def test_bad_furniture_values_are_named(kwargs, key):
     with pytest.raises(ConfigError, match=key):
         RealismConfig(**kwargs)
+
+
+def test_plain_plates_change_the_image_only(tiny_world, furnished):
+    frame, _, first = furnished
+    renderer = Renderer(tiny_world)
+    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+    for i in range(len(traj)):
+        pose = (traj.K, traj.R_wc[i], traj.t_wc[i], traj.image_size)
+        time_s = float(traj.timestamps[i])
+        var = Variation(seed=5, furniture_spacing=4.0)
+        frame = renderer.render(*pose, time_s=time_s, variation=var)
+        plates = (frame.instance >= first) & (frame.labels == OBJECT)
+        plain = renderer.render(
+            *pose,
+            time_s=time_s,
+            variation=dataclasses.replace(var, furniture_plain_plates=True),
+        )
+        changed = (plain.rgb != frame.rgb).any(axis=-1)
+        if changed.sum() > 5:
+            break
+    else:
+        raise AssertionError("no frame shows a plate of the extra furniture")
+    for key in GEOMETRY:
+        np.testing.assert_array_equal(getattr(plain, key), getattr(frame, key), err_msg=key)
+    assert plates[changed].all()  # only the frame's furniture changes colour
+
+
+def test_plate_albedo_is_plain_per_item_and_keeps_the_citys_own_panels():
+    striped = np.random.default_rng(0).random((5, 3)).astype(np.float32)
+    out = plate_albedo(np.array([3, 10, 10, 11, 12]), 10, striped)
+    np.testing.assert_array_equal(out[0], striped[0])
+    np.testing.assert_array_equal(out[1], out[2])  # one colour per item
+    assert out.dtype == np.float32 and out.shape == (5, 3)
+
+
+def _distances_from_street(world, part):
+    """Each vertex's distance from the nearest street centre line (xy), metres."""
+    a = np.concatenate([s.centerline[:-1] for s in world.streets])  # segment starts
+    b = np.concatenate([s.centerline[1:] for s in world.streets])  # and ends
+    p = part.vertices[:, None, :2]
+    ab = b - a
+    t = np.clip(((p - a) * ab).sum(-1) / np.maximum((ab * ab).sum(-1), 1e-12), 0.0, 1.0)
+    return np.linalg.norm(p - (a + t[..., None] * ab), axis=-1).min(axis=1)
+
+
+def test_kerb_share_moves_the_items_not_their_draws(tiny_world):
+    cfg = tiny_world.config
+    half, sw = cfg.street_width / 2, cfg.sidewalk_width
+    centre = tiny_world.streets[0].centerline.mean(axis=0)
+    default = furniture_part(tiny_world, 7, 4.0, centre)
+    kerb = furniture_part(tiny_world, 7, 4.0, centre, kerb_share=1.0)
+    back = furniture_part(tiny_world, 7, 4.0, centre, kerb_share=0.0)
+    assert default is not None and kerb is not None and back is not None
+    # the same items moved across the sidewalk (the few near the 90 m radius may cross it)
+    counts = [len(np.unique(p.instance)) for p in (default, kerb, back)]
+    assert max(counts) - min(counts) <= 2
+    d_kerb = _distances_from_street(tiny_world, kerb)
+    d_back = _distances_from_street(tiny_world, back)
+    # feet within 1.2 m of the kerb (plates and arms reach out 1-2 m), none at the back
+    assert np.median(d_kerb) < half + 1.2 and np.median(d_back) > half + sw - 1.5
+    assert np.median(d_kerb) < np.median(d_back)
+
+
+def test_furniture_style_options_ride_on_the_furniture_draw():
+    for seed in range(10):
+        on = dataclasses.replace(REALISTIC_2, p_furniture=1.0)
+        styled = dataclasses.replace(on, furniture_kerb_share=1.0, furniture_plain_plates=True)
+        a = draw_variation(on, np.random.default_rng(seed))
+        b = draw_variation(styled, np.random.default_rng(seed))
+        assert a.furniture_kerb_share == 0.75 and not a.furniture_plain_plates
+        assert b.furniture_kerb_share == 1.0 and b.furniture_plain_plates
+        assert dataclasses.replace(b, furniture_kerb_share=0.75, furniture_plain_plates=False) == a
+        # without furniture the style options draw nothing and stay at their defaults
+        off = dataclasses.replace(styled, p_furniture=0.0)
+        c = draw_variation(off, np.random.default_rng(seed))
+        assert c == draw_variation(REALISTIC_2, np.random.default_rng(seed))
+    assert cache_fields(Variation(furniture_spacing=6.0, furniture_kerb_share=1.0)) == {
+        "furniture_spacing": 6.0,
+        "furniture_kerb_share": 1.0,
+    }
+    with pytest.raises(ConfigError, match="furniture_kerb_share"):
+        RealismConfig(furniture_kerb_share=1.5)
+    with pytest.raises(ConfigError, match="furniture_plain_plates"):
+        RealismConfig(furniture_plain_plates="yes")
