@@ -671,26 +671,20 @@ class Renderer:
         return dataclasses.replace(self._styles, tint=tint, material=material, frame_rgb=frame_rgb)
 
     def _vary_facades(self, u, v, row, f, styles, var: Variation, albedo, emissive) -> None:
-        """Shop fronts and drainpipes on the facade hits ``f`` (rows of ``albedo``)."""
-        if var.shopfront_share > 0:
-            shop = textures.hash01(row, seed=var.seed + 205) < var.shopfront_share
-            s = np.nonzero(shop)[0]
+        """Shop fronts, poster hoardings and drainpipes on the facade hits ``f`` (rows of
+        ``albedo``)."""
+        overlays = (
+            (var.shopfront_share, 205, textures.shopfront_albedo),
+            (var.poster_share, 211, textures.poster_albedo),  # over a shop front where both fall
+        )
+        for share, seed_offset, overlay_albedo in overlays:
+            if share <= 0:
+                continue
+            s = np.nonzero(textures.hash01(row, seed=var.seed + seed_offset) < share)[0]
             if len(s):
-                inside, shop_albedo = textures.shopfront_albedo(
-                    u[s], v[s], row[s], styles, var.seed % 100003
-                )
+                inside, over = overlay_albedo(u[s], v[s], row[s], styles, var.seed % 100003)
                 s = s[inside]
-                albedo[f[s]] = shop_albedo[inside]
-                emissive[f[s]] = 0.0
-        if var.poster_share > 0:  # (over the shop fronts where both fall on a facade)
-            board = textures.hash01(row, seed=var.seed + 211) < var.poster_share
-            s = np.nonzero(board)[0]
-            if len(s):
-                inside, board_albedo = textures.poster_albedo(
-                    u[s], v[s], row[s], styles, var.seed % 100003
-                )
-                s = s[inside]
-                albedo[f[s]] = board_albedo[inside]
+                albedo[f[s]] = over[inside]
                 emissive[f[s]] = 0.0
         if var.paint_share > 0:  # drainpipes on some repainted facades
             pipe = textures.hash01(row, seed=var.seed + 206) < 0.5 * var.paint_share
