@@ -58,7 +58,9 @@ keyframe, the live tracks are checked, in order:
    ``2 align_half_window + 1`` window, accepted when it moves the track at most
    ``align_max_shift_px`` with a correlation of at least ``align_min_zncc``; otherwise the
    track is left where LK put it). The frame-to-frame drift then does not accumulate over a
-   track's life (measured in ``docs/frontend_accuracy.md``);
+   track's life (measured in ``docs/frontend_accuracy.md``). The accumulated warp does, as
+   the view changes: a track ends (its point retired) ``max_track_keyframes`` keyframes after
+   its reference (``too_old``);
 9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
    points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.pnp`, RANSAC +
    refinement) on those tracks; the tracks it does not explain within
@@ -173,8 +175,8 @@ class ImageTracks:
             ``describe``, ``topup``, ``keyframe``: all the keyframe stages, ``total``) and
             counts (``frames``, ``keyframes``).
         stats: how many tracks each check dropped (``fb_lost``, ``epipolar_frame``,
-            ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``map_rejected``,
-            ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
+            ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``too_old``,
+            ``map_rejected``, ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
             matches, keyframes per reason (``keyframe_*``), ``empty_keyframes``.
     """
 
@@ -501,6 +503,7 @@ class ImageTracks:
         self.timings["keyframes"] += 1
         grads = ft.gradients(gray)
         self._check_tracks(grads)
+        self._end_old_tracks()
         t1 = time.process_time()
         self.timings["checks"] += t1 - t0
         if self.config.align:
@@ -577,6 +580,14 @@ class ImageTracks:
             keep[idx[~good]] = False
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
+
+    def _end_old_tracks(self) -> None:
+        """End the tracks ``max_track_keyframes`` or more keyframes after their reference."""
+        cfg, tr = self.config, self._tracks
+        if cfg.max_track_keyframes is None or len(tr) == 0:
+            return
+        old = (tr.ref_kf >= 0) & (self._kf_count - tr.ref_kf >= cfg.max_track_keyframes)
+        self._drop(~old, "too_old")
 
     def _align(self, gray: np.ndarray, grads: ft.Gradients) -> None:
         """Stage 8: align the tracks that started at an earlier keyframe to their reference patches

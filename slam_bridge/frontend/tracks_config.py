@@ -80,6 +80,9 @@ class ImageTracksConfig:
         align_half_window: the alignment window is ``2 h + 1`` pixels square.
         align_min_zncc: least correlation of an accepted alignment.
         align_max_shift_px: an alignment that moves a track further is not accepted.
+        max_track_keyframes: a track ends this many keyframes after its reference keyframe
+            (stage 8): the alignment bounds the frame-to-frame drift but not the error of its
+            accumulated warp, which grows with the change of view (None: tracks live on).
         map_check: the PnP check of the tracks of triangulated points (stage 9).
         map_check_threshold_px: reprojection error above which a track fails it.
         min_map_points: fewer tracked triangulated points: no map check.
@@ -135,6 +138,7 @@ class ImageTracksConfig:
     align_half_window: int = 4
     align_min_zncc: float = 0.8
     align_max_shift_px: float = 2.0
+    max_track_keyframes: int | None = 6
     map_check: bool = True
     map_check_threshold_px: float = 1.5
     min_map_points: int = 12
@@ -199,6 +203,8 @@ _CHECKS = {
                     (lambda v: v is None or (_number(v) and v > 0), "None or a number > 0")),
     **dict.fromkeys(("min_eigen_ratio", "recover_share"),
                     (lambda v: _number(v) and 0 <= v < 1, "a number in [0, 1)")),
+    "max_track_keyframes": (lambda v: v is None or (_integer(v) and v >= 2),
+                            "None or an integer >= 2"),
     **dict.fromkeys(("max_deformation", "max_shear"),
                     (lambda v: v is None or (_number(v) and v > 0), "None or a number > 0")),
     "align_min_zncc": (lambda v: _number(v) and -1 <= v <= 1, "a number in [-1, 1]"),

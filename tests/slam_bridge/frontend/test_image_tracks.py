@@ -94,6 +94,31 @@ def test_alignment_to_the_reference_keyframe_removes_drift(rig, car_drive, tram_
     assert shares[True]["track_length_mean"] > 0.9 * shares[False]["track_length_mean"]
 
 
+def _longest_runs(kfs) -> dict[int, int]:
+    """Per point id: the most consecutive keyframes that observe it."""
+    runs: dict[int, int] = {}
+    current: dict[int, int] = {}
+    for kf in kfs:
+        current = {p: current.get(p, 0) + 1 for p in kf.point_ids.tolist()}
+        for p, n in current.items():
+            runs[p] = max(runs.get(p, 0), n)
+    return runs
+
+
+def test_tracks_end_after_max_track_keyframes(car_drive, helpers):
+    """A track ends ``max_track_keyframes`` keyframes after its reference; without the cap,
+    tracks run on (the alignment's accumulated warp drifts with the change of view). Without
+    re-observation: a re-acquired point starts a new track, with a new reference."""
+    run_tracks, true_distance = helpers[:2]
+    longest = {}
+    for cap in (3, None):
+        cfg = ImageTracksConfig(max_track_keyframes=cap, reobserve=False)
+        kfs, src, _, _ = run_tracks(car_drive, cfg, distance=true_distance(car_drive))
+        longest[cap] = max(_longest_runs(kfs).values())
+        assert (src.stats["too_old"] > 100) == (cap is not None)
+    assert longest[3] == 3 and longest[None] > 5
+
+
 def test_keyframes_spaced_by_distance(car_drive, car_run, helpers):
     kfs, src, _, truth = car_run
     dist = helpers[1](car_drive)
@@ -256,6 +281,7 @@ def test_start_segment_renames_live_tracks(car_drive):
         {"grid": (0, 4)},
         {"match_ratio": 0.0},
         {"min_map_points": 3},
+        {"max_track_keyframes": 1},
     ],
 )
 def test_bad_config(kw):
