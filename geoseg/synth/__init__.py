@@ -9,10 +9,11 @@ Typical use::
     for frame in Renderer(world).render_trajectory(traj, "winter"):
         ...  # frame.rgb, frame.labels, frame.normals, frame.depth, frame.instance
 
-The submodules hold the details: :mod:`~geoseg.synth.world` (city), :mod:`~geoseg.synth.
-trajectory` (rigs, driving), :mod:`~geoseg.synth.renderer` (ray casting),
-:mod:`~geoseg.synth.conditions` (appearance), :mod:`~geoseg.synth.textures` (procedural
-textures).
+The submodules hold the details: :mod:`~geoseg.synth.world` (city; its configs, records,
+placement and meshes in ``world_config``, ``world_records``, ``world_layout`` and
+``world_meshes``), :mod:`~geoseg.synth.trajectory` (rigs, driving),
+:mod:`~geoseg.synth.renderer` (ray casting), :mod:`~geoseg.synth.conditions` (appearance),
+:mod:`~geoseg.synth.textures` (procedural textures).
 """
 
 from geoseg.synth.conditions import CONDITIONS, Condition, get_condition

@@ -45,11 +45,11 @@ from geoseg.synth.conditions import Condition, get_condition
 from geoseg.synth.realism import Variation, random_colours
 from geoseg.synth.street_furniture import furniture_part, plate_albedo, pole_albedo
 from geoseg.synth.trajectory import Trajectory, check_image_size
-from geoseg.synth.world import (
+from geoseg.synth.world import World
+from geoseg.synth.world_meshes import (
     SURFACE_CLASS,
     MeshPart,
     SurfaceKind,
-    World,
     concat_parts,
     vehicle_mesh_part,
 )

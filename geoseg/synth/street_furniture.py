@@ -31,7 +31,8 @@ from __future__ import annotations
 import numpy as np
 
 from geoseg.synth.textures import hash01
-from geoseg.synth.world import MeshPart, SurfaceKind, World, _boxes, concat_parts
+from geoseg.synth.world import World
+from geoseg.synth.world_meshes import MeshPart, SurfaceKind, _boxes, concat_parts
 
 FURNITURE_RADIUS = 90.0  # m: items further than this from the camera are not meshed
 KINDS = ("sign", "traffic_light", "lamp", "bollards", "cabinet")
