@@ -59,8 +59,8 @@ keyframe, the live tracks are checked, in order:
    ``align_max_shift_px`` with a correlation of at least ``align_min_zncc``; otherwise the
    track is left where LK put it). The frame-to-frame drift then does not accumulate over a
    track's life (measured in ``docs/frontend_accuracy.md``). The accumulated warp does, as
-   the view changes: a track ends (its point retired) ``max_track_keyframes`` keyframes after
-   its reference (``too_old``);
+   the view changes: once the map tracks them, a track ends (its point retired)
+   ``max_track_keyframes`` keyframes after its reference (``too_old``);
 9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
    points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.pnp`, RANSAC +
    refinement) on those tracks; the tracks it does not explain within
@@ -503,7 +503,7 @@ class ImageTracks:
         self.timings["keyframes"] += 1
         grads = ft.gradients(gray)
         self._check_tracks(grads)
-        self._end_old_tracks()
+        self._end_old_tracks(slam_map)
         t1 = time.process_time()
         self.timings["checks"] += t1 - t0
         if self.config.align:
@@ -581,10 +581,14 @@ class ImageTracks:
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
 
-    def _end_old_tracks(self) -> None:
-        """End the tracks ``max_track_keyframes`` or more keyframes after their reference."""
+    def _end_old_tracks(self, slam_map: Map | None) -> None:
+        """End the tracks ``max_track_keyframes`` or more keyframes after their reference, once
+        the map tracks them (``min_map_points`` of them triangulated): a start (no map yet, a
+        new segment) needs its reference keyframe's tracks for as long as it takes."""
         cfg, tr = self.config, self._tracks
-        if cfg.max_track_keyframes is None or len(tr) == 0:
+        if cfg.max_track_keyframes is None or len(tr) == 0 or slam_map is None:
+            return
+        if self._triangulated_tracks(slam_map).size < cfg.min_map_points:
             return
         old = (tr.ref_kf >= 0) & (self._kf_count - tr.ref_kf >= cfg.max_track_keyframes)
         self._drop(~old, "too_old")

@@ -80,11 +80,11 @@ class ImageTracksConfig:
         align_half_window: the alignment window is ``2 h + 1`` pixels square.
         align_min_zncc: least correlation of an accepted alignment.
         align_max_shift_px: an alignment that moves a track further is not accepted.
-        max_track_keyframes: with ``align``, a track ends this many keyframes after its
-            reference keyframe (stage 8): the alignment bounds the frame-to-frame drift but not
-            the error of its accumulated warp, which grows with the change of view (six
-            drives: 2 px outliers 2.4 % -> 1.9 % of the observations, docs/frontend_accuracy.md;
-            None: tracks live on).
+        max_track_keyframes: with ``align`` and a map that tracks the live tracks (not during
+            a start), a track ends this many keyframes after its reference keyframe (stage 8):
+            the alignment bounds the frame-to-frame drift but not the error of its accumulated
+            warp, which grows with the change of view (six drives: 2 px outliers 2.4 % -> 1.9 %
+            of the observations, docs/frontend_accuracy.md; None: tracks live on).
         map_check: the PnP check of the tracks of triangulated points (stage 9).
         map_check_threshold_px: reprojection error above which a track fails it.
         min_map_points: fewer tracked triangulated points: no map check.

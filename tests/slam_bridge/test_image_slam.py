@@ -91,6 +91,21 @@ def test_slam_run_writes_a_georeferenced_trajectory(drive, tmp_path, capsys):
     assert (foreign / "notes.txt").read_text() == "mine" and not (foreign / "summary.json").exists()
 
 
+@pytest.mark.parametrize("method", ["dpc", "mpc"])
+def test_hybrid_windows_run_on_images(drive, tmp_path, method):
+    """``--method dpc|mpc``: the hybrid BA / pose-graph windows of chapter 3 on image tracks,
+    their pose-graph cameras in the keyframe log, the keyframes as close to the truth."""
+    folder, gps = drive
+    out = tmp_path / method
+    assert main(slam_args(folder, gps, out, "--method", method)) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["method"] == method and s["tracking_failures"] == 0 and s["georeferenced"]
+    assert s["translation_error_m"] < 1.5 and s["rotation_error_deg"] < 3.0
+    log = list(csv.DictReader(open(out / "keyframes.csv")))
+    assert sum(int(r["pose_graph_cameras"]) > 0 for r in log) >= 0.3 * len(log)
+    assert any("gps" in r["constraints"] for r in log)
+
+
 def test_scrambled_ground_truth_changes_only_the_evaluation(drive, tmp_path):
     """No ground truth reaches the loop: scrambling poses.csv changes the reported errors and
     nothing else."""
