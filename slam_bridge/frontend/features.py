@@ -38,6 +38,7 @@ __all__ = [
     "centre",
     "detect_corners",
     "grid_cells",
+    "predicted_velocity",
     "grid_top_up",
     "neighbours",
     "flow_consistent",
@@ -303,6 +304,34 @@ def detect_corners(
         d, _ = cKDTree(avoid).query(pts, k=1, distance_upper_bound=min_distance)
         pts = pts[~np.isfinite(d)]
     return pts.astype(np.float32)
+
+
+def predicted_velocity(
+    tracks: TrackSet, grid: tuple[int, int], image_size: tuple[int, int]
+) -> np.ndarray:
+    """``(N, 2)`` each track's last displacement; new tracks (NaN) take the mean of their grid
+    cell's, else the median of all, else zero (also when fewer than 3 tracks have a
+    displacement: after a blank frame or a sharp turn, one survivor's jump is no prediction)."""
+    vel = tracks.vel.copy()
+    known = np.isfinite(vel[:, 0])
+    if known.all():
+        return vel
+    if known.sum() < 3:
+        vel[~known] = 0.0
+        return vel
+    cells = grid_cells(tracks.uv, grid, image_size)
+    ncell = grid[0] * grid[1]
+    count = np.bincount(cells[known], minlength=ncell)
+    mean = (
+        np.stack(
+            [np.bincount(cells[known], weights=vel[known, d], minlength=ncell) for d in (0, 1)],
+            axis=1,
+        )
+        / np.maximum(count, 1)[:, None]
+    )
+    fill = np.where(count[cells][:, None] > 0, mean[cells], np.median(vel[known], axis=0))
+    vel[~known] = fill[~known]
+    return vel
 
 
 def grid_cells(uv: np.ndarray, grid: tuple[int, int], image_size: tuple[int, int]) -> np.ndarray:

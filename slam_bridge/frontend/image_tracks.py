@@ -343,7 +343,8 @@ class ImageTracks:
         cfg = self.config
         t0 = time.process_time()
         prev = self._prev_gray
-        p1, ok = self._lk_track(prev, gray, tr.uv, tr.uv + self._predicted_velocity())
+        guess = tr.uv + ft.predicted_velocity(tr, cfg.grid, self.image_size)
+        p1, ok = self._lk_track(prev, gray, tr.uv, guess)
         est = np.isfinite(tr.vel[:, 0])
         n_est, least = int(est.sum()), max(cfg.recover_min_tracks, 1)
         if n_est >= least:
@@ -407,32 +408,6 @@ class ImageTracks:
             ok[lost[good]] = True
             self.stats["recovered"] += int(good.sum())
             return int(good.sum())
-
-    def _predicted_velocity(self) -> np.ndarray:
-        """``(N, 2)`` each track's last displacement; new tracks (NaN) take their cell's mean,
-        else the median of all, else zero (also when fewer than 3 tracks have a displacement:
-        after a blank frame or a sharp turn, one survivor's jump is no prediction)."""
-        tr = self._tracks
-        vel = tr.vel.copy()
-        known = np.isfinite(vel[:, 0])
-        if known.all():
-            return vel
-        if known.sum() < 3:
-            vel[~known] = 0.0
-            return vel
-        cells = ft.grid_cells(tr.uv, self.config.grid, self.image_size)
-        ncell = self.config.grid[0] * self.config.grid[1]
-        count = np.bincount(cells[known], minlength=ncell)
-        mean = (
-            np.stack(
-                [np.bincount(cells[known], weights=vel[known, d], minlength=ncell) for d in (0, 1)],
-                axis=1,
-            )
-            / np.maximum(count, 1)[:, None]
-        )
-        fill = np.where(count[cells][:, None] > 0, mean[cells], np.median(vel[known], axis=0))
-        vel[~known] = fill[~known]
-        return vel
 
     def _inside(self, uv: np.ndarray) -> np.ndarray:
         W, H = self.image_size

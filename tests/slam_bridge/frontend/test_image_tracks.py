@@ -1,9 +1,10 @@
 """The visual front end on short rendered drives (640x480, 24 frames, car and tram).
 
 Measured when these tests were written (keyframes every 2 m; bench/frontend_tracks.py has longer
-drives): true-error bad share (> 2 px, depth-referenced) car 0.008, tram 0.017; best-fit
-consistency share (what would bias the poses) car 0.002, tram 0.000; >= 454 (car) / >= 414
-(tram) tracks per keyframe, median tracks shared with the previous keyframe car 130, tram 162.
+drives): true-error bad share (> 2 px, depth-referenced) car 0.005 (0.008 with the tracks not
+ended after ``max_track_keyframes``), tram 0.017; best-fit consistency share (what would bias
+the poses) car 0.002, tram 0.000; >= 445 (car) / >= 390 (tram) tracks per keyframe, median
+tracks shared with the previous keyframe car 123, tram 152.
 The bounds leave a margin of about 2-3x.
 """
 
@@ -81,7 +82,7 @@ def test_renewal_trades_track_length_for_accuracy(car_drive, car_run, helpers):
 def test_alignment_to_the_reference_keyframe_removes_drift(rig, car_drive, tram_drive, helpers):
     """The default front end aligns tracks to their reference patches (stage 8); without it,
     more observations lie over 2 px from their true projection, the tracks as long (measured:
-    car 0.012 -> 0.008, tram 0.024 -> 0.017)."""
+    car 0.012 -> 0.005, tram 0.024 -> 0.017)."""
     run_tracks, true_distance = helpers[:2]
     drive = {"car": car_drive, "tram": tram_drive}[rig]
     shares = {}
