@@ -169,8 +169,14 @@ HEADLINE: tuple[Figure, ...] = (
         "slam_images",
         ("translation_error_m", "gps_error_m"),
         "SLAM on images: horizontal error / the raw GPS fixes'",
-        "<= 0.5 (SLAM)",
+        "SLAM <= 0.5 x GPS",
         unit=" m",
+    ),
+    Figure(
+        "slam_images",
+        ("bad_observation_share", "tracking_failures"),
+        "SLAM on images: share of observations > 2 px off / lost keyframes",
+        "<= 0.02 / 0",
     ),
     Figure(
         "slam_images",
