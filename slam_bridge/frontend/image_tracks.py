@@ -176,8 +176,9 @@ class ImageTracks:
             counts (``frames``, ``keyframes``).
         stats: how many tracks each check dropped (``fb_lost``, ``epipolar_frame``,
             ``epipolar_keyframe``, ``aperture_rejected``, ``flow_rejected``, ``too_old``,
-            ``map_rejected``, ``rejected_by_loop``), ``renewed``, ``reacquired``, ``reobserved`` and their rejected
-            matches, keyframes per reason (``keyframe_*``), ``empty_keyframes``.
+            ``map_rejected``, ``rejected_by_loop``), ``renewed``, ``reacquired``,
+            ``reobserved`` and their rejected matches, keyframes per reason (``keyframe_*``),
+            ``empty_keyframes``.
     """
 
     def __init__(

@@ -108,8 +108,8 @@ def _longest_runs(kfs) -> dict[int, int]:
 
 def test_tracks_end_after_max_track_keyframes(car_drive, helpers):
     """A track ends ``max_track_keyframes`` keyframes after its reference; without the cap,
-    tracks run on (the alignment's accumulated warp drifts with the change of view). Without
-    re-observation: a re-acquired point starts a new track, with a new reference."""
+    tracks run on (the alignment's accumulated warp drifts with the change of view).
+    Re-observation is off: a re-acquired point would start a new track, with a new reference."""
     run_tracks, true_distance = helpers[:2]
     longest = {}
     for cap in (3, None):
