@@ -105,6 +105,9 @@ class InitConfig:
             orientation it is given (the fusion moves the newest camera only, within the
             barrier's slack), and a fit's heading error falls with the distance it spans (GPS
             noise / distance).
+        warn_residual_m: a fit whose horizontal residual exceeds this (rms, metres) is
+            logged as a warning: the map's shape does not follow the GPS track (a poor
+            two-view start, a bent map), several times a consumer GPS's noise.
     """
 
     min_matches: int = 40
@@ -116,6 +119,7 @@ class InitConfig:
     up_weight: float = 0.05
     measured_up_weight: float = 5.0
     refit_distance_m: float = 200.0
+    warn_residual_m: float = 3.0
 
     def __post_init__(self) -> None:
         if self.min_matches < 8 or self.min_points < 8:
@@ -128,6 +132,7 @@ class InitConfig:
         check_positive("min_distance_m", self.min_distance_m)
         check_positive("up_weight", self.up_weight, strict=False)
         check_positive("measured_up_weight", self.measured_up_weight, strict=False)
+        check_positive("warn_residual_m", self.warn_residual_m)
 
 
 class OdometryDistance:
@@ -249,6 +254,7 @@ class TwoViewStart:
         self.georeferenced = False
         self._motion = None  # (keyframe, rad/s, m/s) of the segment before a restart
         self._spread = 0.0  # spread of the fixes of the last georeferencing, metres
+        self._warned = False  # the segment's fit was reported as not following the GPS
 
     # ------------------------------------------------------------------------- StartUp
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
@@ -263,6 +269,7 @@ class TwoViewStart:
         m = slam_map
         self._motion = None
         self._spread = 0.0  # the new segment is fitted to its own fixes
+        self._warned = False
         if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:  # the last motion, per second
             dt = m.timestamps[k - 1] - m.timestamps[k - 2]
             omega = so3_log(m.R_wc[k - 1] @ m.R_wc[k - 2].T) / dt
@@ -312,12 +319,21 @@ class TwoViewStart:
             )
         self._transform(m, seg, s, R, T)
         resid = np.linalg.norm((m.t_wc[kf, :2] + offset) - xy, axis=1)
+        rms = float(np.sqrt(np.mean(resid**2)))
         logger.log(
             logging.DEBUG if self.georeferenced else logging.INFO,
             "keyframe %d: georeferenced on %d fixes over %.0f m: scale %.3f, horizontal residual "
             "%.2f m rms",
-            k, kf.size, spread, s, float(np.sqrt(np.mean(resid**2))),
+            k, kf.size, spread, s, rms,
         )  # fmt: skip
+        if rms > cfg.warn_residual_m and not self._warned:
+            self._warned = True
+            logger.warning(
+                "keyframe %d: the map does not fit the GPS track (%.1f m rms over %d fixes, "
+                "more than warn_residual_m = %.1f m): its start or its scale may be wrong, and "
+                "the trajectory with it",
+                k, rms, kf.size, cfg.warn_residual_m,
+            )  # fmt: skip
         self.georeferenced = True
         self._spread = spread
         return True

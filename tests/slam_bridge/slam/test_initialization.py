@@ -87,6 +87,34 @@ def test_two_view_start_recovers_the_relative_pose_and_the_scale(noisy):
     assert np.linalg.norm(t_est) == pytest.approx(np.linalg.norm(t_true), rel=0.05)
 
 
+@pytest.mark.parametrize("bend_m", [0.0, 8.0])
+def test_a_map_that_does_not_fit_the_gps_track_is_reported(noisy, bend_m, caplog):
+    """GPS fixes that swing up to ``bend_m`` sideways off the driven track (a map the fixes do
+    not fit, as after a bad start): the georeferencing logs a warning once; plain GPS noise
+    does not."""
+    cfg, seq = noisy
+    T = seq.t_wc_true
+    heading = np.gradient(T[:, :2], axis=0)
+    side = np.column_stack([-heading[:, 1], heading[:, 0]])
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    swing = bend_m * np.sin(np.linspace(0.0, 2.0 * np.pi, T.shape[0]))
+    gps_xy = gps_for_setting(cfg, seq, "sigma=0.75") + swing[:, None] * side
+    gps = GpsConstraints(seq.timestamps, gps_xy)
+    start = TwoViewStart(
+        InitConfig(min_distance_m=20.0), gps=gps, odometry=_odometry(seq), mapping=cfg.slam.mapping
+    )
+    with caplog.at_level("WARNING", logger="slam_bridge.slam.initialization"):
+        res = run_slam(seq.source(), "ba", start, [gps], cfg.slam)
+    assert res.georeferenced
+    warned = [r for r in caplog.records if "does not fit the GPS track" in r.getMessage()]
+    assert len(warned) == (1 if bend_m else 0)
+
+
+def test_warn_residual_must_be_positive():
+    with pytest.raises(GeosegError, match="warn_residual_m"):
+        InitConfig(warn_residual_m=0.0)
+
+
 @pytest.mark.parametrize("with_odometry", [True, False])
 def test_georeferenced_run_without_ground_truth_beats_the_gps(noisy, with_odometry):
     """Simulated tracks, no pose given: two views, scale (odometry, or the GPS fit), then the
