@@ -67,6 +67,7 @@ HELDOUT_CONDITIONS: tuple[str, ...] = ("sun_low",)
 SAMPLE_KEYS = ("image", "labels", "normals", "normal_valid")
 _MAX_WORLDS = 16  # per process
 _DRIVE_FPS = 5.0  # frames per second of the drives poses are taken from
+MIN_KERB_CLEARANCE_M = 1.2  # a car's camera (its middle) stays this far from the kerb
 _CACHE_FIELDS = ("rgb", "labels", "normals", "normal_valid")
 
 
@@ -106,6 +107,14 @@ class SyntheticConfig:
         clean_keeps_labels: clean samples keep the realism label option ``bare_crown_label``
             (a labelling convention, not an appearance variation: a clean frame's pixels are the
             plain renderer's either way); False: the plain renderer's labels too.
+        narrow_street_share: share of the cities built with :attr:`narrow_street` (0: none):
+            the first ``round(narrow_street_share * n)`` cities of each preset, ``n`` the
+            cities per preset. Old city centres have streets without parking strips and
+            narrow pavements, so the camera sees the facades at a few metres and at a steep
+            angle, as the default 12 m carriageway with parking never shows them.
+        narrow_street: :class:`~geoseg.synth.world.WorldConfig` keys of those cities, over
+            :attr:`world` (default: a 9 m carriageway without parking strips, 2.5 m pavements,
+            facades at most 0.3 m behind them).
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -127,6 +136,15 @@ class SyntheticConfig:
     kerb_lane_m: tuple[float, float] = (0.6, 1.4)
     clean_share: float = 0.0
     clean_keeps_labels: bool = True
+    narrow_street_share: float = 0.0
+    narrow_street: dict[str, Any] = field(
+        default_factory=lambda: {
+            "street_width": 9.0,
+            "parking_width": 0.0,
+            "sidewalk_width": 2.5,
+            "buildings": {"setback_max": 0.3},
+        }
+    )
 
     def __post_init__(self) -> None:
         from geoseg.synth.conditions import CONDITIONS
@@ -166,6 +184,12 @@ class SyntheticConfig:
                 )
         check_range("synth.kerb_lane_share", self.kerb_lane_share, 0.0, 1.0)
         check_range("synth.clean_share", self.clean_share, 0.0, 1.0)
+        check_range("synth.narrow_street_share", self.narrow_street_share, 0.0, 1.0)
+        for key in ("seed", "preset"):
+            if key in self.narrow_street:
+                raise ConfigError(
+                    f"synth.narrow_street.{key}: set it with synth.seeds / synth.presets"
+                )
         if not isinstance(self.clean_keeps_labels, bool):
             raise ConfigError(
                 f"synth.clean_keeps_labels: expected true or false, got {self.clean_keeps_labels!r}"
@@ -174,23 +198,43 @@ class SyntheticConfig:
             check_range(f"synth.kerb_lane_m[{i}]", value, 0.0, 1.4)
         if self.kerb_lane_m[0] > self.kerb_lane_m[1]:
             raise ConfigError(f"synth.kerb_lane_m: expected low <= high, got {self.kerb_lane_m}")
-        self.world_config(self.seeds[0])  # validate the shared world keys now
+        for seed in self.seeds:  # validate the world keys (shared and narrow) now
+            self.world_config(seed)
 
-    def lane_shift(self, rig: str, drive_id: int) -> float:
-        """How far drive ``drive_id`` of ``rig`` runs from the middle of its lane towards the
-        kerb, metres (0 for the tram, and for the car unless :attr:`kerb_lane_share`)."""
+    def lane_shift(self, rig: str, drive_id: int, seed: int) -> float:
+        """How far drive ``drive_id`` of ``rig`` in city ``seed`` runs from the middle of its
+        lane towards the kerb, metres (0 for the tram, and for the car unless
+        :attr:`kerb_lane_share`): at most as far as keeps the camera
+        :data:`MIN_KERB_CLEARANCE_M` from the kerb (a street without parking strips)."""
         n = round(self.kerb_lane_share * self.drives_per_city)
         if rig != "car" or drive_id >= n:
             return 0.0
         lo, hi = self.kerb_lane_m
-        return float(lo + (hi - lo) * (drive_id + 0.5) / n)
+        shift = lo + (hi - lo) * (drive_id + 0.5) / n
+        world = self.world_config(seed)
+        return float(min(shift, world.lane_offset + world.parking_width - MIN_KERB_CLEARANCE_M))
+
+    def is_narrow(self, seed: int) -> bool:
+        """Whether city ``seed`` (one of :attr:`seeds`) is built with :attr:`narrow_street`."""
+        if self.narrow_street_share <= 0 or seed not in self.seeds:
+            return False
+        per_preset = -(-len(self.seeds) // len(self.presets))
+        return self.seeds.index(seed) // len(self.presets) < round(
+            self.narrow_street_share * per_preset
+        )
 
     def world_config(self, seed: int) -> Any:
         """The :class:`~geoseg.synth.world.WorldConfig` of city ``seed``."""
         from geoseg.synth.world import WorldConfig
 
         preset = self.presets[self.seeds.index(seed) % len(self.presets)]
-        data = {**self.world, "seed": int(seed), "preset": preset}
+        data = dict(self.world)
+        if self.is_narrow(seed):  # one level deep: `buildings` keys join the shared ones
+            for key, value in self.narrow_street.items():
+                shared = data.get(key)
+                both_dicts = isinstance(shared, Mapping) and isinstance(value, Mapping)
+                data[key] = {**shared, **value} if both_dicts else value
+        data.update(seed=int(seed), preset=preset)
         return from_dict(WorldConfig, data, where="synth.world")
 
 
@@ -268,7 +312,7 @@ def get_world(config: Any) -> Any:
 def _get_drive(world: Any, world_key: str, rig: str, drive_id: int, cfg: SyntheticConfig, size):
     from geoseg.synth.trajectory import drive
 
-    shift = cfg.lane_shift(rig, drive_id)
+    shift = cfg.lane_shift(rig, drive_id, world.config.seed)
     key = (world_key, rig, drive_id, cfg.drive_length_m, tuple(size), cfg.hfov_deg, shift)
     traj = _DRIVES.get(key)
     if traj is None:
@@ -422,7 +466,7 @@ class SyntheticDataset(Dataset):
             "size": list(self.size),
             "version": RENDER_VERSION,
         }
-        shift = self.config.lane_shift(spec.rig, spec.drive_id)
+        shift = self.config.lane_shift(spec.rig, spec.drive_id, spec.seed)
         if shift:  # (absent when off: the older keys stay valid)
             payload["drive"].append(repr(shift))
         if spec.variation is not None:  # (absent when off: the older keys stay valid)

@@ -190,9 +190,11 @@ def test_kerb_lane_drives_move_the_car_camera_towards_the_kerb():
     near = SyntheticDataset(
         _config(rigs=["car"], frames=6, kerb_lane_share=0.5, kerb_lane_m=(1.0, 1.0)), size=SIZE
     )
-    assert near.config.lane_shift("car", 0) == 1.0  # drive 0 of 2 runs near the kerb
-    assert near.config.lane_shift("car", 1) == 0.0 and near.config.lane_shift("tram", 0) == 0.0
-    assert plain.config.lane_shift("car", 0) == 0.0
+    seed = near.config.seeds[0]
+    assert near.config.lane_shift("car", 0, seed) == 1.0  # drive 0 of 2 runs near the kerb
+    assert near.config.lane_shift("car", 1, seed) == 0.0
+    assert near.config.lane_shift("tram", 0, seed) == 0.0
+    assert plain.config.lane_shift("car", 0, seed) == 0.0
     moved = 0
     for i in range(6):
         spec = near.spec(i)
@@ -212,6 +214,48 @@ def test_kerb_lane_drives_move_the_car_camera_towards_the_kerb():
         _config(kerb_lane_m=(0.5, 2.0))
     with pytest.raises(ConfigError, match="kerb_lane_share"):
         _config(kerb_lane_share=1.5)
+
+
+def test_narrow_street_cities_are_the_first_of_each_preset_and_keep_the_others_keys():
+    seeds = [1, 2, 3, 4, 5, 6]  # presets alternate: light, dense, light, dense, ...
+    narrow = _config(seeds=seeds, narrow_street_share=0.5, world={"buildings": {"storeys_max": 6}})
+    plain = _config(seeds=seeds, world={"buildings": {"storeys_max": 6}})
+    # 3 cities per preset, round(0.5 * 3) = 2 of each: the first four seeds
+    assert [narrow.is_narrow(s) for s in seeds] == [True] * 4 + [False] * 2
+    for seed in seeds:
+        world = narrow.world_config(seed)
+        if narrow.is_narrow(seed):
+            assert (world.street_width, world.parking_width) == (9.0, 0.0)
+            assert world.sidewalk_width == 2.5
+            assert world.buildings.setback_max == 0.3
+            assert world.buildings.storeys_max == 6  # the shared keys stay beside them
+            assert world.preset == plain.world_config(seed).preset
+        else:
+            assert world == plain.world_config(seed)
+    # a kerb-lane drive keeps the camera 1.2 m from a kerb without a parking strip
+    near = _config(
+        seeds=seeds, narrow_street_share=1.0, kerb_lane_share=0.5, kerb_lane_m=(1.4, 1.4)
+    )
+    world = near.world_config(1)
+    assert near.lane_shift("car", 0, 1) == pytest.approx(world.lane_offset - 1.2)
+    assert _config(seeds=seeds, kerb_lane_share=0.5, kerb_lane_m=(1.4, 1.4)).lane_shift(
+        "car", 0, 1
+    ) == pytest.approx(1.4)  # behind the default parking strip: as asked
+
+    plain_ds = SyntheticDataset(_config(seeds=[1, 2], frames=6), size=SIZE)
+    narrow_ds = SyntheticDataset(
+        _config(seeds=[1, 2], frames=6, narrow_street_share=1.0), size=SIZE
+    )
+    for i in range(6):
+        spec = narrow_ds.spec(i)
+        assert spec == plain_ds.spec(i)
+        assert narrow_ds.cache_key(spec) != plain_ds.cache_key(spec)  # another city: re-rendered
+    with pytest.raises(ConfigError, match="narrow_street_share"):
+        _config(narrow_street_share=1.5)
+    with pytest.raises(ConfigError, match="narrow_street.seed"):
+        _config(narrow_street={"seed": 3})
+    with pytest.raises(ConfigError, match="parking_width"):  # checked for every city now
+        _config(narrow_street_share=1.0, narrow_street={"street_width": 6.0, "parking_width": 2.0})
 
 
 def test_clean_share_renders_some_samples_plain_and_transforms_them_apart():
