@@ -160,9 +160,12 @@ class SyntheticConfig:
             )
         if self.drive_length_m <= 0 or self.yaw_jitter_deg < 0:
             raise ConfigError("synth.drive_length_m > 0 and synth.yaw_jitter_deg >= 0 expected")
-        for key in ("seed", "preset"):
-            if key in self.world:
-                raise ConfigError(f"synth.world.{key}: set it with synth.seeds / synth.presets")
+        for section in ("world", "narrow_street"):  # WorldConfig keys, all but these two
+            for key in ("seed", "preset"):
+                if key in getattr(self, section):
+                    raise ConfigError(
+                        f"synth.{section}.{key}: set it with synth.seeds / synth.presets"
+                    )
         unknown = sorted(set(self.conditions) - set(CONDITIONS))
         if unknown:
             raise ConfigError(f"synth.conditions: unknown {unknown}; known {sorted(CONDITIONS)}")
@@ -185,11 +188,6 @@ class SyntheticConfig:
         check_range("synth.kerb_lane_share", self.kerb_lane_share, 0.0, 1.0)
         check_range("synth.clean_share", self.clean_share, 0.0, 1.0)
         check_range("synth.narrow_street_share", self.narrow_street_share, 0.0, 1.0)
-        for key in ("seed", "preset"):
-            if key in self.narrow_street:
-                raise ConfigError(
-                    f"synth.narrow_street.{key}: set it with synth.seeds / synth.presets"
-                )
         if not isinstance(self.clean_keeps_labels, bool):
             raise ConfigError(
                 f"synth.clean_keeps_labels: expected true or false, got {self.clean_keeps_labels!r}"
