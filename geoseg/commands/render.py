@@ -45,6 +45,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--gis", dest="gis_overrides", action="append", default=[], metavar="KEY=VALUE",
         help="override a GIS error-model key, e.g. gps.bias_max_m=5 (repeatable)",
     )  # fmt: skip
+    parser.add_argument(
+        "--workers", type=int, default=1,
+        help="processes rendering frames side by side (default 1; the files do not change)",
+    )  # fmt: skip
     parser.add_argument("--force", action="store_true", help="re-render even if up to date")
     parser.add_argument(
         "--overwrite",
@@ -85,6 +89,7 @@ def run(args: argparse.Namespace) -> int:
         gis=gis,
         overwrite=args.force,
         allow_other_files=args.overwrite,
+        workers=args.workers,
     )
     if before is not None and meta.stat().st_mtime_ns == before:
         print(f"{out} already holds this render (same request); nothing redone (--force redoes it)")

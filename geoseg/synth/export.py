@@ -242,6 +242,7 @@ def render_sequence(
     progress: bool = True,
     preview_frames: int = 6,
     render_fn: RenderFn | None = None,
+    workers: int = 1,
 ) -> Path:
     """Render a drive through a synthetic city and write it with its GIS products.
 
@@ -262,6 +263,8 @@ def render_sequence(
         progress: show a tqdm progress bar.
         preview_frames: frames shown in ``preview.png``.
         render_fn: ``fn(K, R_wc, t_wc, time_s) -> Frame``, to replace the default renderer.
+        workers: processes that render and write the frames (each builds its own renderer of
+            ``world``; the files are the same as with 1). Only with the default renderer.
 
     Returns:
         ``out_dir``.
@@ -282,6 +285,10 @@ def render_sequence(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
     check_fps(fps)
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise GeosegError(f"workers: expected an integer >= 1, got {workers!r}")
+    if workers > 1 and render_fn is not None:
+        raise GeosegError("workers: a render_fn of your own renders in this process only")
     if len(image_size) != 2 or not all(
         isinstance(v, int | np.integer) and not isinstance(v, bool) for v in image_size
     ):
@@ -332,14 +339,22 @@ def render_sequence(
         .astype(int)
         .tolist()
     )
+    bar = tqdm(total=frames, desc=f"render {rig}/{condition}", unit="frame", disable=not progress)
+    jobs = [
+        (i, traj.K, traj.R_wc[i], traj.t_wc[i], float(traj.timestamps[i]), i in preview_idx)
+        for i in range(frames)
+    ]
     preview_rows = []
-    for i in tqdm(
-        range(frames), desc=f"render {rig}/{condition}", unit="frame", disable=not progress
-    ):
-        frame = render(traj.K, traj.R_wc[i], traj.t_wc[i], float(traj.timestamps[i]))
-        write_frame(out_dir, i, frame)
-        if i in preview_idx:
-            preview_rows.append(preview_tiles(frame))
+    if workers == 1:
+        for job in jobs:
+            tiles = _render_and_write(out_dir, render, *job)
+            preview_rows += [tiles] if tiles is not None else []
+            bar.update()
+    else:
+        preview_rows = _render_in_processes(
+            out_dir, world, condition, image_size, jobs, workers, bar
+        )
+    bar.close()
 
     files = write_sequence_products(out_dir, world, traj, products, gis, condition=condition)
     from geoseg.synth.maps import contact_sheet, plot_map
@@ -385,6 +400,46 @@ def render_sequence(
     atomic_write(meta_path, json.dumps(meta, indent=1))
     logger.info("wrote %d frames and GIS products to %s", frames, out_dir)
     return out_dir
+
+
+def _render_and_write(out_dir: Path, render: RenderFn, index, K, R_wc, t_wc, time_s, preview):
+    """Render frame ``index``, write its files; its contact-sheet row when ``preview``."""
+    frame = render(K, R_wc, t_wc, time_s)
+    write_frame(out_dir, index, frame)
+    return preview_tiles(frame) if preview else None
+
+
+_worker_render: RenderFn | None = None  # a render process's renderer (_start_render_process)
+
+
+def _start_render_process(world: Any, condition: str, image_size: tuple[int, int]) -> None:
+    global _worker_render
+    _worker_render = default_renderer(world, condition, image_size)
+
+
+def _render_job(out_dir: Path, job: tuple) -> Any:
+    return _render_and_write(out_dir, _worker_render, *job)
+
+
+def _render_in_processes(out_dir, world, condition, image_size, jobs, workers, bar) -> list:
+    """The frames of ``jobs`` rendered and written by ``workers`` processes (``spawn``: the
+    caller may hold threads that ``fork`` would copy mid-lock); the contact-sheet rows in
+    frame order."""
+    import functools
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    rows = []
+    with ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=multiprocessing.get_context("spawn"),
+        initializer=_start_render_process,
+        initargs=(world, condition, tuple(image_size)),
+    ) as pool:
+        for tiles in pool.map(functools.partial(_render_job, out_dir), jobs, chunksize=4):
+            rows += [tiles] if tiles is not None else []
+            bar.update()
+    return rows
 
 
 def frame_files(index: int) -> list[str]:

@@ -36,6 +36,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -183,9 +184,12 @@ class BuildingsConfig:
 
 
 # ------------------------------------------------------------------------------- the drive
-def prepare_drive(cfg: BuildingsConfig, folder: str | Path) -> Path:
+def prepare_drive(cfg: BuildingsConfig, folder: str | Path, workers: int | None = None) -> Path:
     """Render the drive into ``folder`` (skipped when it holds the same render) and write its
     GPS log (``gps_sigma<s>.csv``) and the exact building model (``gis/exact/``).
+
+    Args:
+        workers: rendering processes (default: one per CPU core, at most 4).
 
     Returns:
         ``folder``.
@@ -210,7 +214,7 @@ def prepare_drive(cfg: BuildingsConfig, folder: str | Path) -> Path:
     folder = render_sequence(
         world_cfg, folder, frames=frames, condition=d.condition, rig=d.rig,
         image_size=d.image_size, fps=d.fps, seed=d.route_seed, world=world,
-        allow_other_files=True,
+        allow_other_files=True, workers=workers or min(4, os.cpu_count() or 1),
     )  # fmt: skip
     from slam_bridge.sensor_logs import read_columns
 

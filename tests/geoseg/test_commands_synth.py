@@ -19,7 +19,8 @@ def tiny_config(tmp_path):
 def test_render_command_writes_a_sequence(tmp_path, tiny_config, capsys) -> None:
     out = tmp_path / "seq"
     argv = ["render", "--config", str(tiny_config), "--out", str(out), "--frames", "2"]
-    assert main(argv + ["--size", "64x48", "--rig", "tram", "--condition", "dusk"]) == 0
+    extra = ["--size", "64x48", "--rig", "tram", "--condition", "dusk", "--workers", "2"]
+    assert main(argv + extra) == 0
     assert str(out) in capsys.readouterr().out
     assert len(list((out / "rgb").glob("*.png"))) == 2
     for name in ("preview.png", "poses.csv", "gis/facades.csv", "gis/gps.csv", "gis/dem.geojson"):
@@ -60,6 +61,7 @@ def test_render_command_unwritable_output(tmp_path, tiny_config, capsys) -> None
         (["--size", "64by48"], "64by48"),
         (["--condition", "monsoon"], "monsoon"),
         (["--frames", "0"], "--frames"),
+        (["--workers", "0"], "workers"),
     ],
 )
 def test_render_command_bad_inputs(tmp_path, tiny_config, capsys, extra, message) -> None:
@@ -100,18 +102,25 @@ def test_demo_command_on_a_tiny_world(tmp_path, tiny_config, capsys) -> None:
 @pytest.mark.slow
 def test_demo_runs_the_chapter_4_chain(tmp_path, tiny_config, capsys) -> None:
     """The buildings step on a short drive: the SLAM without buildings, with the ray-cast
-    baseline's and with the network's, its report and pictures."""
+    baseline's and with the network's, against the exact and the GIS building models, its
+    report and pictures."""
     out = tmp_path / "demo"
     argv = ["demo", "--config", str(tiny_config), "--out", str(out), "--frames", "1"]
     assert main(argv + ["--size", "48x36", "--drive-m", "45"]) == 0
     printed = capsys.readouterr().out
-    for method in ("nobuild", "raycast", "bayes"):
-        assert f"slam on images, {method}" in printed
-    assert "% on the right one" in printed
-    report = out / "buildings" / "buildings_ch4.md"
-    assert "| bayes |" in report.read_text() and str(report) in printed
-    for name in ("trajectories_gis", "association_gis", "reprojection_gis"):
-        assert (out / "buildings" / f"{name}.png").is_file()
+    exact, gis = printed.index("slam on images, exact"), printed.index("slam on images, gis")
+    assert exact < gis
+    for block in (printed[exact:gis], printed[gis:]):
+        for method in ("nobuild", "raycast", "bayes"):
+            assert f"  {method:8s}: " in block
+        assert "% on the right one" in block
+    assert "GPS fixes" in printed[gis:] and "GPS fixes" not in printed[exact:gis]
+    report = (out / "buildings" / "buildings_ch4.md").read_text()
+    assert "## Model `exact`" in report and "## Model `gis`" in report and "| bayes |" in report
+    assert str(out / "buildings" / "buildings_ch4.md") in printed
+    for model in ("exact", "gis"):
+        for name in ("trajectories", "association", "reprojection"):
+            assert (out / "buildings" / f"{name}_{model}.png").is_file()
     assert main(argv + ["--drive-m", "-1"]) == 2
 
 

@@ -140,6 +140,11 @@ def test_bad_requests_are_named(tmp_path) -> None:
         render_sequence(TINY, tmp_path, frames=2, rig="bike")
     with pytest.raises(GeosegError, match="frames"):
         render_sequence(TINY, tmp_path, frames=0)
+    for workers in (0, 1.5, True):
+        with pytest.raises(GeosegError, match="workers"):
+            render_sequence(TINY, tmp_path, frames=2, workers=workers)
+    with pytest.raises(GeosegError, match="workers: a render_fn"):
+        render_sequence(TINY, tmp_path, frames=2, workers=2, render_fn=_fake_render([]))
     assert parse_size("64x48") == (64, 48)
     with pytest.raises(ConfigError, match="size"):
         parse_size("64by48")
@@ -183,3 +188,16 @@ def test_real_renderer_frames_on_a_tiny_world(tmp_path, tiny_world) -> None:
     norms = np.linalg.norm(geo["normals"].astype(np.float32), axis=0)
     np.testing.assert_allclose(norms[valid], 1.0, atol=2e-3)
     assert np.all(geo["depth"][valid] > 0)
+
+
+def test_render_processes_write_the_same_files_as_one(tmp_path, tiny_world) -> None:
+    kwargs = dict(frames=5, image_size=(48, 36), world=tiny_world, progress=False)
+    one = render_sequence(TINY, tmp_path / "one", **kwargs)
+    two = render_sequence(TINY, tmp_path / "two", workers=2, **kwargs)
+    names = sorted(p.relative_to(one) for p in one.rglob("*") if p.is_file())
+    assert names == sorted(p.relative_to(two) for p in two.rglob("*") if p.is_file())
+    frame_dirs = ("rgb", "labels", "labels_color", "geometry")
+    compared = [n for n in names if n.parts[0] in frame_dirs or n.name == "poses.csv"]
+    assert len(compared) == 5 * 4 + 1
+    for name in compared:
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
