@@ -264,7 +264,9 @@ def render_sequence(
         preview_frames: frames shown in ``preview.png``.
         render_fn: ``fn(K, R_wc, t_wc, time_s) -> Frame``, to replace the default renderer.
         workers: processes that render and write the frames (each builds its own renderer of
-            ``world``; the files are the same as with 1). Only with the default renderer.
+            ``world``; the files are the same as with 1). Only with the default renderer. They
+            are started by ``spawn``, which imports the calling script again: a script of your
+            own must guard its entry point with ``if __name__ == "__main__":``.
 
     Returns:
         ``out_dir``.

@@ -189,7 +189,8 @@ def prepare_drive(cfg: BuildingsConfig, folder: str | Path, workers: int | None 
     GPS log (``gps_sigma<s>.csv``) and the exact building model (``gis/exact/``).
 
     Args:
-        workers: rendering processes (default: one per CPU core, at most 4).
+        workers: rendering processes (default: one per CPU core, at most 4; a script of your
+            own must guard its entry point, see :func:`geoseg.synth.export.render_sequence`).
 
     Returns:
         ``folder``.
