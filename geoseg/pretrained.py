@@ -7,7 +7,9 @@ benchmarks read (:data:`SHIPPED_FILES`): ``model.pt`` (torch checkpoint), ``mode
 ``max_probability.json`` instead of a network. ``python -m training.ship RUN NAME`` copies a run
 there; the model card's ``command`` reproduces it.
 
-Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``normals`` (the joint labels + normals
+Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
+street photographs: fine-tuned from ``seg`` on the randomised city, ``configs/seg_real.yaml``;
+docs/real_images.md), ``normals`` (the joint labels + normals
 network: the ``seg`` trunk and label head with a trained normals head), ``naive`` (the 2015
 patch CNN), ``dirichlet`` (its false-positive filter), ``reloc`` and ``relpose`` (the
 relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of one
@@ -25,6 +27,7 @@ from geoseg.errors import GeosegError
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 PRETRAINED: dict[str, str] = {
     "seg": "ENet labels (8 classes)",
+    "seg_real": "ENet labels (8 classes) for real street photographs, trained on the randomised city",
     "normals": "joint labels + surface normals network (ENet trunk + normals head)",
     "naive": "naive patch CNN (thesis fig. 4.5)",
     "dirichlet": "Dirichlet false-positive filter of the naive CNN",
@@ -85,7 +88,7 @@ def pretrained_segmenter(name: str = "normals", *, backend: str = "onnx", device
     """A :class:`geoseg.infer.Segmenter` over shipped weights.
 
     Args:
-        name: ``normals`` (labels + normals, the default), ``seg`` or ``naive``.
+        name: ``normals`` (labels + normals, the default), ``seg``, ``seg_real`` or ``naive``.
         backend: ``onnx`` (onnxruntime) or ``torch``.
         device: ``cpu`` or ``cuda``.
 

@@ -52,8 +52,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--model",
         type=Path,
         default=None,
-        help="model: .onnx file or torch checkpoint (default: the shipped labels + normals "
-        "network, geoseg/weights/normals/model.onnx)",
+        help="model: .onnx file, torch checkpoint or the name of shipped weights (seg, normals, "
+        "naive, ...; default: the shipped labels + normals network, normals)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output directory")
     parser.add_argument(
@@ -188,14 +188,13 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.export import available_providers
     from geoseg.infer import Segmenter, normals_to_rgb
     from geoseg.output_dir import prepare_output_dir, record_outputs
+    from geoseg.pretrained import PRETRAINED, pretrained_file
 
     if not 0.0 <= args.alpha <= 1.0:
         raise GeosegError(f"--alpha: expected a value in [0, 1], got {args.alpha}")
     stems = output_stems(list(args.images))
-    if args.model is None:
-        from geoseg.pretrained import pretrained_file
-
-        args.model = pretrained_file("normals", "model.onnx")
+    if args.model is None or (not args.model.exists() and str(args.model) in PRETRAINED):
+        args.model = pretrained_file(str(args.model or "normals"), "model.onnx")
     if str(args.model).lower().endswith(".onnx"):
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
     else:

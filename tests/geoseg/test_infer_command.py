@@ -133,3 +133,18 @@ def test_colour_transfer_option_reads_the_model_card(model, tmp_path, capsys) ->
     assert not np.array_equal(labels["plain"], labels["image"])
     # one input: its own statistics are the sequence's
     assert np.array_equal(labels["image"], labels["seq"])
+
+
+def test_model_by_shipped_name_is_those_weights(tmp_path) -> None:
+    from geoseg.infer import Segmenter
+    from geoseg.pretrained import pretrained_file
+
+    image = _image(tmp_path / "street.png", 7, size=(48, 64))
+    assert main(["infer", str(image), "--model", "seg", "--out", str(tmp_path / "a")]) == 0
+    classes = cv2.imread(str(tmp_path / "a" / "street_classes.png"), cv2.IMREAD_UNCHANGED)
+    seg = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
+    expected = seg(cv2.cvtColor(cv2.imread(str(image)), cv2.COLOR_BGR2RGB)).labels[0]
+    np.testing.assert_array_equal(classes, expected)
+    assert not (tmp_path / "a" / "street_normals.npy").exists()  # labels-only weights
+    missing = tmp_path / "no_such_model.onnx"
+    assert main(["infer", str(image), "--model", str(missing), "--out", str(tmp_path / "b")]) == 2

@@ -127,7 +127,7 @@ def test_files_without_a_digest_load_with_a_warning_or_check_the_card(files, tmp
 
 
 @pytest.mark.parametrize(
-    "name", ["seg", "normals", "naive", "reloc", "relpose", "relpose_near", "dirichlet"]
+    "name", ["seg", "seg_real", "normals", "naive", "reloc", "relpose", "relpose_near", "dirichlet"]
 )
 def test_shipped_weights_are_recorded_in_their_cards_and_a_corrupt_copy_is_refused(name, tmp_path):
     folder = WEIGHTS_DIR / name

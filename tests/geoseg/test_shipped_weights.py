@@ -24,7 +24,8 @@ def frame():
 
 
 @pytest.mark.parametrize(
-    "name", ["seg", "normals", "naive", "dirichlet", "reloc", "relpose", "relpose_near"]
+    "name",
+    ["seg", "seg_real", "normals", "naive", "dirichlet", "reloc", "relpose", "relpose_near"],
 )
 def test_every_shipped_model_has_a_card_with_its_command(name):
     card = model_card(name)
@@ -47,6 +48,15 @@ def test_shipped_onnx_and_torch_agree(frame):
     assert (ort.labels == pt.labels).mean() >= 0.999
     cos = np.clip((ort.normals * pt.normals).sum(1), -1, 1)
     assert np.degrees(np.arccos(cos)).mean() <= 0.5
+
+
+def test_real_image_weights_label_an_unseen_frame_and_their_backends_agree(frame):
+    rgb, labels = frame[0], frame[1]
+    ort = pretrained_segmenter("seg_real", backend="onnx")(rgb)
+    pt = pretrained_segmenter("seg_real", backend="torch")(rgb)
+    assert ort.normals is None and ort.probabilities.shape == (1, 8, 240, 320)
+    assert (ort.labels[0] == labels).mean() > 0.8
+    assert (ort.labels == pt.labels).mean() >= 0.999
 
 
 def test_shipped_dirichlet_filter_is_calibrated():
