@@ -8,12 +8,12 @@ benchmarks read (:data:`SHIPPED_FILES`): ``model.pt`` (torch checkpoint), ``mode
 there; the model card's ``command`` reproduces it.
 
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
-street photographs: fine-tuned from ``seg`` on the randomised city, ``configs/seg_real.yaml``;
-docs/real_images.md), ``normals`` (the joint labels + normals
-network: the ``seg`` trunk and label head with a trained normals head), ``naive`` (the 2015
-patch CNN), ``dirichlet`` (its false-positive filter), ``reloc`` and ``relpose`` (the
-relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of one
-place, :class:`geoseg.localizer.GatedRelPoseHead`).
+street photographs: fine-tuned from ``seg`` on the randomised city, ``configs/seg_real.yaml``,
+docs/real_images.md), ``normals`` (the joint labels + normals network: the ``seg`` trunk and
+label head with a trained normals head), ``naive`` (the 2015 patch CNN), ``dirichlet`` (its
+false-positive filter), ``reloc`` and ``relpose`` (the relocalisation heads, when shipped) and
+``relpose_near`` (the relative-pose head for views of one place,
+:class:`geoseg.localizer.GatedRelPoseHead`).
 """
 
 from __future__ import annotations
