@@ -211,6 +211,7 @@ def _first_frames(traj: Any, n: int) -> Any:
     return type(traj)(**sliced)
 
 
+MAX_WORKERS = 64  # rendering processes: more would only queue for the cores
 RenderFn = Callable[[np.ndarray, np.ndarray, np.ndarray, float], Any]
 
 
@@ -287,8 +288,8 @@ def render_sequence(
     if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
         raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
     check_fps(fps)
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise GeosegError(f"workers: expected an integer >= 1, got {workers!r}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
+        raise GeosegError(f"workers: expected an integer in [1, {MAX_WORKERS}], got {workers!r}")
     if workers > 1 and render_fn is not None:
         raise GeosegError("workers: a render_fn of your own renders in this process only")
     if len(image_size) != 2 or not all(
@@ -353,8 +354,9 @@ def render_sequence(
             preview_rows += [tiles] if tiles is not None else []
             bar.update()
     else:
+        processes = min(workers, frames)
         preview_rows = _render_in_processes(
-            out_dir, world, condition, image_size, jobs, workers, bar
+            out_dir, world, condition, image_size, jobs, processes, bar
         )
     bar.close()
 

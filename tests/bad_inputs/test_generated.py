@@ -59,6 +59,7 @@ DOMAINS: dict[tuple[str, str], Domain] = {
     ("render", "--frames"): _int_at_least(1),
     ("render", "--fps"): lambda v: _positive(v) and 0.01 <= v <= 1000,
     ("render", "--seed"): lambda v: _int_at_least(0)(v) and v < 2**63,
+    ("render", "--workers"): lambda v: _int_at_least(1)(v) and v <= 64,
     ("demo", "--frames"): _int_at_least(1),
     ("demo", "--drive-m"): lambda v: _non_negative(v) and v <= 5000,
     ("demo", "--fps"): lambda v: _positive(v) and 0.01 <= v <= 1000,

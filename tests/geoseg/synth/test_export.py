@@ -140,7 +140,7 @@ def test_bad_requests_are_named(tmp_path) -> None:
         render_sequence(TINY, tmp_path, frames=2, rig="bike")
     with pytest.raises(GeosegError, match="frames"):
         render_sequence(TINY, tmp_path, frames=0)
-    for workers in (0, 1.5, True):
+    for workers in (0, 65, 1.5, True):
         with pytest.raises(GeosegError, match="workers"):
             render_sequence(TINY, tmp_path, frames=2, workers=workers)
     with pytest.raises(GeosegError, match="workers: a render_fn"):
