@@ -1,4 +1,4 @@
-"""Relocalisation accuracy on a held-out city (thesis §5.1, issue 5).
+"""Relocalisation accuracy on a held-out city (thesis §5.1).
 
 Database = one traversal (``summer_day``), queries = another (``winter``) of the same tram route
 in the held-out evaluation city 1000 (never seen by the trunk nor the heads), ~5 km with a

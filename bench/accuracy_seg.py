@@ -1,4 +1,4 @@
-"""Accuracy of the trained segmentation side on a held-out synthetic city (issue 4).
+"""Accuracy of the trained segmentation side on a held-out synthetic city.
 
 Evaluates, on frames of the evaluation city (an unseen seed) under every condition including
 one never trained on (:mod:`training.evaluate_seg`):
@@ -47,7 +47,7 @@ RESULTS_DIR = ROOT / "bench" / "results"
 WEIGHTS = ROOT / "geoseg" / "weights"
 KINDS = ("seg", "normals", "naive", "dirichlet")
 NAME = "accuracy_seg"
-TRAIN_BUDGET_MIN = 45  # issue 4: CPU minutes per model
+TRAIN_BUDGET_MIN = 45  # CPU minutes per model
 
 if str(ROOT) not in sys.path:  # `python bench/accuracy_seg.py` from a checkout
     sys.path.insert(0, str(ROOT))

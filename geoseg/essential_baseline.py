@@ -1,4 +1,4 @@
-"""Classical relative-pose baseline: keypoints -> essential matrix -> (R_ab, t_dir_ab) (issue 5).
+"""Classical relative-pose baseline: keypoints -> essential matrix -> (R_ab, t_dir_ab).
 
 The baseline against which the relative-pose head (:mod:`geoseg.models.relpose`) is judged:
 

@@ -55,13 +55,13 @@ logger = logging.getLogger(__name__)
 
 Predictor = Callable[[np.ndarray], SegmentationResult]
 
-MIN_PUBLISHED_SIZE_HW: tuple[int, int] = (240, 320)  # issue 4: figures at >= 320x240
+MIN_PUBLISHED_SIZE_HW: tuple[int, int] = (240, 320)  # published figures at >= 320x240
 MIN_PUBLISHED_FRAMES = 16  # fewer held-out frames: a smoke run
 MIN_TRAIN_FRAMES = 64  # fewer training frames: a tiny test config
 FILTER_FILE = "dirichlet.json"
 BASELINE_FILE = "max_probability.json"
 
-# (figure key, comparison, target) of issue 4; ``>=`` / ``<=``.
+# (figure key, comparison, target) of the accuracy benchmark; ``>=`` / ``<=``.
 TARGETS: tuple[tuple[str, str, float], ...] = (
     ("miou", ">=", 0.80),
     ("building_iou", ">=", 0.90),
@@ -78,7 +78,7 @@ class EvalConfig:
 
     Attributes:
         frames: held-out frames evaluated.
-        size: ``(H, W)`` of the frames (issue 4: at least 240x320 for published figures).
+        size: ``(H, W)`` of the frames (at least 240x320 for published figures).
         cache_dir: on-disk frame cache (None: render every frame).
         synth: ``data.synth``-like overrides of the ``test`` split (e.g. ``{"world": {...}}``).
         batch_size: frames per forward pass.

@@ -456,5 +456,6 @@ class MeterCollection(Meter):
 
 
 def building_normals_meter() -> NormalsMeter:
-    """Angular errors on building pixels only, keys prefixed ``building_`` (issue 4 targets)."""
+    """Angular errors on building pixels only, keys prefixed ``building_`` (targets of
+    bench/accuracy_seg.py)."""
     return NormalsMeter(only_class=BUILDING, prefix="building_")

@@ -25,7 +25,7 @@ import argparse
 import importlib
 from pathlib import Path
 
-TRAINERS: dict[str, str | None] = {
+TRAINERS: dict[str, str] = {
     "seg": "training.seg",
     "normals": "training.normals",
     "naive": "training.naive",
@@ -84,10 +84,7 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
 
-    module_name = TRAINERS[args.trainer]
-    if module_name is None:
-        raise GeosegError(f"train {args.trainer}: not implemented yet: issue 5")
-    module = importlib.import_module(module_name)
+    module = importlib.import_module(TRAINERS[args.trainer])
     cls = module.CONFIG_CLASS
     fields = {f.name for f in dataclasses.fields(cls)}
     config = args.config

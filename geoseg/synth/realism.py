@@ -57,6 +57,10 @@ Options that change the geometry, with labels that follow it (rendered from the 
 
 - ``p_bare_trees``: the tree crowns are leafless (rays pass between the branches and get the
   label of what lies behind, as in the ``winter`` condition) under any light;
+- ``p_limbs``: leafless crowns are drawn as a stem, limbs, branches and twigs
+  (:mod:`geoseg.synth.bare_crowns`) instead of a sparse voxel pattern on the crown's surfaces:
+  lines against the sky, as a real winter tree, where the default reads as a speckled ball. It
+  acts wherever crowns are bare (``p_bare_trees``, ``winter``);
 - ``p_furniture`` / ``furniture_spacing_m``: extra street furniture near the camera (sign
   posts with plates, traffic lights, lamp posts, bollards, utility cabinets), mostly at the
   kerb (``furniture_kerb_share``), labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
@@ -93,8 +97,16 @@ _PROBABILITIES = (
 _PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
 _PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
 _PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these after those, in this order)
-_PROBABILITIES_5 = ("p_posters",)  # (and this last)
-_ALL = _PROBABILITIES + _PROBABILITIES_2 + _PROBABILITIES_3 + _PROBABILITIES_4 + _PROBABILITIES_5
+_PROBABILITIES_5 = ("p_posters",)  # (and this after those)
+_PROBABILITIES_6 = ("p_limbs",)  # (and this last)
+_ALL = (
+    _PROBABILITIES
+    + _PROBABILITIES_2
+    + _PROBABILITIES_3
+    + _PROBABILITIES_4
+    + _PROBABILITIES_5
+    + _PROBABILITIES_6
+)
 
 
 @dataclass
@@ -136,6 +148,7 @@ class RealismConfig:
         road_texture: range of the asphalt's texture contrast (1: as rendered, 0: flat).
         p_posters: probability that a frame has poster hoardings on ground floors.
         poster_share: range of the share of facades with a hoarding in such a frame.
+        p_limbs: probability that bare crowns are drawn as branching limbs.
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
     """
 
@@ -170,6 +183,7 @@ class RealismConfig:
     road_texture: tuple[float, float] = (0.1, 0.8)
     p_posters: float = 0.0
     poster_share: tuple[float, float] = (0.1, 0.4)
+    p_limbs: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("bare_crown_label", "furniture_plain_plates"):
@@ -272,6 +286,7 @@ class Variation:
             (left out of ``repr`` as above).
         poster_share: share of facades whose ground floor is a poster hoarding (0: none; left
             out of ``repr`` as above).
+        limbs: bare crowns drawn as branching limbs (left out of ``repr`` as above).
     """
 
     seed: int = 0
@@ -299,6 +314,7 @@ class Variation:
     furniture_kerb_share: float = dataclasses.field(default=0.75, repr=False)
     furniture_plain_plates: bool = dataclasses.field(default=False, repr=False)
     poster_share: float = dataclasses.field(default=0.0, repr=False)
+    limbs: bool = dataclasses.field(default=False, repr=False)
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -372,8 +388,8 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
 
 def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
     """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels,
-    street furniture and road texture (options left at 0 draw nothing: the earlier options'
-    draws stay as they were)."""
+    street furniture, road texture, posters and limbs (options left at 0 draw nothing: the
+    earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
     if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
         u = rng.random(len(_PROBABILITIES_2))
@@ -416,6 +432,8 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
         if u6[0] < cfg.p_posters:
             lo, hi = cfg.poster_share
             kw["poster_share"] = float(lo + (hi - lo) * u6[1])
+    if cfg.p_limbs > 0:
+        kw["limbs"] = bool(rng.random() < cfg.p_limbs)
     return kw
 
 

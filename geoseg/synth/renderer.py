@@ -40,7 +40,7 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from geoseg.classes import OBJECT, ROAD, SIDEWALK, SKY, TERRAIN, VEGETATION, VEHICLE
 from geoseg.errors import GeosegError, check_finite, check_shape
-from geoseg.synth import textures
+from geoseg.synth import bare_crowns, textures
 from geoseg.synth.conditions import Condition, get_condition
 from geoseg.synth.realism import Variation, random_colours
 from geoseg.synth.street_furniture import furniture_part, plate_albedo, pole_albedo
@@ -178,6 +178,7 @@ class _Hits:
     normal: np.ndarray  # (N, 3) float32 world geometric normal
     crown: np.ndarray | None = None  # (N,) bool: the ray met a bare crown first (or None)
     passes: np.ndarray | None = None  # (N,) int: bare crown surfaces the ray went through
+    cover: np.ndarray | None = None  # (N,) float32: share of the pixel thin limbs cover
 
 
 class Renderer:
@@ -238,6 +239,7 @@ class Renderer:
         for v in world.vehicles:
             self._vehicle_color[v.instance] = v.color
         self._ray_cache: dict[tuple, np.ndarray] = {}
+        self._limbs: bare_crowns.CrownLimbs | None = None  # built at the first frame with limbs
 
     def __reduce__(self):
         """Pickle as the recipe (world and options); the embree scene is rebuilt on load."""
@@ -295,7 +297,9 @@ class Renderer:
         mover_rays = None
         if movers is not None and extra is None:
             mover_rays = self._mover_pixels(movers, K, R_wc, t_wc, width, height, dirs_c, k1)
-        hits = self._trace(t_wc, dirs_w, movers, cond, mover_rays)
+        limbs = variation is not None and variation.limbs
+        pixel_angle = 1.0 / float(K[0, 0]) if limbs else None
+        hits = self._trace(t_wc, dirs_w, movers, cond, mover_rays, pixel_angle)
         return self._shade(
             hits, dirs_c, dirs_w, K, R_wc, t_wc, (width, height), cond, time_s, variation
         )
@@ -461,33 +465,24 @@ class Renderer:
             normal[sel] = nrm2[closer]
         return _Hits(t, kind, instance, normal)
 
-    def _trace(self, t_wc, dirs, movers, cond: Condition, mover_rays) -> _Hits:
+    def _trace(self, t_wc, dirs, movers, cond: Condition, mover_rays, pixel_angle=None) -> _Hits:
+        """The rays' hits; through bare crowns, their branches as voxels, or with
+        ``pixel_angle`` (radians per pixel) as limbs (:mod:`geoseg.synth.bare_crowns`)."""
         hits = self._cast_all(None, dirs, movers, mover_rays, t_wc)
         if cond.leaves_on:
             return hits
-        # bare crowns: rays go on through the crown except where they hit a branch
-        travelled = np.zeros(len(hits.t))
-        hits.crown = hits.kind == SurfaceKind.CROWN
-        hits.passes = np.zeros(len(hits.t), dtype=np.int32)
-        active = np.nonzero(hits.crown)[0]
-        for _ in range(MAX_CROWN_PASSES):
-            if len(active) == 0:
-                break
-            X = t_wc + (travelled[active] + hits.t[active])[:, None] * dirs[active]
-            through = ~textures.branch_mask(X, hits.instance[active])
-            active = active[through]
-            if len(active) == 0:
-                break
-            hits.passes[active] += 1
-            travelled[active] += hits.t[active] + CROWN_STEP
-            sub = self._cast_all(X[through] + CROWN_STEP * dirs[active], dirs[active], movers)
-            hits.t[active] = sub.t
-            hits.kind[active] = sub.kind
-            hits.instance[active] = sub.instance
-            hits.normal[active] = sub.normal
-            active = active[sub.kind == SurfaceKind.CROWN]
-        hits.t = hits.t + travelled
-        return hits
+        if pixel_angle is not None and self._limbs is None:
+            self._limbs = bare_crowns.CrownLimbs(self.world.trees)
+        return bare_crowns.trace_crowns(
+            hits,
+            t_wc,
+            dirs,
+            lambda o, d: self._cast_all(o, d, movers),
+            None if pixel_angle is None else self._limbs,
+            pixel_angle,
+            MAX_CROWN_PASSES,
+            CROWN_STEP,
+        )
 
     # ---- shading ---------------------------------------------------------------------------
     def _shade(
@@ -626,7 +621,9 @@ class Renderer:
         )
         rgb[idx] = color
         if var is not None and var.twig_density > 0 and hits.passes is not None:
-            _twig_haze(rgb, hits.passes, var.twig_density, cond)
+            bare_crowns.twig_haze(rgb, hits.passes, var.twig_density, cond)
+        if hits.cover is not None:
+            bare_crowns.veil(rgb, hits.cover, cond)
         np.clip(rgb, 0.0, 1.0, out=rgb)
         rgb *= 255.0
         rgb += 0.5
@@ -750,19 +747,6 @@ def _vary_ground(albedo: np.ndarray, g: np.ndarray, cls: np.ndarray, var: Variat
     if var.walk_rgb != (1.0, 1.0, 1.0):
         w = g[cls == SIDEWALK]
         albedo[w] *= np.asarray(var.walk_rgb, dtype=np.float32)
-
-
-def _twig_haze(rgb: np.ndarray, passes: np.ndarray, density: float, cond: Condition) -> None:
-    """Veil `(N, 3)` ``rgb`` where rays went through bare crowns: each of a ray's ``passes``
-    `(N,)` covers ``density`` of what lies behind with dull, softly lit twigs."""
-    r = np.nonzero(passes)[0]
-    if len(r) == 0:
-        return
-    cover = 1.0 - (1.0 - np.float32(density)) ** passes[r].astype(np.float32)
-    light = cond.ambient_strength * np.asarray(cond.ambient_color, dtype=np.float32)
-    light = light + 0.5 * max(cond.sun_strength, 0.0) * np.asarray(cond.sun_color, np.float32)
-    twig = np.float32([0.27, 0.23, 0.2]) * light  # grey-brown bark, half lit
-    rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig * cover[:, None]
 
 
 def _rebuild_renderer(world: World, drop: tuple[str, ...], shadows: bool) -> Renderer:

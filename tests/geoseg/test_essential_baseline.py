@@ -1,4 +1,4 @@
-"""Tests for the essential-matrix relative-pose baseline (issue 5) and its error metrics."""
+"""Tests for the essential-matrix relative-pose baseline and its error metrics."""
 
 from __future__ import annotations
 

@@ -38,3 +38,25 @@ def tiny_light_world() -> World:
 def make_tiny_config():
     """The :func:`tiny_config` factory (test modules cannot import conftest by name)."""
     return tiny_config
+
+
+@pytest.fixture(scope="session")
+def first_frame(tiny_world):
+    """``first_frame(shows)``: the first frame of a short car drive through the tiny world
+    whose labels satisfy ``shows(labels)``, as ``(renderer, (K, R_wc, t_wc, size), time_s,
+    frame)``."""
+    from geoseg.synth.renderer import Renderer
+    from geoseg.synth.trajectory import drive
+
+    renderer = Renderer(tiny_world)
+    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+
+    def find(shows):
+        for i in range(len(traj)):
+            pose = (traj.K, traj.R_wc[i], traj.t_wc[i], traj.image_size)
+            frame = renderer.render(*pose, time_s=float(traj.timestamps[i]))
+            if shows(frame.labels):
+                return renderer, pose, float(traj.timestamps[i]), frame
+        raise AssertionError("no frame of the drive shows what the test needs")
+
+    return find

@@ -41,16 +41,10 @@ APPEARANCE = {
 
 
 @pytest.fixture(scope="module")
-def scene(tiny_world):
-    renderer = Renderer(tiny_world)
-    traj = drive(tiny_world, rig="car", length_m=120.0, fps=2.0, seed=3, image_size=(160, 120))
+def scene(first_frame):
     # a frame that shows every class the options recolour
-    for i in range(len(traj)):
-        pose = (traj.K, traj.R_wc[i], traj.t_wc[i], traj.image_size)
-        base = renderer.render(*pose, time_s=float(traj.timestamps[i]))
-        if all((base.labels == c).sum() > 20 for c in (BUILDING, ROAD, SIDEWALK, SKY, VEHICLE)):
-            return renderer, pose, float(traj.timestamps[i]), base
-    raise AssertionError("no frame shows every class")
+    classes = (BUILDING, ROAD, SIDEWALK, SKY, VEHICLE)
+    return first_frame(lambda labels: all((labels == c).sum() > 20 for c in classes))
 
 
 @pytest.mark.parametrize("name", sorted(APPEARANCE))

@@ -1,0 +1,146 @@
+"""Leafless crowns drawn as limbs: the ray-segment test, the skeletons, the rendered frames."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from geoseg.classes import VEGETATION
+from geoseg.synth.bare_crowns import CrownLimbs, _closest_approach, crown_skeleton
+from geoseg.synth.realism import REALISTIC_3, RealismConfig, Variation, cache_fields, draw_variation
+from geoseg.synth.world_records import Tree
+
+
+def _tree(instance: int = 7) -> Tree:
+    return Tree(
+        instance, np.array([10.0, 5.0, 0.0]), 0.2, 3.0, np.array([10.0, 5.0, 5.2]),
+        np.array([2.5, 2.4, 2.8]),
+    )  # fmt: skip
+
+
+def _brute_force(o, d, a, b, n=20001):
+    """Distances of rays to segments by sampling both finely (s up to 50 m)."""
+    s = np.linspace(0.0, 50.0, n)
+    u = np.linspace(0.0, 1.0, 2001)
+    out = np.empty((len(o), len(a)))
+    for i in range(len(o)):
+        ray = o[i] + s[:, None] * d[i]
+        for j in range(len(a)):
+            seg = a[j] + u[:, None] * (b[j] - a[j])
+            # nearest ray sample for each segment sample, then the best pair
+            gap = np.linalg.norm(ray[::20, None, :] - seg[None, ::20, :], axis=2)
+            out[i, j] = gap.min()
+    return out
+
+
+def test_closest_approach_matches_hand_cases():
+    o = np.array([[0.0, 0.0, 0.0]])
+    d = np.array([[1.0, 0.0, 0.0]])
+    a = np.array([[5.0, 1.0, -2.0], [5.0, 0.0, -1.0], [-4.0, 3.0, 0.0], [2.0, 0.0, 0.5]])
+    b = np.array([[5.0, 1.0, 2.0], [5.0, 0.0, 1.0], [-2.0, 3.0, 0.0], [8.0, 0.0, 0.5]])
+    s, dist, closest = _closest_approach(o, d, a, b)
+    # crossing 1 m to the side at x = 5; through the ray at x = 5; behind the origin (s
+    # clamped to 0, the nearest end 2 m back); parallel 0.5 m above
+    np.testing.assert_allclose(dist[0], [1.0, 0.0, np.hypot(2.0, 3.0), 0.5], atol=1e-12)
+    np.testing.assert_allclose(s[0, :3], [5.0, 5.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(closest[0, 0], [5.0, 1.0, 0.0], atol=1e-12)
+
+
+def test_closest_approach_matches_sampling_on_random_rays():
+    rng = np.random.default_rng(0)
+    o = rng.normal(0, 2, (6, 3))
+    d = rng.normal(0, 1, (6, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    a = rng.normal(0, 4, (5, 3)) + 6 * d[0]
+    b = a + rng.normal(0, 2, (5, 3))
+    _, dist, _ = _closest_approach(o, d, a, b)
+    sampled = _brute_force(o, d, a, b)
+    assert np.all(dist <= sampled + 1e-9)  # never farther than a sampled pair
+    np.testing.assert_allclose(dist, sampled, atol=0.05)
+
+
+def test_skeleton_is_deterministic_inside_the_crown_and_tapers():
+    tree = _tree()
+    a, b, r = crown_skeleton(tree)
+    a2, b2, r2 = crown_skeleton(_tree())
+    np.testing.assert_array_equal(a, a2)
+    np.testing.assert_array_equal(r, r2)
+    assert not np.array_equal(crown_skeleton(_tree(8))[1], b)  # another tree, another shape
+    assert len(r) > 30 and np.all(r > 0)
+    assert r[0] == max(r) and min(r) < 0.2 * r[0]  # stem thickest, twigs a fraction of it
+    # every limb ends inside the crown's ellipsoid
+    inside = np.sum(((b - tree.crown_center) / tree.crown_radii) ** 2, axis=1)
+    assert np.all(inside <= 1.0 + 1e-9)
+    assert np.isclose(a[0, 2], tree.trunk_height)  # the stem starts at the trunk's top
+
+
+def test_a_ray_at_a_wide_limb_stops_on_its_surface_and_a_far_one_only_veils():
+    tree = _tree()
+    limbs = CrownLimbs([tree])
+    limbs._skeletons[7] = (
+        np.array([[10.0, 5.0, 3.0]]),
+        np.array([[10.0, 5.0, 7.0]]),
+        np.array([0.1]),
+    )
+    # horizontal ray towards the vertical limb's axis, from 2 m away
+    origin = np.array([[8.0, 5.0, 4.0]])
+    direction = np.array([[1.0, 0.0, 0.0]])
+    got = limbs.intersect(origin, direction, np.array([7]), np.array([3.0]), 1e-3)
+    np.testing.assert_allclose(got.distance[0], 1.9, atol=1e-9)
+    np.testing.assert_allclose(got.normal[0], [-1.0, 0.0, 0.0], atol=1e-6)
+    assert got.cover[0] == 0
+    # a ray passing 0.15 m beside it misses; one above its top misses
+    miss = limbs.intersect(
+        np.array([[8.0, 5.15, 4.0], [8.0, 5.0, 7.3]]), np.repeat(direction, 2, 0),
+        np.array([7, 7]), np.array([3.0, 3.0]), 1e-3,
+    )  # fmt: skip
+    assert np.all(np.isinf(miss.distance)) and np.all(miss.cover == 0)
+    # the same ray seen from 2 km with a wide pixel (half a pixel 2 m wide): it only veils,
+    # by the share of the pixel the limb covers
+    far = limbs.intersect(origin, direction, np.array([7]), np.array([2000.0]), 2e-3)
+    assert np.isinf(far.distance[0])
+    np.testing.assert_allclose(far.cover[0], 0.1 / (0.5 * 2e-3 * (2000.0 + 2.0)), rtol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def crown_scene(first_frame):
+    return first_frame(lambda labels: (labels == VEGETATION).sum() > 300)
+
+
+def test_limbs_change_only_the_bare_crowns(crown_scene):
+    renderer, pose, time_s, base = crown_scene
+    bare = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True))
+    limbs = renderer.render(*pose, time_s=time_s, variation=Variation(bare_trees=True, limbs=True))
+    outside = base.labels != VEGETATION
+    for key in ("rgb", "labels", "depth"):
+        np.testing.assert_array_equal(getattr(limbs, key)[outside], getattr(bare, key)[outside])
+    # inside the crowns: some rays stop on limbs (vegetation), others show what lies behind
+    inside = ~outside
+    assert (limbs.labels[inside] == VEGETATION).sum() > 10
+    assert (limbs.labels[inside] != VEGETATION).sum() > 10
+    assert not np.array_equal(limbs.labels, bare.labels)  # not the voxel branches
+    # leafy crowns: limbs change nothing
+    leafy = renderer.render(*pose, time_s=time_s, variation=Variation(limbs=True))
+    np.testing.assert_array_equal(leafy.rgb, base.rgb)
+    np.testing.assert_array_equal(leafy.labels, base.labels)
+
+
+def test_limbs_with_the_crown_label_keep_the_leafy_labels(crown_scene):
+    renderer, pose, time_s, base = crown_scene
+    v = Variation(bare_trees=True, limbs=True, bare_crown_label=True)
+    frame = renderer.render(*pose, time_s=time_s, variation=v)
+    np.testing.assert_array_equal(frame.labels, base.labels)
+
+
+def test_limbs_are_drawn_last_and_stay_out_of_the_cache_key_when_off():
+    on = dataclasses.replace(REALISTIC_3, p_limbs=1.0)
+    for seed in range(10):
+        a = draw_variation(REALISTIC_3, np.random.default_rng(seed))
+        b = draw_variation(on, np.random.default_rng(seed))
+        assert not a.limbs and b.limbs
+        assert dataclasses.replace(b, limbs=False) == a
+        assert cache_fields(b)["limbs"] is True
+        assert "limbs" not in cache_fields(a)
+    assert RealismConfig(p_limbs=0.5).enabled
