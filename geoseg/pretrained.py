@@ -79,6 +79,15 @@ def pretrained_file(name: str, file: str = "model.pt") -> Path:
     return path
 
 
+def path_or_shipped(path: str | Path, file: str | None = None) -> Path:
+    """``path`` itself, or, when no such path exists and it is the name of shipped weights
+    (``"seg_real"``), their folder (:func:`pretrained_dir`), or their ``file`` when given
+    (:func:`pretrained_file`)."""
+    if not Path(path).exists() and str(path) in PRETRAINED:
+        return pretrained_dir(str(path)) if file is None else pretrained_file(str(path), file)
+    return Path(path)
+
+
 def model_card(name: str) -> dict[str, Any]:
     """The shipped model card of ``name`` (data, config, command, metrics)."""
     return json.loads(pretrained_file(name, "model_card.json").read_text())

@@ -327,11 +327,9 @@ def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: 
             whose names or shapes differ: the message lists the first ones).
     """
     try:
-        if not Path(path).exists() and str(path) in _shipped_names():
-            from geoseg.pretrained import pretrained_dir
+        from geoseg.pretrained import path_or_shipped
 
-            path = pretrained_dir(str(path))
-        file = resolve_weights_file(path)
+        file = resolve_weights_file(path_or_shipped(path))
     except GeosegError as err:
         raise GeosegError(f"init_checkpoint: {err}") from None
     state, _ = load_state(file, expected_model=model_name, option="init_checkpoint")
@@ -355,12 +353,6 @@ def load_init_weights(model: nn.Module, path: str | os.PathLike, *, model_name: 
     model.load_state_dict(state)
     logger.info("initialised %s from %s", model_name, file)
     return file
-
-
-def _shipped_names() -> tuple[str, ...]:
-    from geoseg.pretrained import PRETRAINED
-
-    return tuple(PRETRAINED)
 
 
 def _model_config_of(model: nn.Module) -> str:

@@ -188,13 +188,12 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.export import available_providers
     from geoseg.infer import Segmenter, normals_to_rgb
     from geoseg.output_dir import prepare_output_dir, record_outputs
-    from geoseg.pretrained import PRETRAINED, pretrained_file
+    from geoseg.pretrained import path_or_shipped
 
     if not 0.0 <= args.alpha <= 1.0:
         raise GeosegError(f"--alpha: expected a value in [0, 1], got {args.alpha}")
     stems = output_stems(list(args.images))
-    if args.model is None or (not args.model.exists() and str(args.model) in PRETRAINED):
-        args.model = pretrained_file(str(args.model or "normals"), "model.onnx")
+    args.model = path_or_shipped(args.model or "normals", "model.onnx")
     if str(args.model).lower().endswith(".onnx"):
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
     else:

@@ -28,6 +28,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.synth.conditions import Condition
+from geoseg.synth.textures import branch_mask
+from geoseg.synth.world_meshes import SurfaceKind
 from geoseg.synth.world_records import Tree
 
 __all__ = [
@@ -227,9 +229,6 @@ def trace_crowns(hits, t_wc, dirs, cast, limbs: CrownLimbs | None, pixel_angle, 
         pixel_angle: radians per pixel (limbs only).
         passes: most crown surfaces a ray goes through; step: metres it restarts behind one.
     """
-    from geoseg.synth.textures import branch_mask
-    from geoseg.synth.world_meshes import SurfaceKind
-
     n = len(hits.t)
     travelled = np.zeros(n)
     hits.crown = hits.kind == SurfaceKind.CROWN
