@@ -17,8 +17,14 @@ is tested against it over its whole path inside (:meth:`CrownLimbs.intersect`):
   pixel wide instead of broken dots.
 
 Capsules are straight segments with one radius each; the test is the ray's closest approach to
-each segment of its tree (``(rays, segments)`` arrays, tree by tree). The haze of twigs finer
-than a pixel (``p_twigs``, :func:`twig_haze`) veils either kind of bare crown.
+each segment of its tree (``(rays, segments)`` arrays, tree by tree).
+
+Twigs finer than a pixel (``p_twigs``) veil what lies behind a bare crown. Behind voxel
+branches the veil is flat, the same share per crown surface (:func:`twig_haze`). Behind limbs it
+is a twig mass (:func:`twig_mass`): its optical depth grows with the ray's path through the
+crown (dense across the middle, thin at the rim, as a real crown's twigs overlap) and varies
+from clump to clump and twig to twig (:func:`twig_speckle`), so a crown against the sky reads as
+a speckled mass with sky showing through, not as a uniform grey.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.synth.conditions import Condition
-from geoseg.synth.textures import branch_mask
+from geoseg.synth.textures import branch_mask, hash01
 from geoseg.synth.world_meshes import SurfaceKind
 from geoseg.synth.world_records import Tree
 
@@ -39,12 +45,20 @@ __all__ = [
     "trace_crowns",
     "twig_colour",
     "twig_haze",
+    "twig_mass",
+    "twig_speckle",
     "veil",
+    "veil_crowns",
 ]
 
 #: ``(count range, radius factor of the parent, end at this share of the crown radius)`` per
 #: level below the stem: limbs off the stem, branches off limbs, twigs off branches
 _LEVELS = (((5, 9), 0.45, (0.62, 0.86)), ((2, 4), 0.5, (0.78, 0.95)), ((2, 3), 0.45, (0.9, 1.0)))
+#: lattice spacings (metres) of the twig mass's variation: clumps of twigs (smooth), twigs
+_CLUMP_CELL, _TWIG_CELL = 0.4, 0.05
+#: mean length of a chord through the unit sphere over its projected disc: a twig mass of this
+#: normalised path length veils as much as the flat haze's two crown surfaces
+_MEAN_CHORD = 4.0 / 3.0
 
 
 def _on_shell(tree: Tree, azimuth: float, elevation: float, share: float) -> np.ndarray:
@@ -132,6 +146,26 @@ class CrownLimbs:
         if instance not in self._skeletons:
             self._skeletons[instance] = crown_skeleton(self._trees[instance])
         return self._skeletons[instance]
+
+    def path_inside(
+        self, origins: np.ndarray, dirs: np.ndarray, instance: np.ndarray, until: np.ndarray
+    ) -> np.ndarray:
+        """`(M,)` length of each ray's path through its crown from ``origins`` `(M, 3)` along
+        ``dirs`` `(M, 3)` to the crown's far side or ``until`` `(M,)` metres, whichever comes
+        first, measured with the crown scaled to the unit sphere (a path across the middle: 2)."""
+        out = np.zeros(len(origins))
+        for tree in np.unique(instance):
+            rows = np.nonzero(instance == tree)[0]
+            t = self._trees[int(tree)]
+            radii = np.asarray(t.crown_radii, np.float64)
+            u = (origins[rows] - np.asarray(t.crown_center, np.float64)) / radii
+            v = dirs[rows] / radii
+            a = np.einsum("ij,ij->i", v, v)
+            b = np.einsum("ij,ij->i", u, v)
+            c = np.einsum("ij,ij->i", u, u) - 1.0
+            far = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a  # metres: dirs are unit
+            out[rows] = np.clip(np.minimum(far, until[rows]), 0.0, None) * np.sqrt(a)
+        return out
 
     def intersect(
         self,
@@ -222,7 +256,8 @@ def trace_crowns(hits, t_wc, dirs, cast, limbs: CrownLimbs | None, pixel_angle, 
         hits: the first cast's hits (``t``, ``kind``, ``instance``, ``normal`` `(N, ...)`),
             updated in place; ``crown`` (the ray met a crown first) and ``passes`` (crown
             surfaces gone through) are set, and with limbs ``cover``
-            (:attr:`LimbHits.cover`, combined over the crowns).
+            (:attr:`LimbHits.cover`, combined over the crowns) and ``twigs`` (the twig mass's
+            optical path, :func:`twig_mass`).
         t_wc: `(3,)` camera centre; dirs: `(N, 3)` unit ray directions, world frame.
         cast: ``(origins (M, 3), dirs (M, 3)) -> hits`` of the scene.
         limbs: the world's skeletons, or None for the voxel branches.
@@ -235,6 +270,7 @@ def trace_crowns(hits, t_wc, dirs, cast, limbs: CrownLimbs | None, pixel_angle, 
     hits.passes = np.zeros(n, dtype=np.int32)
     if limbs is not None:
         hits.cover = np.zeros(n, dtype=np.float32)
+        hits.twigs = np.zeros(n, dtype=np.float32)
         tested = np.full((n, 2), -1, np.int64)  # the last two crowns entered: their far sides
     active = np.nonzero(hits.crown)[0]
     for _ in range(passes):
@@ -262,7 +298,8 @@ def trace_crowns(hits, t_wc, dirs, cast, limbs: CrownLimbs | None, pixel_angle, 
 
 def _stop_at_limbs(hits, active, X, dirs, travelled, tested, limbs: CrownLimbs, pixel_angle):
     """`(A,)` bool: the ``active`` rays, at crown surfaces ``X`` `(A, 3)`, that stop at a limb
-    (their hits moved onto it); the rays entering a crown add the thin limbs' cover."""
+    (their hits moved onto it); the rays entering a crown add the thin limbs' cover and their
+    path through the twig mass up to where they stop."""
     inst = hits.instance[active].astype(np.int64)
     entering = np.nonzero((inst != tested[active, 0]) & (inst != tested[active, 1]))[0]
     stop = np.zeros(len(active), dtype=bool)
@@ -273,6 +310,8 @@ def _stop_at_limbs(hits, active, X, dirs, travelled, tested, limbs: CrownLimbs, 
         X[entering], dirs[rows], inst[entering], travelled[rows] + hits.t[rows], pixel_angle
     )
     hits.cover[rows] = 1.0 - (1.0 - hits.cover[rows]) * (1.0 - got.cover)
+    path = limbs.path_inside(X[entering], dirs[rows], inst[entering], got.distance)
+    hits.twigs[rows] += path * twig_speckle(X[entering], inst[entering])
     solid = np.isfinite(got.distance)
     hits.t[rows[solid]] += got.distance[solid]
     hits.normal[rows[solid]] = got.normal[solid]
@@ -297,6 +336,53 @@ def twig_haze(rgb: np.ndarray, passes: np.ndarray, density: float, cond: Conditi
         return
     cover = 1.0 - (1.0 - np.float32(density)) ** passes[r].astype(np.float32)
     rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig_colour(cond) * cover[:, None]
+
+
+def twig_speckle(X: np.ndarray, instance: np.ndarray) -> np.ndarray:
+    """`(M,)` how dense the twigs are around the points ``X`` `(M, 3)` of the crowns
+    ``instance`` `(M,)`, relative to their mean (1): smooth clumps (:data:`_CLUMP_CELL`, uniform
+    in [0, 2]) times one exponential draw per twig cell (:data:`_TWIG_CELL`), fixed in the world
+    so that every frame sees the same crown."""
+    clump = 2.0 * _value_noise_3d(X / _CLUMP_CELL, instance, seed=45)
+    keys = [np.floor(X[:, i] / _TWIG_CELL) for i in range(3)]
+    return clump * -np.log1p(-hash01(*keys, instance, seed=46).astype(np.float64))
+
+
+def _value_noise_3d(x: np.ndarray, instance: np.ndarray, seed: int) -> np.ndarray:
+    """`(M,)` in [0, 1): one uniform value per integer lattice corner, interpolated
+    trilinearly at ``x`` `(M, 3)` (lattice units)."""
+    base = np.floor(x)
+    f = x - base
+    out = np.zeros(len(x))
+    for corner in np.ndindex(2, 2, 2):
+        w = np.prod(np.where(np.array(corner) == 1, f, 1.0 - f), axis=1)
+        out += w * hash01(*(base + corner).T, instance, seed=seed)
+    return out
+
+
+def twig_mass(rgb: np.ndarray, twigs: np.ndarray, density: float, cond: Condition) -> None:
+    """Veil `(N, 3)` ``rgb`` by a twig mass: a ray's `(N,)` ``twigs`` (its path through bare
+    crowns times their speckle) is its optical depth in units that make a mean path veil as much
+    as :func:`twig_haze`'s two crown surfaces of ``density``."""
+    r = np.nonzero(twigs > 0)[0]
+    if len(r) == 0:
+        return
+    depth = -2.0 * np.log1p(-min(float(density), 1.0 - 1e-6)) / _MEAN_CHORD * twigs[r]
+    cover = (-np.expm1(-depth)).astype(np.float32)
+    rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig_colour(cond) * cover[:, None]
+
+
+def veil_crowns(rgb: np.ndarray, hits, twig_density: float, cond: Condition) -> None:
+    """Veil `(N, 3)` ``rgb`` with what leafless crowns put in front of it (the renderer's
+    hits after :func:`trace_crowns`): the twigs finer than a pixel where ``twig_density`` > 0 (a
+    twig mass behind limbs, a flat haze behind voxel branches), then the thin limbs."""
+    if twig_density > 0:
+        if getattr(hits, "twigs", None) is not None:
+            twig_mass(rgb, hits.twigs, twig_density, cond)
+        else:
+            twig_haze(rgb, hits.passes, twig_density, cond)
+    if hits.cover is not None:
+        veil(rgb, hits.cover, cond)
 
 
 def veil(rgb: np.ndarray, cover: np.ndarray, cond: Condition) -> None:

@@ -28,7 +28,8 @@ ids do not):
 - ``p_twigs`` / ``twig_density``: bare crowns get a haze of fine twigs, finer than a pixel:
   each crown surface a ray passes through covers ``twig_density`` of what lies behind with a
   dull grey-brown (a leafless tree reads as a textured veil against the sky, not as sparse
-  dots);
+  dots); behind limbs (``p_limbs``) the haze is a twig mass instead, as dense on average,
+  denser across a crown's middle than at its rim and speckled twig by twig;
 - ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
   sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
   joints, tone per slab and dirt, where the default paving is plain tiles;

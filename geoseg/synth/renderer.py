@@ -179,6 +179,7 @@ class _Hits:
     crown: np.ndarray | None = None  # (N,) bool: the ray met a bare crown first (or None)
     passes: np.ndarray | None = None  # (N,) int: bare crown surfaces the ray went through
     cover: np.ndarray | None = None  # (N,) float32: share of the pixel thin limbs cover
+    twigs: np.ndarray | None = None  # (N,) float32: optical path through limbs' twig masses
 
 
 class Renderer:
@@ -620,10 +621,8 @@ class Renderer:
             seed=0 if var is None else var.seed % 100003,
         )
         rgb[idx] = color
-        if var is not None and var.twig_density > 0 and hits.passes is not None:
-            bare_crowns.twig_haze(rgb, hits.passes, var.twig_density, cond)
-        if hits.cover is not None:
-            bare_crowns.veil(rgb, hits.cover, cond)
+        if hits.passes is not None:  # leafless crowns: fine twigs and thin limbs
+            bare_crowns.veil_crowns(rgb, hits, 0.0 if var is None else var.twig_density, cond)
         np.clip(rgb, 0.0, 1.0, out=rgb)
         rgb *= 255.0
         rgb += 0.5

@@ -1,4 +1,5 @@
-"""Leafless crowns drawn as limbs: the ray-segment test, the skeletons, the rendered frames."""
+"""Leafless crowns drawn as limbs: the ray-segment test, the skeletons, the twig mass, the
+rendered frames."""
 
 from __future__ import annotations
 
@@ -8,7 +9,16 @@ import numpy as np
 import pytest
 
 from geoseg.classes import VEGETATION
-from geoseg.synth.bare_crowns import CrownLimbs, _closest_approach, crown_skeleton
+from geoseg.synth.bare_crowns import (
+    _MEAN_CHORD,
+    CrownLimbs,
+    _closest_approach,
+    crown_skeleton,
+    twig_haze,
+    twig_mass,
+    twig_speckle,
+)
+from geoseg.synth.conditions import get_condition
 from geoseg.synth.realism import REALISTIC_3, RealismConfig, Variation, cache_fields, draw_variation
 from geoseg.synth.world_records import Tree
 
@@ -104,6 +114,57 @@ def test_a_ray_at_a_wide_limb_stops_on_its_surface_and_a_far_one_only_veils():
     np.testing.assert_allclose(far.cover[0], 0.1 / (0.5 * 2e-3 * (2000.0 + 2.0)), rtol=1e-6)
 
 
+def test_path_inside_a_crown_matches_the_chords_of_its_sphere():
+    radius = 2.0
+    tree = Tree(3, np.zeros(3), 0.2, 3.0, np.array([0.0, 0.0, 5.0]), np.full(3, radius))
+    limbs = CrownLimbs([tree])
+    x = np.array([1.0, 0.0, 0.0])
+    # entering on the surface at the impact parameters 0, 1.2 and 1.9 m along +x
+    offsets = np.array([0.0, 1.2, 1.9])
+    origins = np.stack(
+        [-np.sqrt(radius**2 - offsets**2), np.zeros(3), 5.0 + offsets], axis=1
+    )  # fmt: skip
+    dirs = np.repeat(x[None], 3, 0)
+    got = limbs.path_inside(origins, dirs, np.full(3, 3), np.full(3, np.inf))
+    np.testing.assert_allclose(got, 2.0 * np.sqrt(1.0 - (offsets / radius) ** 2), rtol=1e-12)
+    # stopped 1 m in (at a limb): 1 m of a 2 m radius
+    stopped = limbs.path_inside(origins[:1], dirs[:1], np.array([3]), np.array([1.0]))
+    np.testing.assert_allclose(stopped, [0.5], rtol=1e-12)
+    # an ellipsoid crown: the same in its scaled frame (half the crown's x radius, then 4 m)
+    wide = Tree(4, np.zeros(3), 0.2, 3.0, np.array([0.0, 0.0, 5.0]), np.array([4.0, 2.0, 2.0]))
+    got = CrownLimbs([wide]).path_inside(
+        np.array([[-4.0, 0.0, 5.0]]), dirs[:1], np.array([4]), np.array([np.inf])
+    )
+    np.testing.assert_allclose(got, [2.0], rtol=1e-12)
+
+
+def test_twig_speckle_is_fixed_in_the_world_with_mean_one():
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-20.0, 20.0, (200_000, 3))
+    a = twig_speckle(X, np.full(len(X), 5))
+    np.testing.assert_array_equal(a, twig_speckle(X, np.full(len(X), 5)))
+    assert np.all(a >= 0) and abs(a.mean() - 1.0) < 0.02
+    assert a.std() > 0.8  # sky shows through some pixels, others are dense
+    b = twig_speckle(X, np.full(len(X), 6))  # another tree, other twigs
+    assert abs(np.corrcoef(a, b)[0, 1]) < 0.02
+    # the clumps are smooth: nearby points (1 mm) share their clump, not always their twig
+    near = twig_speckle(X + 1e-3, np.full(len(X), 5))
+    assert np.corrcoef(a, near)[0, 1] > 0.9
+
+
+def test_a_mean_path_through_the_twig_mass_veils_as_much_as_the_flat_haze():
+    cond = get_condition("winter")
+    background = np.tile(np.float32([0.6, 0.7, 0.9]), (4, 1))
+    mass, haze = background.copy(), background.copy()
+    twig_mass(mass, np.array([0.0, _MEAN_CHORD, 2.0, 0.2], np.float32), 0.3, cond)
+    twig_haze(haze, np.array([0, 2, 3, 0]), 0.3, cond)
+    np.testing.assert_array_equal(mass[0], background[0])  # no twigs in front
+    np.testing.assert_allclose(mass[1], haze[1], rtol=1e-5)  # a mean path: two surfaces
+    # across the middle (path 2) denser than the mean, near the rim (0.2) thinner
+    assert np.all(np.abs(mass[2] - background[2]) > np.abs(mass[1] - background[1]))
+    assert np.all(np.abs(mass[3] - background[3]) < np.abs(mass[1] - background[1]))
+
+
 @pytest.fixture(scope="module")
 def crown_scene(first_frame):
     return first_frame(lambda labels: (labels == VEGETATION).sum() > 300)
@@ -125,6 +186,24 @@ def test_limbs_change_only_the_bare_crowns(crown_scene):
     leafy = renderer.render(*pose, time_s=time_s, variation=Variation(limbs=True))
     np.testing.assert_array_equal(leafy.rgb, base.rgb)
     np.testing.assert_array_equal(leafy.labels, base.labels)
+
+
+def test_the_twig_mass_veils_only_the_crowns_of_limbs_and_keeps_their_labels(crown_scene):
+    renderer, pose, time_s, base = crown_scene
+    limbs = Variation(bare_trees=True, limbs=True)
+    plain = renderer.render(*pose, time_s=time_s, variation=limbs)
+    twigs = dataclasses.replace(limbs, twig_density=0.4)
+    frame = renderer.render(*pose, time_s=time_s, variation=twigs)
+    for key in ("labels", "depth"):
+        np.testing.assert_array_equal(getattr(frame, key), getattr(plain, key))
+    changed = np.any(frame.rgb != plain.rgb, axis=2)
+    assert changed.sum() > 100
+    assert not changed[base.labels != VEGETATION].any()  # only where crowns are
+    # behind voxel branches the same density is the flat haze: another image
+    voxels = dataclasses.replace(twigs, limbs=False)
+    assert not np.array_equal(
+        renderer.render(*pose, time_s=time_s, variation=voxels).rgb, frame.rgb
+    )
 
 
 def test_limbs_with_the_crown_label_keep_the_leafy_labels(crown_scene):
