@@ -20,11 +20,15 @@ Capsules are straight segments with one radius each; the test is the ray's close
 each segment of its tree (``(rays, segments)`` arrays, tree by tree).
 
 Twigs finer than a pixel (``p_twigs``) veil what lies behind a bare crown. Behind voxel
-branches the veil is flat, the same share per crown surface (:func:`twig_haze`). Behind limbs it
-is a twig mass (:func:`twig_mass`): its optical depth grows with the ray's path through the
+branches the veil is flat, the same share per crown surface (:func:`haze_cover`). Behind limbs it
+is a twig mass (:func:`mass_cover`): its optical depth grows with the ray's path through the
 crown (dense across the middle, thin at the rim, as a real crown's twigs overlap) and varies
 from clump to clump and twig to twig (:func:`twig_speckle`), so a crown against the sky reads as
 a speckled mass with sky showing through, not as a uniform grey.
+
+With the label option ``bare_crown_label`` a crown's pixels are ``vegetation``: its whole
+silhouette, or with ``crown_label_cover`` only where branches stop the ray, the sky shows
+through, or the twigs and thin limbs cover most of the pixel (:func:`labelled_crown`).
 """
 
 from __future__ import annotations
@@ -43,9 +47,11 @@ __all__ = [
     "LimbHits",
     "crown_skeleton",
     "trace_crowns",
+    "labelled_crown",
+    "fine_twig_cover",
+    "haze_cover",
+    "mass_cover",
     "twig_colour",
-    "twig_haze",
-    "twig_mass",
     "twig_speckle",
     "veil",
     "veil_crowns",
@@ -123,11 +129,15 @@ class LimbHits:
         distance: `(M,)` ray parameter of the first capsule that stops the ray (inf: none).
         normal: `(M, 3)` float32 unit normal of that capsule at the hit (zeros where none).
         cover: `(M,)` float32 share of the pixel the thinner capsules in front cover.
+        path: `(M,)` length of the ray's path through the crown up to that capsule or the
+            crown's far side, measured with the crown scaled to the unit sphere (a path
+            across the middle: 2): how much of the twig mass it goes through.
     """
 
     distance: np.ndarray
     normal: np.ndarray
     cover: np.ndarray
+    path: np.ndarray
 
 
 class CrownLimbs:
@@ -146,26 +156,6 @@ class CrownLimbs:
         if instance not in self._skeletons:
             self._skeletons[instance] = crown_skeleton(self._trees[instance])
         return self._skeletons[instance]
-
-    def path_inside(
-        self, origins: np.ndarray, dirs: np.ndarray, instance: np.ndarray, until: np.ndarray
-    ) -> np.ndarray:
-        """`(M,)` length of each ray's path through its crown from ``origins`` `(M, 3)` along
-        ``dirs`` `(M, 3)` to the crown's far side or ``until`` `(M,)` metres, whichever comes
-        first, measured with the crown scaled to the unit sphere (a path across the middle: 2)."""
-        out = np.zeros(len(origins))
-        for tree in np.unique(instance):
-            rows = np.nonzero(instance == tree)[0]
-            t = self._trees[int(tree)]
-            radii = np.asarray(t.crown_radii, np.float64)
-            u = (origins[rows] - np.asarray(t.crown_center, np.float64)) / radii
-            v = dirs[rows] / radii
-            a = np.einsum("ij,ij->i", v, v)
-            b = np.einsum("ij,ij->i", u, v)
-            c = np.einsum("ij,ij->i", u, u) - 1.0
-            far = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a  # metres: dirs are unit
-            out[rows] = np.clip(np.minimum(far, until[rows]), 0.0, None) * np.sqrt(a)
-        return out
 
     def intersect(
         self,
@@ -188,7 +178,9 @@ class CrownLimbs:
             A :class:`LimbHits`, distances from ``origins``.
         """
         m = len(origins)
-        out = LimbHits(np.full(m, np.inf), np.zeros((m, 3), np.float32), np.zeros(m, np.float32))
+        out = LimbHits(
+            np.full(m, np.inf), np.zeros((m, 3), np.float32), np.zeros(m, np.float32), np.zeros(m)
+        )
         for tree in np.unique(instance):
             rows = np.nonzero(instance == tree)[0]
             a, b, radius = self.skeleton(int(tree))
@@ -210,7 +202,23 @@ class CrownLimbs:
             out.normal[rows[hit]] = np.where(
                 norm > 1e-9, away / np.maximum(norm, 1e-12), -dirs[rows[hit]]
             )
+            out.path[rows] = self._path_inside(tree, origins[rows], dirs[rows], out.distance[rows])
         return out
+
+    def _path_inside(
+        self, instance: int, origins: np.ndarray, dirs: np.ndarray, until: np.ndarray
+    ) -> np.ndarray:
+        """`(K,)` :attr:`LimbHits.path` of rays ``origins + s dirs`` `(K, 3)` in the crown of
+        tree ``instance``, cut at ``until`` `(K,)` metres."""
+        t = self._trees[int(instance)]
+        radii = np.asarray(t.crown_radii, np.float64)
+        u = (origins - np.asarray(t.crown_center, np.float64)) / radii
+        v = dirs / radii
+        a = np.einsum("ij,ij->i", v, v)
+        b = np.einsum("ij,ij->i", u, v)
+        c = np.einsum("ij,ij->i", u, u) - 1.0
+        far = (-b + np.sqrt(np.maximum(b * b - a * c, 0.0))) / a  # metres: dirs are unit
+        return np.clip(np.minimum(far, until), 0.0, None) * np.sqrt(a)
 
 
 def _closest_approach(
@@ -257,7 +265,7 @@ def trace_crowns(hits, t_wc, dirs, cast, limbs: CrownLimbs | None, pixel_angle, 
             updated in place; ``crown`` (the ray met a crown first) and ``passes`` (crown
             surfaces gone through) are set, and with limbs ``cover``
             (:attr:`LimbHits.cover`, combined over the crowns) and ``twigs`` (the twig mass's
-            optical path, :func:`twig_mass`).
+            optical path, :func:`mass_cover`).
         t_wc: `(3,)` camera centre; dirs: `(N, 3)` unit ray directions, world frame.
         cast: ``(origins (M, 3), dirs (M, 3)) -> hits`` of the scene.
         limbs: the world's skeletons, or None for the voxel branches.
@@ -310,8 +318,7 @@ def _stop_at_limbs(hits, active, X, dirs, travelled, tested, limbs: CrownLimbs, 
         X[entering], dirs[rows], inst[entering], travelled[rows] + hits.t[rows], pixel_angle
     )
     hits.cover[rows] = 1.0 - (1.0 - hits.cover[rows]) * (1.0 - got.cover)
-    path = limbs.path_inside(X[entering], dirs[rows], inst[entering], got.distance)
-    hits.twigs[rows] += path * twig_speckle(X[entering], inst[entering])
+    hits.twigs[rows] += got.path * twig_speckle(X[entering], inst[entering])
     solid = np.isfinite(got.distance)
     hits.t[rows[solid]] += got.distance[solid]
     hits.normal[rows[solid]] = got.normal[solid]
@@ -326,16 +333,6 @@ def twig_colour(cond: Condition) -> np.ndarray:
     light = cond.ambient_strength * np.asarray(cond.ambient_color, dtype=np.float32)
     light = light + 0.5 * max(cond.sun_strength, 0.0) * np.asarray(cond.sun_color, np.float32)
     return np.float32([0.27, 0.23, 0.2]) * light
-
-
-def twig_haze(rgb: np.ndarray, passes: np.ndarray, density: float, cond: Condition) -> None:
-    """Veil `(N, 3)` ``rgb`` where rays went through bare crowns: each of a ray's ``passes``
-    `(N,)` covers ``density`` of what lies behind with twigs finer than a pixel."""
-    r = np.nonzero(passes)[0]
-    if len(r) == 0:
-        return
-    cover = 1.0 - (1.0 - np.float32(density)) ** passes[r].astype(np.float32)
-    rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig_colour(cond) * cover[:, None]
 
 
 def twig_speckle(X: np.ndarray, instance: np.ndarray) -> np.ndarray:
@@ -360,34 +357,65 @@ def _value_noise_3d(x: np.ndarray, instance: np.ndarray, seed: int) -> np.ndarra
     return out
 
 
-def twig_mass(rgb: np.ndarray, twigs: np.ndarray, density: float, cond: Condition) -> None:
-    """Veil `(N, 3)` ``rgb`` by a twig mass: a ray's `(N,)` ``twigs`` (its path through bare
-    crowns times their speckle) is its optical depth in units that make a mean path veil as much
-    as :func:`twig_haze`'s two crown surfaces of ``density``."""
-    r = np.nonzero(twigs > 0)[0]
-    if len(r) == 0:
-        return
-    depth = -2.0 * np.log1p(-min(float(density), 1.0 - 1e-6)) / _MEAN_CHORD * twigs[r]
-    cover = (-np.expm1(-depth)).astype(np.float32)
-    rgb[r] = rgb[r] * (1.0 - cover)[:, None] + twig_colour(cond) * cover[:, None]
+def haze_cover(passes: np.ndarray, density: float) -> np.ndarray:
+    """`(N,)` float32 share of each pixel covered by a flat haze of twigs finer than a pixel
+    (behind voxel branches): each of a ray's `(N,)` ``passes`` through a crown surface covers
+    ``density`` of what lies behind."""
+    return 1.0 - (1.0 - np.float32(density)) ** passes.astype(np.float32)
+
+
+def mass_cover(twigs: np.ndarray, density: float) -> np.ndarray:
+    """`(N,)` float32 share of each pixel covered by a twig mass (behind limbs): a ray's `(N,)`
+    ``twigs`` (its path through bare crowns times their speckle) is its optical depth, in units
+    that make a mean path cover as much as :func:`haze_cover`'s two crown surfaces of
+    ``density``."""
+    depth = -2.0 * np.log1p(-min(float(density), 1.0 - 1e-6)) / _MEAN_CHORD * twigs
+    return (-np.expm1(-depth)).astype(np.float32)
+
+
+def fine_twig_cover(hits, density: float) -> np.ndarray:
+    """`(N,)` float32 share of each pixel the twigs finer than a pixel cover, for the
+    renderer's hits after :func:`trace_crowns`: a twig mass behind limbs, a flat haze behind
+    voxel branches (zeros where ``density`` is 0)."""
+    if density <= 0:
+        return np.zeros(len(hits.passes), np.float32)
+    if getattr(hits, "twigs", None) is not None:
+        return mass_cover(hits.twigs, density)
+    return haze_cover(hits.passes, density)
 
 
 def veil_crowns(rgb: np.ndarray, hits, twig_density: float, cond: Condition) -> None:
     """Veil `(N, 3)` ``rgb`` with what leafless crowns put in front of it (the renderer's
-    hits after :func:`trace_crowns`): the twigs finer than a pixel where ``twig_density`` > 0 (a
-    twig mass behind limbs, a flat haze behind voxel branches), then the thin limbs."""
-    if twig_density > 0:
-        if getattr(hits, "twigs", None) is not None:
-            twig_mass(rgb, hits.twigs, twig_density, cond)
-        else:
-            twig_haze(rgb, hits.passes, twig_density, cond)
+    hits after :func:`trace_crowns`): the twigs finer than a pixel where ``twig_density`` > 0,
+    then the thin limbs."""
+    veil(rgb, fine_twig_cover(hits, twig_density), cond)
     if hits.cover is not None:
         veil(rgb, hits.cover, cond)
 
 
+def labelled_crown(hits, sky: np.ndarray, twig_density: float, min_cover: float) -> np.ndarray:
+    """`(N,)` bool: the pixels a leafless crown labels ``vegetation`` (the renderer's hits
+    after :func:`trace_crowns`; ``sky`` `(N,)` bool: the rays that reach nothing).
+
+    ``min_cover`` 0: every pixel whose ray met a bare crown first, the crown's whole
+    silhouette. Above 0: of those, the pixels whose ray stopped at a branch or limb, whose ray
+    goes on to the sky (the silhouette against the sky, as real labels draw it), or whose fine
+    twigs and thin limbs together cover at least ``min_cover`` of the pixel; where a facade, a
+    vehicle or the ground shows through a thin part of the crown, it labels the pixel (a map
+    point tracked there lies on it).
+    """
+    if min_cover <= 0:
+        return hits.crown
+    cover = 1.0 - (1.0 - fine_twig_cover(hits, twig_density)) * (
+        1.0 - (0.0 if hits.cover is None else hits.cover)
+    )
+    stopped = hits.kind == SurfaceKind.CROWN  # at a branch voxel, a limb, or out of passes
+    return hits.crown & (stopped | sky | (cover >= min_cover))
+
+
 def veil(rgb: np.ndarray, cover: np.ndarray, cond: Condition) -> None:
-    """Veil `(N, 3)` ``rgb`` by `(N,)` ``cover`` (the share of each pixel thin limbs cover) with
-    their bark (:func:`twig_colour`)."""
+    """Veil `(N, 3)` ``rgb`` by `(N,)` ``cover`` (the share of each pixel twigs or thin limbs
+    cover) with their bark (:func:`twig_colour`)."""
     r = np.nonzero(cover > 0)[0]
     if len(r) == 0:
         return

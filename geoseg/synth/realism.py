@@ -53,6 +53,10 @@ Label option (the image, depth and normals do not change; the labels do):
   crown's whole silhouette, as real datasets label a leafless tree (CamVid's ``Tree`` covers
   the sky between the branches); off, such a pixel takes the label of what its ray reaches
   between the branches. It acts wherever crowns are bare (``p_bare_trees``, ``winter``).
+  ``crown_label_cover`` narrows it: a crown pixel is ``vegetation`` where a branch stops its
+  ray, where the sky shows through, or where the fine twigs and thin limbs cover at least that
+  share of it; where a facade, a vehicle or the ground shows through a thin part, that labels
+  it (a map point tracked there lies on the facade).
 
 Options that change the geometry, with labels that follow it (rendered from the same rays):
 
@@ -151,6 +155,9 @@ class RealismConfig:
         poster_share: range of the share of facades with a hoarding in such a frame.
         p_limbs: probability that bare crowns are drawn as branching limbs.
         bare_crown_label: label bare crowns' whole silhouettes ``vegetation``.
+        crown_label_cover: with ``bare_crown_label``, label ``vegetation`` only the crown
+            pixels where branches stop the ray, the sky shows through, or the fine twigs and
+            thin limbs cover at least this share of the pixel (0: the whole silhouette).
     """
 
     p_shopfront: float = 0.0
@@ -185,6 +192,7 @@ class RealismConfig:
     p_posters: float = 0.0
     poster_share: tuple[float, float] = (0.1, 0.4)
     p_limbs: float = 0.0
+    crown_label_cover: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("bare_crown_label", "furniture_plain_plates"):
@@ -193,6 +201,12 @@ class RealismConfig:
                     f"realism.{name}: expected true or false, got {getattr(self, name)!r}"
                 )
         check_range("realism.furniture_kerb_share", self.furniture_kerb_share, 0.0, 1.0)
+        check_range("realism.crown_label_cover", self.crown_label_cover, 0.0, 1.0)
+        if self.crown_label_cover > 0 and not self.bare_crown_label:
+            raise ConfigError(
+                "realism.crown_label_cover: it narrows bare_crown_label's crowns; set "
+                "bare_crown_label: true (or crown_label_cover: 0)"
+            )
         for name in _ALL:
             check_range(f"realism.{name}", getattr(self, name), 0.0, 1.0)
         ranges = {
@@ -288,6 +302,9 @@ class Variation:
         poster_share: share of facades whose ground floor is a poster hoarding (0: none; left
             out of ``repr`` as above).
         limbs: bare crowns drawn as branching limbs (left out of ``repr`` as above).
+        crown_label_cover: with ``bare_crown_label``, the share of a crown pixel that branches
+            and twigs must cover for the pixel to be ``vegetation`` (0: every crown pixel;
+            left out of ``repr`` as above).
     """
 
     seed: int = 0
@@ -316,6 +333,7 @@ class Variation:
     furniture_plain_plates: bool = dataclasses.field(default=False, repr=False)
     poster_share: float = dataclasses.field(default=0.0, repr=False)
     limbs: bool = dataclasses.field(default=False, repr=False)
+    crown_label_cover: float = dataclasses.field(default=0.0, repr=False)
 
     def condition(self, cond: Condition) -> Condition:
         """``cond`` with this variation's light, sky and trees (the sun and sky of daylight
@@ -389,8 +407,8 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
 
 def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
     """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels,
-    street furniture, road texture, posters and limbs (options left at 0 draw nothing: the
-    earlier options' draws stay as they were)."""
+    street furniture, road texture, posters, limbs and the crown label's cover (options left at
+    0 draw nothing: the earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
     if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
         u = rng.random(len(_PROBABILITIES_2))
@@ -435,6 +453,8 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
             kw["poster_share"] = float(lo + (hi - lo) * u6[1])
     if cfg.p_limbs > 0:
         kw["limbs"] = bool(rng.random() < cfg.p_limbs)
+    if cfg.crown_label_cover > 0:  # a label rule: no draw of its own
+        kw["crown_label_cover"] = float(cfg.crown_label_cover)
     return kw
 
 

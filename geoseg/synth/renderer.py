@@ -630,7 +630,8 @@ class Renderer:
 
         labels[idx] = lab
         if var is not None and var.bare_crown_label and hits.crown is not None:
-            labels[hits.crown] = VEGETATION  # the crown's silhouette, as real labels draw it
+            crown = bare_crowns.labelled_crown(hits, ~hit, var.twig_density, var.crown_label_cover)
+            labels[crown] = VEGETATION  # the silhouette, as real labels draw it, or its dense part
         depth = np.zeros(n, dtype=np.float32)
         depth[idx] = t32 * dirs_c[idx, 2]
         normals = np.zeros((3, n), dtype=np.float32)

@@ -4,22 +4,28 @@ rendered frames."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from geoseg.classes import VEGETATION
+from geoseg.classes import SKY, VEGETATION
+from geoseg.errors import ConfigError
 from geoseg.synth.bare_crowns import (
     _MEAN_CHORD,
     CrownLimbs,
     _closest_approach,
     crown_skeleton,
-    twig_haze,
-    twig_mass,
+    haze_cover,
+    labelled_crown,
+    mass_cover,
+    twig_colour,
     twig_speckle,
+    veil,
 )
 from geoseg.synth.conditions import get_condition
 from geoseg.synth.realism import REALISTIC_3, RealismConfig, Variation, cache_fields, draw_variation
+from geoseg.synth.world_meshes import SurfaceKind
 from geoseg.synth.world_records import Tree
 
 
@@ -114,28 +120,43 @@ def test_a_ray_at_a_wide_limb_stops_on_its_surface_and_a_far_one_only_veils():
     np.testing.assert_allclose(far.cover[0], 0.1 / (0.5 * 2e-3 * (2000.0 + 2.0)), rtol=1e-6)
 
 
-def test_path_inside_a_crown_matches_the_chords_of_its_sphere():
+def test_the_path_through_a_crown_matches_the_chords_of_its_sphere():
     radius = 2.0
     tree = Tree(3, np.zeros(3), 0.2, 3.0, np.array([0.0, 0.0, 5.0]), np.full(3, radius))
     limbs = CrownLimbs([tree])
+    limbs._skeletons[3] = (
+        np.array([[0.0, 9.0, 0.0]]),
+        np.array([[0.0, 9.0, 1.0]]),
+        np.array([0.01]),
+    )
     x = np.array([1.0, 0.0, 0.0])
-    # entering on the surface at the impact parameters 0, 1.2 and 1.9 m along +x
+    # entering on the surface at the impact parameters 0, 1.2 and 1.9 m along +x, missing the
+    # one limb (far to the side)
     offsets = np.array([0.0, 1.2, 1.9])
     origins = np.stack(
         [-np.sqrt(radius**2 - offsets**2), np.zeros(3), 5.0 + offsets], axis=1
     )  # fmt: skip
     dirs = np.repeat(x[None], 3, 0)
-    got = limbs.path_inside(origins, dirs, np.full(3, 3), np.full(3, np.inf))
-    np.testing.assert_allclose(got, 2.0 * np.sqrt(1.0 - (offsets / radius) ** 2), rtol=1e-12)
-    # stopped 1 m in (at a limb): 1 m of a 2 m radius
-    stopped = limbs.path_inside(origins[:1], dirs[:1], np.array([3]), np.array([1.0]))
-    np.testing.assert_allclose(stopped, [0.5], rtol=1e-12)
+    got = limbs.intersect(origins, dirs, np.full(3, 3), np.full(3, 10.0), 1e-3)
+    assert np.all(np.isinf(got.distance))
+    np.testing.assert_allclose(got.path, 2.0 * np.sqrt(1.0 - (offsets / radius) ** 2), rtol=1e-12)
+    # stopped 1 m in, at a wide limb across the middle ray: 1 m of a 2 m radius
+    limbs._skeletons[3] = (
+        np.array([[-0.9, 0.0, 4.0]]),
+        np.array([[-0.9, 0.0, 6.0]]),
+        np.array([0.1]),
+    )
+    stopped = limbs.intersect(origins[:1], dirs[:1], np.array([3]), np.array([10.0]), 1e-3)
+    np.testing.assert_allclose(stopped.distance, [1.0], rtol=1e-12)
+    np.testing.assert_allclose(stopped.path, [0.5], rtol=1e-12)
     # an ellipsoid crown: the same in its scaled frame (half the crown's x radius, then 4 m)
     wide = Tree(4, np.zeros(3), 0.2, 3.0, np.array([0.0, 0.0, 5.0]), np.array([4.0, 2.0, 2.0]))
-    got = CrownLimbs([wide]).path_inside(
-        np.array([[-4.0, 0.0, 5.0]]), dirs[:1], np.array([4]), np.array([np.inf])
+    wide_limbs = CrownLimbs([wide])
+    wide_limbs._skeletons[4] = limbs._skeletons[3][:2] + (np.array([0.0]),)
+    got = wide_limbs.intersect(
+        np.array([[-4.0, 0.0, 5.0]]), dirs[:1], np.array([4]), np.array([10.0]), 1e-3
     )
-    np.testing.assert_allclose(got, [2.0], rtol=1e-12)
+    np.testing.assert_allclose(got.path, [2.0], rtol=1e-12)
 
 
 def test_twig_speckle_is_fixed_in_the_world_with_mean_one():
@@ -152,17 +173,22 @@ def test_twig_speckle_is_fixed_in_the_world_with_mean_one():
     assert np.corrcoef(a, near)[0, 1] > 0.9
 
 
-def test_a_mean_path_through_the_twig_mass_veils_as_much_as_the_flat_haze():
-    cond = get_condition("winter")
-    background = np.tile(np.float32([0.6, 0.7, 0.9]), (4, 1))
-    mass, haze = background.copy(), background.copy()
-    twig_mass(mass, np.array([0.0, _MEAN_CHORD, 2.0, 0.2], np.float32), 0.3, cond)
-    twig_haze(haze, np.array([0, 2, 3, 0]), 0.3, cond)
-    np.testing.assert_array_equal(mass[0], background[0])  # no twigs in front
+def test_a_mean_path_through_the_twig_mass_covers_as_much_as_the_flat_haze():
+    mass = mass_cover(np.array([0.0, _MEAN_CHORD, 2.0, 0.2], np.float32), 0.3)
+    haze = haze_cover(np.array([0, 2, 3, 0]), 0.3)
+    assert mass.dtype == haze.dtype == np.float32
+    assert mass[0] == 0 and haze[0] == 0  # no twigs in front
+    np.testing.assert_allclose(haze[1:3], [1 - 0.7**2, 1 - 0.7**3], rtol=1e-6)
     np.testing.assert_allclose(mass[1], haze[1], rtol=1e-5)  # a mean path: two surfaces
     # across the middle (path 2) denser than the mean, near the rim (0.2) thinner
-    assert np.all(np.abs(mass[2] - background[2]) > np.abs(mass[1] - background[1]))
-    assert np.all(np.abs(mass[3] - background[3]) < np.abs(mass[1] - background[1]))
+    assert mass[2] > mass[1] > mass[3] > 0
+    # veiled by the share covered, with the twigs' colour
+    cond = get_condition("winter")
+    rgb = np.tile(np.float32([0.6, 0.7, 0.9]), (4, 1))
+    veil(rgb, mass, cond)
+    np.testing.assert_array_equal(rgb[0], np.float32([0.6, 0.7, 0.9]))
+    expected = (1 - mass[1]) * np.float32([0.6, 0.7, 0.9]) + mass[1] * twig_colour(cond)
+    np.testing.assert_allclose(rgb[1], expected, rtol=1e-6)
 
 
 @pytest.fixture(scope="module")
@@ -223,3 +249,58 @@ def test_limbs_are_drawn_last_and_stay_out_of_the_cache_key_when_off():
         assert cache_fields(b)["limbs"] is True
         assert "limbs" not in cache_fields(a)
     assert RealismConfig(p_limbs=0.5).enabled
+
+
+def test_the_crown_label_keeps_branches_the_sky_behind_and_dense_twigs():
+    kinds = [SurfaceKind.CROWN] + [SurfaceKind.FACADE] * 4 + [255]
+    hits = SimpleNamespace(
+        crown=np.array([True, True, True, True, False, True]),
+        kind=np.array(kinds),
+        passes=np.array([1, 2, 2, 1, 0, 1]),
+        cover=np.float32([0.0, 0.6, 0.1, 0.0, 0.0, 0.0]),  # thin limbs
+    )
+    sky = np.array([False] * 5 + [True])  # the last ray goes through its crown to the sky
+    # the flat haze of density 0.3 covers 0.3 per crown surface: with the limbs 0.804, 0.559
+    # and 0.3 of the three rays that went through to a facade; the first stopped at a branch
+    np.testing.assert_array_equal(labelled_crown(hits, sky, 0.3, 0.0), hits.crown)
+    np.testing.assert_array_equal(labelled_crown(hits, sky, 0.3, 0.55), [1, 1, 1, 0, 0, 1])
+    np.testing.assert_array_equal(labelled_crown(hits, sky, 0.3, 0.6), [1, 1, 0, 0, 0, 1])
+    np.testing.assert_array_equal(labelled_crown(hits, sky, 0.0, 0.55), [1, 1, 0, 0, 0, 1])
+    # behind limbs the twig mass's cover counts instead of the haze
+    hits.twigs = np.float32([0.0, 0.0, 2.0, 0.1, 0.0, 0.0])
+    np.testing.assert_array_equal(labelled_crown(hits, sky, 0.3, 0.55), [1, 1, 1, 0, 0, 1])
+
+
+def test_the_crown_label_cover_narrows_the_silhouette_to_what_the_twigs_cover(crown_scene):
+    renderer, pose, time_s, base = crown_scene
+    plain = Variation(bare_trees=True, limbs=True, twig_density=0.4)
+    whole = dataclasses.replace(plain, bare_crown_label=True)
+    dense = dataclasses.replace(whole, crown_label_cover=0.5)
+    frames = {v: renderer.render(*pose, time_s=time_s, variation=v) for v in (plain, whole, dense)}
+    for key in ("rgb", "depth", "normals"):
+        np.testing.assert_array_equal(getattr(frames[dense], key), getattr(frames[whole], key))
+    veg = {v: f.labels == VEGETATION for v, f in frames.items()}
+    # between the limbs alone and the whole silhouette, strictly
+    assert np.all(veg[dense] <= veg[whole]) and np.all(veg[plain] <= veg[dense])
+    assert veg[plain].sum() < veg[dense].sum() < veg[whole].sum()
+    # where the crown's label gives way, what lies behind labels the pixel, never the sky
+    given_way = veg[whole] & ~veg[dense]
+    np.testing.assert_array_equal(frames[dense].labels[given_way], frames[plain].labels[given_way])
+    assert not np.any(frames[dense].labels[given_way] == SKY)  # against the sky: the silhouette
+    through_to_sky = veg[whole] & (frames[plain].labels == SKY)
+    assert through_to_sky.sum() > 0 and np.all(veg[dense][through_to_sky])
+
+
+def test_the_crown_label_cover_needs_the_crown_label_and_is_drawn_last():
+    with pytest.raises(ConfigError, match="bare_crown_label"):
+        RealismConfig(crown_label_cover=0.5)
+    with pytest.raises(ConfigError, match="crown_label_cover"):
+        RealismConfig(bare_crown_label=True, crown_label_cover=1.5)
+    before = dataclasses.replace(REALISTIC_3, p_limbs=0.8)
+    after = dataclasses.replace(before, crown_label_cover=0.5)
+    for seed in range(5):
+        a = draw_variation(before, np.random.default_rng(seed))
+        b = draw_variation(after, np.random.default_rng(seed))
+        assert dataclasses.replace(b, crown_label_cover=0.0) == a
+        assert cache_fields(b)["crown_label_cover"] == 0.5
+        assert "crown_label_cover" not in cache_fields(a)
