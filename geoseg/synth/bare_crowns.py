@@ -47,9 +47,9 @@ __all__ = [
     "LimbHits",
     "crown_skeleton",
     "trace_crowns",
-    "labelled_crown",
     "fine_twig_cover",
     "haze_cover",
+    "labelled_crown",
     "mass_cover",
     "twig_colour",
     "twig_speckle",
@@ -379,7 +379,7 @@ def fine_twig_cover(hits, density: float) -> np.ndarray:
     voxel branches (zeros where ``density`` is 0)."""
     if density <= 0:
         return np.zeros(len(hits.passes), np.float32)
-    if getattr(hits, "twigs", None) is not None:
+    if hits.twigs is not None:
         return mass_cover(hits.twigs, density)
     return haze_cover(hits.passes, density)
 

@@ -258,6 +258,7 @@ def test_the_crown_label_keeps_branches_the_sky_behind_and_dense_twigs():
         kind=np.array(kinds),
         passes=np.array([1, 2, 2, 1, 0, 1]),
         cover=np.float32([0.0, 0.6, 0.1, 0.0, 0.0, 0.0]),  # thin limbs
+        twigs=None,  # voxel branches: a flat haze
     )
     sky = np.array([False] * 5 + [True])  # the last ray goes through its crown to the sky
     # the flat haze of density 0.3 covers 0.3 per crown surface: with the limbs 0.804, 0.559
