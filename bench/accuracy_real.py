@@ -17,8 +17,12 @@ at 320x240 and at the native 480x360:
 
 Per-class IoU, pixel accuracy and milliseconds per image (network only; the colour transfer's
 own cost separately) for each. A panel of val frames (RGB | truth | zero-shot | fine-tuned |
-normals of the shipped joint network) goes to ``accuracy_real_panel.png``. Published context, not the same protocol: ENet reports 51.3 %
-class-average IoU over CamVid's 11 classes on its test split (Paszke et al. 2016).
+normals of the shipped joint network, or of ``--normals``) goes to ``accuracy_real_panel.png``;
+CamVid has no normals, so ``normals_building_level``, ``normals_building_facing_street`` and
+``normals_road_level`` say how plausible that network's normals are by the labels
+(:func:`normals_plausibility`).
+Published context, not the same protocol: ENet reports 51.3 % class-average IoU over CamVid's
+11 classes on its test split (Paszke et al. 2016).
 
 The fine-tuning runs are stages (``<runs>/from_shipped``, ``<runs>/from_scratch``): evaluated
 when they exist, trained first only with ``--full`` (each is ``geoseg train seg --config
@@ -30,6 +34,7 @@ Usage::
     python bench/accuracy_real.py --full                # also trains the missing runs
     python bench/accuracy_real.py --camvid /data/camvid --runs runs/accuracy_real
     python bench/accuracy_real.py --model runs/seg_realism --tag realism   # another model
+    python bench/accuracy_real.py --model geoseg/weights/seg_real --tag seg_real --normals normals_real
 """
 
 from __future__ import annotations
@@ -77,6 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
         f"{NAME}_<tag>.json and a panel beside the shipped weights' predictions",
     )
     parser.add_argument("--tag", default="model", help="output name suffix with --model")
+    parser.add_argument(
+        "--normals",
+        default="normals",
+        help="the joint network whose normals the panel shows (shipped name or path; "
+        "e.g. normals_real beside --model seg_real)",
+    )
     return parser
 
 
@@ -146,6 +157,37 @@ def evaluate(segmenter: Any, images: list, labels: list, classes, size) -> dict[
     return scores
 
 
+def normals_plausibility(normals_net: Any, images: list, labels: list) -> dict[str, float]:
+    """What CamVid's labels say of camera-frame normals (it has no normals): the share of
+    building pixels whose normal is within 20 deg of horizontal, of those in the image's outer
+    quarters whose normal faces the street (left quarter +x, right quarter -x: facades along a
+    street seen from it), and of road pixels within 20 deg of vertical, at 320x240."""
+    import numpy as np
+
+    from geoseg.classes import BUILDING, ROAD
+
+    level = np.sin(np.radians(20.0))
+    counts = np.zeros(6)  # building level, building; facing, outer building; road level, road
+    for image, truth in zip(images, labels):
+        image, truth = resize_pair(image, truth, (240, 320))
+        nx, ny = normals_net(image).normals[0][:2]  # x right, y down
+        building, road = truth == BUILDING, truth == ROAD
+        quarter = truth.shape[1] // 4
+        left, right = building.copy(), building.copy()
+        left[:, quarter:] = False
+        right[:, : 3 * quarter] = False
+        counts += [
+            (np.abs(ny[building]) < level).sum(), building.sum(),
+            (nx[left] > 0).sum() + (nx[right] < 0).sum(), left.sum() + right.sum(),
+            (np.abs(ny[road]) > np.cos(np.radians(20.0))).sum(), road.sum(),
+        ]  # fmt: skip
+    return {
+        "normals_building_level": counts[0] / counts[1],
+        "normals_building_facing_street": counts[2] / counts[3],
+        "normals_road_level": counts[4] / counts[5],
+    }
+
+
 def finetune(run_dir: Path, camvid: Path, init: str | None) -> Path:
     """Stage: the run in ``run_dir`` (trained with configs/seg_camvid.yaml when missing)."""
     from geoseg.config import load_config
@@ -177,8 +219,10 @@ def run_facts(run_dir: Path) -> dict[str, float]:
 
 
 # ----------------------------------------------------------------------------- panel
-def write_panel(path: Path, images, labels, segmenters: dict[str, Any], normals_net) -> None:
-    """Rows of val frames: RGB | truth | each segmenter's labels | normals."""
+def write_panel(
+    path: Path, images, labels, segmenters: dict[str, Any], normals_net, normals_name: str
+) -> None:
+    """Rows of val frames: RGB | truth | each segmenter's labels | normals of ``normals_net``."""
     import cv2
     import numpy as np
 
@@ -196,7 +240,7 @@ def write_panel(path: Path, images, labels, segmenters: dict[str, Any], normals_
             tiles.append(normals_to_rgb(normals[0]))
         rows.append(np.concatenate(tiles, axis=1))
     panel = np.concatenate(rows, axis=0)
-    titles = ["RGB", "truth", *segmenters, "normals (shipped joint network)"]
+    titles = ["RGB", "truth", *segmenters, f"normals ({normals_name})"]
     header = np.full((28, panel.shape[1], 3), 255, np.uint8)
     for k, title in enumerate(titles):
         cv2.putText(header, title, (320 * k + 6, 20), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1)
@@ -276,7 +320,7 @@ def main(argv: list[str] | None = None) -> int:
     load_start = os.getloadavg()[0]
 
     from geoseg.infer import Segmenter, colour_transfer_for
-    from geoseg.pretrained import pretrained_file
+    from geoseg.pretrained import path_or_shipped, pretrained_file
 
     images, labels, classes = load_frames(args.camvid, args.frames)
     figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
@@ -316,9 +360,12 @@ def main(argv: list[str] | None = None) -> int:
     panel_segmenters = {"zero-shot (shipped seg)": shipped}
     if "finetuned" in tuned:
         panel_segmenters["fine-tuned from shipped"] = tuned["finetuned"]
-    normals_onnx = pretrained_file("normals", "model.onnx")
-    normals_net = Segmenter.from_onnx(normals_onnx)
-    write_panel(args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net)
+    normals_net = load_segmenter(path_or_shipped(args.normals, "model.onnx"))
+    figures["normals_model"] = args.normals
+    figures.update(normals_plausibility(normals_net, images, labels))
+    write_panel(
+        args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net, args.normals
+    )
 
     figures["machine"] = _machine(load_start)
     figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
@@ -333,7 +380,7 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     another synthetic-only model, and a panel beside the shipped weights."""
     from geoseg.errors import GeosegError
     from geoseg.infer import Segmenter, colour_transfer_for
-    from geoseg.pretrained import pretrained_file
+    from geoseg.pretrained import path_or_shipped, pretrained_file
 
     model = load_segmenter(args.model)
     card_path = args.model / "model.pt" if args.model.is_dir() else args.model
@@ -362,11 +409,12 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     model.colour_transfer = None
     args.out.mkdir(parents=True, exist_ok=True)
     shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
-    normals_net = Segmenter.from_onnx(pretrained_file("normals", "model.onnx"))
+    normals_net = load_segmenter(path_or_shipped(args.normals, "model.onnx"))
+    figures["normals_model"] = args.normals
+    figures.update(normals_plausibility(normals_net, images, labels))
     panel = args.out / f"{NAME}_{args.tag}_panel.png"
-    write_panel(
-        panel, images, labels, {"shipped seg": shipped, str(args.model): model}, normals_net
-    )
+    segmenters = {"shipped seg": shipped, str(args.model): model}
+    write_panel(panel, images, labels, segmenters, normals_net, args.normals)
     figures["machine"] = _machine(load_start)
     figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
     print(markdown_table(figures))

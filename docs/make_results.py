@@ -269,12 +269,16 @@ ABOUT: dict[str, str] = {
     "from scratch; see docs/real_images.md.",
     "accuracy_real_seg_real": "The shipped `seg_real` weights (`configs/seg_real.yaml`: the "
     "shipped `seg` fine-tuned on the randomised synthetic city, no real image) on CamVid val, "
-    "zero-shot, with and without colour transfer; see docs/real_images.md.",
+    "zero-shot, with and without colour transfer, and what CamVid's labels say of the normals "
+    "of `normals_real` (its joint network); see docs/real_images.md.",
     "buildings_ch4": "Building constraints chosen by the networks (thesis chapter 4): a 1.2 km "
     "drive with loops through a city full of trees, vehicles and shelters, the image SLAM with "
     "the ray-cast baseline, the naive CNN + Dirichlet filter, the joint network + eq. 4.14 and "
     "an oracle, against the exact building model (odometry + elevation, no GPS) and the GIS "
     "model with its errors (GPS sigma_b 0.75 m); see docs/bridge.md.",
+    "buildings_ch4_rerender": "The chapter-4 experiment rendered and run again on another "
+    "2-core host with the same code and seeds: how far its figures move between renders of the "
+    "same drive; see docs/bridge.md.",
     "slam_images": "The SLAM on rendered image sequences (six 600 m drives), georeferenced "
     "without ground truth, against COLMAP.",
     "frontend_tracks": "The visual front end's tracks against rendered depth and poses.",

@@ -10,7 +10,9 @@ there; the model card's ``command`` reproduces it.
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
 street photographs: fine-tuned from ``seg`` on the randomised city, ``configs/seg_real.yaml``,
 docs/real_images.md), ``normals`` (the joint labels + normals network: the ``seg`` trunk and
-label head with a trained normals head), ``naive`` (the 2015 patch CNN), ``dirichlet`` (its
+label head with a trained normals head), ``normals_real`` (the same for real photographs: the
+``seg_real`` trunk and label head with a normals head trained on the randomised city,
+``configs/normals_real.yaml``), ``naive`` (the 2015 patch CNN), ``dirichlet`` (its
 false-positive filter), ``reloc`` and ``relpose`` (the relocalisation heads, when shipped) and
 ``relpose_near`` (the relative-pose head for views of one place,
 :class:`geoseg.localizer.GatedRelPoseHead`).
@@ -29,6 +31,8 @@ PRETRAINED: dict[str, str] = {
     "seg": "ENet labels (8 classes)",
     "seg_real": "ENet labels (8 classes) for real street photographs, trained on the randomised city",
     "normals": "joint labels + surface normals network (ENet trunk + normals head)",
+    "normals_real": "joint labels + surface normals network for real street photographs "
+    "(the seg_real trunk + a normals head trained on the randomised city)",
     "naive": "naive patch CNN (thesis fig. 4.5)",
     "dirichlet": "Dirichlet false-positive filter of the naive CNN",
     "reloc": "relocalisation embedding on the layer-21 features",
@@ -97,7 +101,8 @@ def pretrained_segmenter(name: str = "normals", *, backend: str = "onnx", device
     """A :class:`geoseg.infer.Segmenter` over shipped weights.
 
     Args:
-        name: ``normals`` (labels + normals, the default), ``seg``, ``seg_real`` or ``naive``.
+        name: ``normals`` (labels + normals, the default), ``normals_real``, ``seg``,
+            ``seg_real`` or ``naive``.
         backend: ``onnx`` (onnxruntime) or ``torch``.
         device: ``cpu`` or ``cuda``.
 

@@ -50,7 +50,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )  # fmt: skip
     run_p.add_argument(
         "--network", type=Path,
-        help="the association's network (.onnx/.pt file or weights folder; default: shipped)",
+        help="the association's network (.onnx/.pt file, weights folder or shipped name, e.g. "
+        "normals_real for real photographs; default: the association's shipped network)",
     )  # fmt: skip
     run_p.add_argument(
         "--buildings-mesh", type=Path,

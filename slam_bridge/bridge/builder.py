@@ -110,18 +110,20 @@ def check_covers_window(cfg: BridgeConfig, window) -> None:
 
 
 def load_network(association: str, weights: str | Path | None = None, threads: int | None = 1):
-    """The Segmenter of an association's network: ``weights`` (a ``.onnx`` or ``.pt`` file, or
-    a folder holding ``model.onnx``), else the shipped one; ``threads``: onnxruntime's. None
+    """The Segmenter of an association's network: ``weights`` (a ``.onnx`` or ``.pt`` file, a
+    folder holding ``model.onnx``, or the name of shipped weights, e.g. ``normals_real`` for
+    real photographs), else the association's shipped one; ``threads``: onnxruntime's. None
     for ``raycast``."""
     from geoseg.infer import Segmenter
-    from geoseg.pretrained import pretrained_file
+    from geoseg.pretrained import path_or_shipped, pretrained_file
 
     if association == "raycast":
         return None
     if weights is None:
         path = pretrained_file(SHIPPED_WEIGHTS[association], "model.onnx")
     else:
-        path = Path(weights) / "model.onnx" if Path(weights).is_dir() else Path(weights)
+        path = path_or_shipped(weights)
+        path = path / "model.onnx" if path.is_dir() else path
     if path.suffix.lower() == ".onnx":
         return Segmenter.from_onnx(path, threads=threads)
     return Segmenter.from_file(path)

@@ -12,7 +12,7 @@ from geoseg.classes import BUILDING
 from geoseg.cli import main
 from geoseg.data.synthetic import SyntheticDataset, synthetic_config
 from geoseg.dirichlet import DirichletFilter, load_filter
-from geoseg.pretrained import model_card, pretrained_file, pretrained_segmenter
+from geoseg.pretrained import PRETRAINED, model_card, pretrained_file, pretrained_segmenter
 
 
 @pytest.fixture(scope="module")
@@ -23,10 +23,7 @@ def frame():
     return rgb, sample["labels"].numpy(), sample["normals"].numpy(), sample["normal_valid"].numpy()
 
 
-@pytest.mark.parametrize(
-    "name",
-    ["seg", "seg_real", "normals", "naive", "dirichlet", "reloc", "relpose", "relpose_near"],
-)
+@pytest.mark.parametrize("name", sorted(PRETRAINED))  # every shipped name
 def test_every_shipped_model_has_a_card_with_its_command(name):
     card = model_card(name)
     assert "geoseg train" in str(card.get("command", "")), card.keys()
@@ -57,6 +54,20 @@ def test_real_image_weights_label_an_unseen_frame_and_their_backends_agree(frame
     assert ort.normals is None and ort.probabilities.shape == (1, 8, 240, 320)
     assert (ort.labels[0] == labels).mean() > 0.8
     assert (ort.labels == pt.labels).mean() >= 0.999
+
+
+def test_real_image_joint_network_is_seg_real_with_normals(frame):
+    rgb, labels, normals, valid = frame
+    joint = pretrained_segmenter("normals_real", backend="onnx")(rgb)
+    labels_only = pretrained_segmenter("seg_real", backend="onnx")(rgb)
+    # the frozen seg_real trunk and label head: the same labels, and normals beside them
+    assert (joint.labels == labels_only.labels).mean() >= 0.999
+    building = (labels == BUILDING) & valid
+    cos = (joint.normals[0] * normals).sum(0)[building]
+    assert np.median(np.degrees(np.arccos(np.clip(cos, -1, 1)))) < 20.0
+    torch_normals = pretrained_segmenter("normals_real", backend="torch")(rgb).normals
+    cos = np.clip((joint.normals * torch_normals).sum(1), -1, 1)
+    assert np.degrees(np.arccos(cos)).mean() <= 0.5
 
 
 def test_shipped_dirichlet_filter_is_calibrated():

@@ -10,8 +10,8 @@ import pytest
 
 from geoseg.classes import NUM_CLASSES
 from geoseg.errors import GeosegError
-from geoseg.pretrained import pretrained_file
-from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_network
+from geoseg.pretrained import pretrained_dir, pretrained_file
+from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_network, load_network
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import segmenter_outputs
 from slam_bridge.errors import SlamError
@@ -64,6 +64,15 @@ def test_a_usable_network_passes_at_its_training_size():
     fake = FakeSegmenter()
     check_network(segmenter_outputs(fake, (320, 240)), (640, 480), needs_normals=True)
     assert fake.seen == [(240, 320, 3)]  # resized to the network's size first
+
+
+def test_the_network_may_be_named_by_its_shipped_weights():
+    grey = np.full((240, 320, 3), 128, np.uint8)
+    named = load_network("bayes", "normals_real")(grey)
+    by_folder = load_network("bayes", pretrained_dir("normals_real"))(grey)
+    assert named.normals is not None and np.array_equal(named.labels, by_folder.labels)
+    with pytest.raises(GeosegError, match="no_such_weights"):
+        load_network("bayes", "no_such_weights")
 
 
 def test_build_bridge_checks_before_the_run(facades):
