@@ -276,6 +276,9 @@ ABOUT: dict[str, str] = {
     "the ray-cast baseline, the naive CNN + Dirichlet filter, the joint network + eq. 4.14 and "
     "an oracle, against the exact building model (odometry + elevation, no GPS) and the GIS "
     "model with its errors (GPS sigma_b 0.75 m); see docs/bridge.md.",
+    "accuracy_real_naive": "The shipped 2015 naive patch CNN (synthetic only) zero-shot on "
+    "CamVid val, and what CamVid's labels say of the shipped joint network's normals; see "
+    "docs/real_images.md.",
     "buildings_ch4_rerender": "The chapter-4 experiment rendered and run again on another "
     "2-core host with the same code and seeds: how far its figures move between renders of the "
     "same drive; see docs/bridge.md.",
