@@ -188,6 +188,23 @@ def normals_plausibility(normals_net: Any, images: list, labels: list) -> dict[s
     }
 
 
+def normals_figures(name: str, images: list, labels: list, figures: dict[str, Any]) -> Any:
+    """Load the joint network ``name`` (shipped name or path), put its
+    :func:`normals_plausibility` into ``figures``; returns the network for the panel.
+
+    Raises:
+        SystemExit: the network gives no normals.
+    """
+    from geoseg.pretrained import path_or_shipped
+
+    net = load_segmenter(path_or_shipped(name, "model.onnx"))
+    if net(images[0]).normals is None:
+        raise SystemExit(f"--normals {name}: this network gives no normals (a joint one does)")
+    figures["normals_model"] = name
+    figures.update(normals_plausibility(net, images, labels))
+    return net
+
+
 def finetune(run_dir: Path, camvid: Path, init: str | None) -> Path:
     """Stage: the run in ``run_dir`` (trained with configs/seg_camvid.yaml when missing)."""
     from geoseg.config import load_config
@@ -320,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     load_start = os.getloadavg()[0]
 
     from geoseg.infer import Segmenter, colour_transfer_for
-    from geoseg.pretrained import path_or_shipped, pretrained_file
+    from geoseg.pretrained import pretrained_file
 
     images, labels, classes = load_frames(args.camvid, args.frames)
     figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
@@ -360,9 +377,7 @@ def main(argv: list[str] | None = None) -> int:
     panel_segmenters = {"zero-shot (shipped seg)": shipped}
     if "finetuned" in tuned:
         panel_segmenters["fine-tuned from shipped"] = tuned["finetuned"]
-    normals_net = load_segmenter(path_or_shipped(args.normals, "model.onnx"))
-    figures["normals_model"] = args.normals
-    figures.update(normals_plausibility(normals_net, images, labels))
+    normals_net = normals_figures(args.normals, images, labels, figures)
     write_panel(
         args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net, args.normals
     )
@@ -380,7 +395,7 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     another synthetic-only model, and a panel beside the shipped weights."""
     from geoseg.errors import GeosegError
     from geoseg.infer import Segmenter, colour_transfer_for
-    from geoseg.pretrained import path_or_shipped, pretrained_file
+    from geoseg.pretrained import pretrained_file
 
     model = load_segmenter(args.model)
     card_path = args.model / "model.pt" if args.model.is_dir() else args.model
@@ -409,9 +424,7 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     model.colour_transfer = None
     args.out.mkdir(parents=True, exist_ok=True)
     shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
-    normals_net = load_segmenter(path_or_shipped(args.normals, "model.onnx"))
-    figures["normals_model"] = args.normals
-    figures.update(normals_plausibility(normals_net, images, labels))
+    normals_net = normals_figures(args.normals, images, labels, figures)
     panel = args.out / f"{NAME}_{args.tag}_panel.png"
     segmenters = {"shipped seg": shipped, str(args.model): model}
     write_panel(panel, images, labels, segmenters, normals_net, args.normals)
