@@ -20,7 +20,10 @@ own cost separately) for each. A panel of val frames (RGB | truth | zero-shot | 
 normals of the shipped joint network, or of ``--normals``) goes to ``accuracy_real_panel.png``;
 CamVid has no normals, so ``normals_building_level``, ``normals_building_facing_street`` and
 ``normals_road_level`` say how plausible that network's normals are by the labels
-(:func:`normals_plausibility`).
+(:func:`normals_plausibility`). With ``--model`` a naive CNN and ``--dirichlet`` its filter,
+``dirichlet_fp_removed`` / ``dirichlet_extra_false_rejections`` (and ``maxprob_*`` for the
+max-probability baseline beside it) score the filter on the CamVid building predictions
+(:func:`filter_figures`).
 Published context, not the same protocol: ENet reports 51.3 % class-average IoU over CamVid's
 11 classes on its test split (Paszke et al. 2016).
 
@@ -35,6 +38,8 @@ Usage::
     python bench/accuracy_real.py --camvid /data/camvid --runs runs/accuracy_real
     python bench/accuracy_real.py --model runs/seg_realism --tag realism   # another model
     python bench/accuracy_real.py --model geoseg/weights/seg_real --tag seg_real --normals normals_real
+    python bench/accuracy_real.py --model geoseg/weights/naive_real --tag naive_real \
+        --dirichlet dirichlet_real --normals normals_real
 """
 
 from __future__ import annotations
@@ -88,6 +93,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="the joint network whose normals the panel shows (shipped name or path; "
         "e.g. normals_real beside --model seg_real)",
     )
+    parser.add_argument(
+        "--dirichlet",
+        default=None,
+        help="with --model (a naive CNN): also score this false-positive filter folder or "
+        "shipped name (e.g. dirichlet_real) on its CamVid building pixels",
+    )
     return parser
 
 
@@ -103,6 +114,51 @@ def load_segmenter(path: Path) -> Any:
 
 
 # ----------------------------------------------------------------------------- evaluation
+def filter_figures(name: str, model: Any, images: list, labels: list) -> dict[str, Any]:
+    """The building false-positive filters of folder or shipped name ``name`` (its Dirichlet
+    filter and max-probability baseline) on ``model``'s probabilities at 320x240, as
+    ``geoseg train dirichlet`` scores them on its evaluation city: the share of the argmax's
+    building false positives each removes and the false rejections it adds, as a share of the
+    true building pixels (:func:`training.metrics.building_filter_scores`)."""
+    import numpy as np
+    import torch
+
+    from geoseg.classes import BUILDING, IGNORE_INDEX
+    from geoseg.dirichlet import load_filter
+    from geoseg.pretrained import path_or_shipped
+    from training.metrics import building_filter_scores
+
+    folder = path_or_shipped(name)
+    filters = {
+        "dirichlet": load_filter(folder / "dirichlet.json"),
+        "maxprob": load_filter(folder / "max_probability.json"),
+    }
+    pred, keep, truth = [], {k: [] for k in filters}, []
+    for image, labels_full in zip(images, labels):
+        image, labels_small = resize_pair(image, labels_full, (240, 320))
+        probs = model(image).probabilities[0].transpose(1, 2, 0)
+        valid = labels_small != IGNORE_INDEX
+        argmax = probs.argmax(-1)
+        smoothed = filters["dirichlet"].smooth(probs)[valid]  # both filters share the window
+        pred.append(argmax[valid] == BUILDING)
+        truth.append(labels_small[valid] == BUILDING)
+        for key, flt in filters.items():
+            keep[key].append(flt.filter(smoothed, argmax[valid]))
+    figures: dict[str, Any] = {"dirichlet_filter": name}
+    pred_t, truth_t = (
+        torch.from_numpy(np.concatenate(pred)),
+        torch.from_numpy(np.concatenate(truth)),
+    )
+    for key in filters:
+        scores = building_filter_scores(
+            pred_t, torch.from_numpy(np.concatenate(keep[key])), truth_t
+        )
+        figures[f"{key}_fp_removed"] = scores["fp_removed"]
+        figures[f"{key}_extra_false_rejections"] = scores["extra_false_rejections"]
+    figures["building_fp_argmax_share"] = float(pred_t[~truth_t].sum() / max(int(pred_t.sum()), 1))
+    return figures
+
+
 def load_frames(root: Path, limit: int) -> tuple[list[Any], list[Any], tuple[int, ...]]:
     """Val frames as uint8 RGB `(H, W, 3)` and geoseg labels `(H, W)`, and the labelled classes."""
     from geoseg.data.camvid import CamVidDataset
@@ -422,6 +478,8 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
                 evaluate(model, images, labels, classes, size),
             )
     model.colour_transfer = None
+    if args.dirichlet is not None:
+        figures.update(filter_figures(args.dirichlet, model, images, labels))
     args.out.mkdir(parents=True, exist_ok=True)
     shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
     normals_net = normals_figures(args.normals, images, labels, figures)

@@ -16,7 +16,10 @@ Keys (``<m>`` a method, ``<model>`` ``exact`` or ``gis``): ``association_precisi
 ``inference_ms_per_keyframe`` and ``association_ms_per_keyframe`` (the joint network's bridge:
 worker time per keyframe on this machine's CPU, in the asynchronous run), ``async_time_ratio`` (main-loop time per
 keyframe with the asynchronous worker on / off, GIS model, same drive: the median of
-``timing_pairs`` back-to-back pairs of runs, each pair's ratio under ``async_time_ratios``),
+``timing_pairs`` back-to-back pairs of runs, each pair's ratio under ``async_time_ratios``;
+parted into ``building_rows_time_ratio``, the asynchronous run's building rows replayed without
+its worker against ``nobuild``, and ``async_time_ratio_same_rows``, the run with its worker
+against that replay: :mod:`slam_bridge.experiments.replay`),
 ``constraint_lag_keyframes_median`` / ``_max``; every run's figures under ``runs``.
 
 Usage: ``python bench/buildings_ch4.py [--full] [--data DIR] [--out DIR] [--force]``

@@ -13,9 +13,10 @@ docs/real_images.md), ``normals`` (the joint labels + normals network: the ``seg
 label head with a trained normals head), ``normals_real`` (the same for real photographs: the
 ``seg_real`` trunk and label head with a normals head trained on the randomised city,
 ``configs/normals_real.yaml``), ``naive`` (the 2015 patch CNN), ``dirichlet`` (its
-false-positive filter), ``reloc`` and ``relpose`` (the relocalisation heads, when shipped) and
-``relpose_near`` (the relative-pose head for views of one place,
-:class:`geoseg.localizer.GatedRelPoseHead`).
+false-positive filter), ``naive_real`` and ``dirichlet_real`` (the same for real photographs:
+``configs/naive_real.yaml``, ``configs/dirichlet_real.yaml``), ``reloc`` and ``relpose`` (the
+relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
+one place, :class:`geoseg.localizer.GatedRelPoseHead`).
 """
 
 from __future__ import annotations
@@ -34,7 +35,9 @@ PRETRAINED: dict[str, str] = {
     "normals_real": "joint labels + surface normals network for real street photographs "
     "(the seg_real trunk + a normals head trained on the randomised city)",
     "naive": "naive patch CNN (thesis fig. 4.5)",
+    "naive_real": "naive patch CNN for real street photographs, trained on the randomised city",
     "dirichlet": "Dirichlet false-positive filter of the naive CNN",
+    "dirichlet_real": "Dirichlet false-positive filter of naive_real",
     "reloc": "relocalisation embedding on the layer-21 features",
     "relpose": "relative-pose head on the layer-21 features",
     "relpose_near": "relative-pose head for views of one place, gated with relpose",
@@ -102,7 +105,7 @@ def pretrained_segmenter(name: str = "normals", *, backend: str = "onnx", device
 
     Args:
         name: ``normals`` (labels + normals, the default), ``normals_real``, ``seg``,
-            ``seg_real`` or ``naive``.
+            ``seg_real``, ``naive`` or ``naive_real``.
         backend: ``onnx`` (onnxruntime) or ``torch``.
         device: ``cpu`` or ``cuda``.
 

@@ -48,6 +48,12 @@ class NaiveConfig(TrainConfig):
         dense_eval_frames: validation frames evaluated densely at the end (0: none).
         band_rows: rows per band in dense evaluation (bounds memory; None: whole images).
         export: export ``model.onnx`` (the dense form) at the end.
+        frame_augment: apply the data section's frame augmentations (zoom, colour jitter,
+            camera effects: ``data.augment``) to each training frame before its patches are cut,
+            for a network meant for real photographs; off, the frames are used as rendered and
+            only the patches are flipped. A frame's draw holds for all its patches in an epoch
+            (frames are kept decoded per worker process); with ``data.num_workers`` >= 1 each
+            epoch draws anew.
     """
 
     model: str = "naive_cnn"
@@ -60,6 +66,7 @@ class NaiveConfig(TrainConfig):
     dense_eval_frames: int = 8
     band_rows: int | None = 64
     export: bool = True
+    frame_augment: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -96,8 +103,10 @@ def patch_datasets(cfg: NaiveConfig) -> tuple[Any, Any]:
     """Training and validation :class:`~geoseg.data.synthetic.PatchDataset` of ``cfg``."""
     from geoseg.data.synthetic import PatchDataset
 
-    # frames in [0, 1] without augmentation; patches are normalised (and flipped) themselves
-    train_frames = common.build_frame_dataset(cfg.data, "train", augment=False, normalize=False)
+    # frames in [0, 1]; patches are normalised (and flipped) themselves
+    train_frames = common.build_frame_dataset(
+        cfg.data, "train", augment=cfg.frame_augment, normalize=False
+    )
     val_frames = common.build_frame_dataset(cfg.data, "val", augment=False, normalize=False)
     common.prerender_frames(cfg.data, train_frames, val_frames)
     train = PatchDataset(

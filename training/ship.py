@@ -28,7 +28,8 @@ from geoseg.integrity import CARD_FILE, DIGEST_KEY, file_sha256
 from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, WEIGHTS_DIR
 
 # What a run must hold to be shipped, per name (networks: the model and its card).
-REQUIRED = {"dirichlet": ("dirichlet.json", "max_probability.json", "metrics.json")}
+FILTER_REQUIRED = ("dirichlet.json", "max_probability.json", "metrics.json")
+REQUIRED = {"dirichlet": FILTER_REQUIRED, "dirichlet_real": FILTER_REQUIRED}
 NETWORK_REQUIRED = ("model.pt", "model.onnx", "model_card.json")
 # The files whose SHA-256 the shipped card records.
 WEIGHT_FILES = ("model.pt", "model.onnx", "dirichlet.json", "max_probability.json")
@@ -77,7 +78,7 @@ def ship(run_dir: str | Path, name: str, *, weights_dir: Path = WEIGHTS_DIR) -> 
             if (run_dir / file).is_file():
                 shutil.copy2(run_dir / file, staging / file)
                 (staging / file).chmod(0o644)  # package files: readable whatever the run umask
-        if name == "dirichlet" and not (staging / "model_card.json").exists():
+        if name in REQUIRED and not (staging / "model_card.json").exists():
             # the filter's card is its metrics (fit data, threshold, figures, wall time)
             shutil.copy2(run_dir / "metrics.json", staging / "model_card.json")
             (staging / "model_card.json").chmod(0o644)

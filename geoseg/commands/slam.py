@@ -54,6 +54,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "normals_real for real photographs; default: the association's shipped network)",
     )  # fmt: skip
     run_p.add_argument(
+        "--dirichlet", type=Path,
+        help="dirichlet association: the Dirichlet filter (dirichlet.json, a `geoseg train "
+        "dirichlet` run folder or shipped name, e.g. dirichlet_real; default: the one shipped "
+        "for --network)",
+    )  # fmt: skip
+    run_p.add_argument(
         "--buildings-mesh", type=Path,
         help="raycast: the model's mesh (default: buildings_model.ply beside --buildings)",
     )  # fmt: skip
@@ -89,8 +95,12 @@ def run(args: argparse.Namespace) -> int:
     overrides = list(args.overrides) + ([f"method={args.method}"] if args.method else [])
     if args.association:
         overrides.append(f"bridge.association={args.association}")
-    if args.buildings is None and (args.association or args.network or args.buildings_mesh):
-        raise GeosegError("--association, --network, --buildings-mesh: need --buildings")
+    if args.buildings is None and (
+        args.association or args.network or args.buildings_mesh or args.dirichlet
+    ):
+        raise GeosegError(
+            "--association, --network, --dirichlet, --buildings-mesh: need --buildings"
+        )
     cfg = load_config(ImageSlamConfig, source, overrides=overrides)
     inputs = load_inputs(
         args.frames,
@@ -141,6 +151,8 @@ def _bridge(args, cfg, inputs):
         raise GeosegError("--network: the raycast association uses no network")
     if method != "raycast" and args.buildings_mesh:
         raise GeosegError("--buildings-mesh: only the raycast association uses a mesh")
+    if method != "dirichlet" and args.dirichlet:
+        raise GeosegError("--dirichlet: only the dirichlet association uses the filter")
     facades = Facades.read_csv(args.buildings)
     mesh = None
     if method == "raycast":
@@ -156,5 +168,6 @@ def _bridge(args, cfg, inputs):
         if len(mesh.faces) == 0:
             raise GeosegError(f"{path}: a mesh without faces")
     return build_bridge(
-        cfg.bridge, facades, image_size=inputs.frames.image_size, mesh=mesh, weights=args.network
-    )
+        cfg.bridge, facades, image_size=inputs.frames.image_size, mesh=mesh,
+        weights=args.network, dirichlet_filter=args.dirichlet,
+    )  # fmt: skip

@@ -1,9 +1,9 @@
 """One bridge from settings: the network, the association rule and the fusion's building rows.
 
 :func:`build_bridge` is what ``geoseg slam run --buildings`` and the chapter-4 experiment use:
-the association (``bayes``: the joint network + eq. 4.14; ``dirichlet``: the naive CNN + the
-shipped Dirichlet filter; ``raycast``: the chapter-2 baseline, no network) over a building model
-(``facades.csv``, and for ``raycast`` its mesh), wired into a
+the association (``bayes``: the joint network + eq. 4.14; ``dirichlet``: the naive CNN + its
+Dirichlet filter, :func:`load_dirichlet_filter`; ``raycast``: the chapter-2 baseline, no
+network) over a building model (``facades.csv``, and for ``raycast`` its mesh), wired into a
 :class:`~slam_bridge.bridge.worker.BridgeWorker`. The network is tried once on a blank image
 before the SLAM starts, so that a network without the ``building`` class, or one whose outputs
 do not match the images, is refused up front rather than at the first keyframe.
@@ -29,6 +29,7 @@ __all__ = [
     "ASSOCIATIONS",
     "BridgeConfig",
     "check_covers_window",
+    "load_dirichlet_filter",
     "load_network",
     "network_outputs",
     "check_network",
@@ -39,6 +40,8 @@ ASSOCIATIONS = ("bayes", "dirichlet", "raycast")
 WORKERS = ("process", "thread")
 #: the shipped weights of each association's network (``geoseg.pretrained``)
 SHIPPED_WEIGHTS = {"bayes": "normals", "dirichlet": "naive"}
+#: the shipped Dirichlet filter calibrated on each shipped naive CNN
+SHIPPED_FILTERS = {"naive": "dirichlet", "naive_real": "dirichlet_real"}
 
 
 @dataclass
@@ -129,6 +132,55 @@ def load_network(association: str, weights: str | Path | None = None, threads: i
     return Segmenter.from_file(path)
 
 
+def load_dirichlet_filter(filter_spec=None, weights: str | Path | None = None):
+    """The Dirichlet filter of the ``dirichlet`` association.
+
+    Args:
+        filter_spec: a filter (returned as is), a ``dirichlet.json`` file, a folder holding
+            one (a ``geoseg train dirichlet`` run) or the name of shipped filters
+            (``dirichlet_real``); None: the one shipped for ``weights``.
+        weights: the naive CNN it filters (:func:`load_network`; None: the shipped
+            ``naive``): a shipped naive CNN, by name or by its folder or files, gets the filter
+            calibrated on it (``naive_real`` -> ``dirichlet_real``); any other the shipped
+            ``dirichlet``, with a warning (a filter is calibrated on one network's
+            probabilities).
+
+    Raises:
+        GeosegError: no such file, or not a filter file.
+    """
+    import logging
+
+    from geoseg.dirichlet import load_filter
+    from geoseg.pretrained import path_or_shipped
+
+    if filter_spec is not None and not isinstance(filter_spec, (str, Path)):
+        return filter_spec
+    if filter_spec is None:
+        name = _shipped_naive(weights)
+        filter_spec = SHIPPED_FILTERS.get(name, "dirichlet")
+        if name is None:
+            logging.getLogger(__name__).warning(
+                "dirichlet: no filter given for the network %s; using the shipped one, "
+                "calibrated on the shipped naive CNN (fit one: geoseg train dirichlet)",
+                weights,
+            )
+    path = path_or_shipped(filter_spec)
+    return load_filter(path / "dirichlet.json" if path.is_dir() else path)
+
+
+def _shipped_naive(weights: str | Path | None) -> str | None:
+    """The name of the shipped naive CNN ``weights`` names or lies in (None: another)."""
+    from geoseg.pretrained import WEIGHTS_DIR
+
+    if weights is None:
+        return "naive"
+    if str(weights) in SHIPPED_FILTERS:
+        return str(weights)
+    path = Path(weights)
+    folder = (path if path.is_dir() else path.parent).resolve()
+    return next((n for n in SHIPPED_FILTERS if folder == (WEIGHTS_DIR / n).resolve()), None)
+
+
 def network_outputs(
     association: str, weights: str | Path | None, threads: int | None, size: tuple[int, int]
 ) -> NetworkOutputs:
@@ -180,16 +232,14 @@ def build_bridge(
         segmenter: the network as an object (a :class:`geoseg.infer.Segmenter`, say); it runs
             in a thread or inline.
         weights: else the network's weights (:func:`load_network`; default: the shipped ones).
-        dirichlet_filter: the ``dirichlet`` rule's filter (default: the shipped one); its 5x5
+        dirichlet_filter: the ``dirichlet`` rule's filter, or where to read it
+            (:func:`load_dirichlet_filter`; default: the one shipped for ``weights``); its 5x5
             smoothing is applied to every network's maps before sampling.
 
     Raises:
         SlamError: a missing mesh for ``raycast``, a network the bridge cannot use
             (:func:`check_network`).
     """
-    from geoseg.dirichlet import load_filter
-    from geoseg.pretrained import pretrained_file
-
     method = cfg.association
     network, make_network = None, None
     size = tuple(cfg.network_size)
@@ -200,9 +250,9 @@ def build_bridge(
         make_network = partial(network_outputs, method, weights, cfg.network_threads, size)
     elif uses_network:
         network = network_outputs(method, weights, cfg.network_threads, size)
-    dirichlet_filter = dirichlet_filter or (
-        load_filter(pretrained_file("dirichlet", "dirichlet.json")) if uses_network else None
-    )
+    if uses_network:  # bayes uses the filter's smoothing only: the shipped one
+        spec = dirichlet_filter if method == "dirichlet" else dirichlet_filter or "dirichlet"
+        dirichlet_filter = load_dirichlet_filter(spec, weights)
     r = cfg.radius_m
     if method == "raycast":
         if mesh is None:

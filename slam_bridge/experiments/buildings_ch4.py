@@ -46,6 +46,7 @@ import numpy as np
 from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_covers_window
 from slam_bridge.bridge.worker import BridgeWorker
 from slam_bridge.errors import SlamError
+from slam_bridge.experiments.replay import RecordingConstraints, ReplayBridge
 from slam_bridge.image_slam import ImageSlamConfig
 
 logger = logging.getLogger(__name__)
@@ -347,9 +348,22 @@ class _OracleWorker(BridgeWorker):
 
 
 def run_one(
-    cfg: BuildingsConfig, assets: RunAssets, method: str, model: str, asynchronous: bool
+    cfg: BuildingsConfig,
+    assets: RunAssets,
+    method: str,
+    model: str,
+    asynchronous: bool,
+    *,
+    record: bool = False,
+    replay: RecordingConstraints | None = None,
 ) -> tuple[dict, dict]:
     """One (method, model) run, its bridge asynchronous or not.
+
+    Args:
+        record: record the associations the fusion used (``arrays["recorded"]``, a
+            :class:`~slam_bridge.experiments.replay.RecordingConstraints`).
+        replay: give the fusion these recorded associations instead of running ``method``'s
+            bridge (:class:`~slam_bridge.experiments.replay.ReplayBridge`: no worker).
 
     Returns:
         ``(figures, arrays)``: the figures (errors, tracking failures, association precision
@@ -375,7 +389,12 @@ def run_one(
             cfg.slam.slam.mapping,
         )  # fmt: skip
     truth = FacadeTruth(folder, inputs.frames.timestamps)
-    worker = _worker(cfg, assets, method, model, truth, asynchronous)
+    if replay is not None:
+        worker = ReplayBridge(replay)
+    else:
+        worker = _worker(cfg, assets, method, model, truth, asynchronous)
+    if record:  # the worker updates, and the fusion reads, the recording copy
+        worker.constraints = RecordingConstraints(worker.constraints)
     t0 = time.perf_counter()
     result, _ = run_on_images(inputs, cfg.slam, progress=False, bridge=worker, start=start)
     wall = time.perf_counter() - t0
@@ -389,6 +408,8 @@ def run_one(
     figures["wall_seconds"] = wall
     figures["loop_ms_per_keyframe"] = 1e3 * float(np.mean([r.seconds for r in result.records]))
     figures["building_keyframes"] = sum("building" in r.constraints for r in result.records)
+    if replay is not None:  # a timing run: nothing of its own to evaluate
+        return figures, {}
     # the truth of every point, from all its observations (the oracle's own votes included)
     _, R_true, t_true = inputs.truth
     evaluation = FacadeTruth(folder, inputs.frames.timestamps, (R_true, t_true, m.K))
@@ -409,6 +430,8 @@ def run_one(
         error_m=e_h, points=np.where(m.triangulated[:, None], m.X_w, np.nan), facade=facade,
         true_facade=rows, true_points=evaluation.true_positions(m.num_points),
     )  # fmt: skip
+    if record:
+        arrays["recorded"] = worker.constraints
     return figures, arrays
 
 
@@ -540,14 +563,16 @@ def _plan(cfg: BuildingsConfig) -> list[tuple[str, str, bool, str]]:
 
 def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> list[dict]:
     """``cfg.timing_pairs`` pairs of runs on the timing model, ``nobuild`` then ``bayes`` with
-    the worker asynchronous: main-loop milliseconds per keyframe of each, side by side (saved
-    in ``saved``, reused like the runs)."""
+    the worker asynchronous: main-loop milliseconds per keyframe of each, side by side; and
+    right after each pair the asynchronous run's building rows replayed without its worker
+    (:mod:`~slam_bridge.experiments.replay`), which parts the ratio into the rows' cost and the
+    worker's. Saved in ``saved``, reused like the runs."""
     if cfg.timing_pairs == 0 or "bayes" not in cfg.methods:
         return []
     model = cfg.timing_model()
     signature = json.dumps(
         [_signature(cfg, "nobuild", model, False), _signature(cfg, "bayes", model, True)]
-        + [cfg.timing_pairs]
+        + [cfg.timing_pairs, "replay"]
     )
     if saved.is_file() and not force:
         earlier = json.loads(saved.read_text())
@@ -557,13 +582,24 @@ def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> lis
     for i in range(cfg.timing_pairs):
         try:
             off, _ = run_one(cfg, assets, "nobuild", model, False)
-            on, _ = run_one(cfg, assets, "bayes", model, True)
+            on, arrays = run_one(cfg, assets, "bayes", model, True, record=True)
+            rows, _ = run_one(cfg, assets, "bayes", model, False, replay=arrays["recorded"])
         except SlamError as exc:
             logger.error("timing pair %d failed: %s", i, exc)
             continue
         off_ms, on_ms = off["loop_ms_per_keyframe"], on["loop_ms_per_keyframe"]
-        pairs.append({"nobuild_ms": off_ms, "async_ms": on_ms, "ratio": on_ms / off_ms})
-        logger.info("timing pair %d: %.1f / %.1f ms per keyframe", i, on_ms, off_ms)
+        rows_ms = rows["loop_ms_per_keyframe"]
+        pairs.append({
+            "nobuild_ms": off_ms, "async_ms": on_ms, "ratio": on_ms / off_ms,
+            "replay_ms": rows_ms, "worker_ratio": on_ms / rows_ms, "rows_ratio": rows_ms / off_ms,
+            "replay_error_difference_m": abs(
+                rows["translation_error_m"] - on["translation_error_m"]
+            ),
+        })  # fmt: skip
+        logger.info(
+            "timing pair %d: %.1f / %.1f ms per keyframe (the rows without the worker: %.1f)",
+            i, on_ms, off_ms, rows_ms,
+        )  # fmt: skip
     saved.write_text(json.dumps({"config": signature, "pairs": pairs}, indent=1))
     return pairs
 
@@ -600,6 +636,9 @@ def summarize(
     if pairs:  # main-loop time per keyframe with the asynchronous worker on / off, same drive
         out["async_time_ratio"] = float(np.median([p["ratio"] for p in pairs]))
         out["async_time_ratios"] = [p["ratio"] for p in pairs]
+        if all("worker_ratio" in p for p in pairs):  # the same rows with the worker / without
+            out["async_time_ratio_same_rows"] = float(np.median([p["worker_ratio"] for p in pairs]))
+            out["building_rows_time_ratio"] = float(np.median([p["rows_ratio"] for p in pairs]))
         out["timing_pairs"] = pairs
     elif "loop_ms_per_keyframe" in on and "loop_ms_per_keyframe" in off:
         out["async_time_ratio"] = on["loop_ms_per_keyframe"] / off["loop_ms_per_keyframe"]

@@ -70,8 +70,19 @@ def test_real_image_joint_network_is_seg_real_with_normals(frame):
     assert np.degrees(np.arccos(cos)).mean() <= 0.5
 
 
-def test_shipped_dirichlet_filter_is_calibrated():
-    flt = load_filter(pretrained_file("dirichlet", "dirichlet.json"))
+def test_real_image_naive_cnn_labels_an_unseen_frame_and_its_backends_agree(frame):
+    rgb, labels = frame[0], frame[1]
+    ort = pretrained_segmenter("naive_real", backend="onnx")(rgb)
+    assert ort.normals is None and ort.probabilities.shape == (1, 8, 240, 320)
+    assert (ort.labels[0] == labels).mean() > 0.85
+    assert (ort.labels[0][labels == BUILDING] == BUILDING).mean() > 0.85
+    pt = pretrained_segmenter("naive_real", backend="torch")(rgb)
+    assert (ort.labels == pt.labels).mean() >= 0.999
+
+
+@pytest.mark.parametrize("name", ["dirichlet", "dirichlet_real"])
+def test_shipped_dirichlet_filter_is_calibrated(name):
+    flt = load_filter(pretrained_file(name, "dirichlet.json"))
     assert isinstance(flt, DirichletFilter) and flt.threshold is not None
     assert np.all(flt.alpha > 0)
 

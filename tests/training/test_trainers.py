@@ -101,6 +101,22 @@ def naive_run(tmp_path_factory, cache_dir) -> Path:
     return naive_trainer.main(cfg)
 
 
+def test_naive_frame_augment_changes_the_frames_not_the_labels(cache_dir, tmp_path):
+    """frame_augment puts each training frame through the colour jitter and camera effects
+    before its patches are cut (geometry off here: the labels must stay the rendered ones)."""
+    augment = {"hflip": 0.0, "brightness": 0.5, "contrast": 0.5, "camera": {"p_noise": 1.0}}
+    frames = {}
+    for on in (False, True):
+        base = _base(cache_dir, tmp_path / "run", frame_augment=on)
+        base["data"]["augment"] = augment
+        cfg = load_config(naive_trainer.NaiveConfig, base)
+        frames[on] = naive_trainer.patch_datasets(cfg)[0].frames[0]
+    assert not torch.allclose(frames[True]["image"], frames[False]["image"], atol=1e-3)
+    assert torch.equal(
+        torch.as_tensor(frames[True]["labels"]), torch.as_tensor(frames[False]["labels"])
+    )
+
+
 # ----------------------------------------------------------------------------- end to end
 def test_seg_main_writes_a_complete_run(seg_run, run_files):
     card = _check_run(seg_run, run_files)

@@ -132,3 +132,8 @@ def test_slam_run_refuses_bridge_options_without_a_building_model(drive, tmp_pat
         == 2
     )
     assert "only the raycast association" in capsys.readouterr().err
+    dirichlet = ["--dirichlet", "dirichlet"]
+    assert main(_slam_run(drive, tmp_path / "c", *dirichlet)) == 2
+    assert "need --buildings" in capsys.readouterr().err
+    assert main(_slam_run(drive, tmp_path / "d", "--buildings", facades, *dirichlet)) == 2
+    assert "only the dirichlet association" in capsys.readouterr().err

@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 
 from geoseg.classes import NUM_CLASSES
+from geoseg.dirichlet import load_filter
 from geoseg.errors import GeosegError
 from geoseg.pretrained import pretrained_dir, pretrained_file
-from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_network, load_network
+from slam_bridge.bridge.builder import (
+    BridgeConfig,
+    build_bridge,
+    check_network,
+    load_dirichlet_filter,
+    load_network,
+)
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import segmenter_outputs
 from slam_bridge.errors import SlamError
@@ -73,6 +80,38 @@ def test_the_network_may_be_named_by_its_shipped_weights():
     assert named.normals is not None and np.array_equal(named.labels, by_folder.labels)
     with pytest.raises(GeosegError, match="no_such_weights"):
         load_network("bayes", "no_such_weights")
+
+
+def test_the_dirichlet_filter_follows_the_naive_network(tmp_path, caplog):
+    """Each shipped naive CNN gets the filter calibrated on it; a user's network the shipped
+    one, with a warning; a filter may be given by name, folder or file."""
+    shipped = load_filter(pretrained_file("dirichlet", "dirichlet.json"))
+    real = load_filter(pretrained_file("dirichlet_real", "dirichlet.json"))
+    assert not np.allclose(shipped.alpha, real.alpha)
+    assert np.array_equal(load_dirichlet_filter().alpha, shipped.alpha)
+    assert np.array_equal(load_dirichlet_filter(None, "naive_real").alpha, real.alpha)
+    assert load_dirichlet_filter(None, "naive_real").threshold == real.threshold
+    by_file = load_dirichlet_filter(None, pretrained_file("naive_real", "model.onnx"))
+    assert np.array_equal(by_file.alpha, real.alpha)
+    for given in ("dirichlet_real", pretrained_dir("dirichlet_real"), real):
+        assert np.array_equal(load_dirichlet_filter(given, "naive").alpha, real.alpha)
+    assert "calibrated on the shipped naive CNN" not in caplog.text
+    with caplog.at_level("WARNING"):
+        user = load_dirichlet_filter(None, tmp_path / "my_naive.onnx")
+    assert np.array_equal(user.alpha, shipped.alpha)
+    assert "calibrated on the shipped naive CNN" in caplog.text
+    with pytest.raises(GeosegError, match="no such filter"):
+        load_dirichlet_filter(tmp_path / "none.json")
+
+
+def test_the_dirichlet_association_takes_the_filter_of_its_network(facades):
+    cfg = BridgeConfig(association="dirichlet", asynchronous=False)
+    worker = build_bridge(cfg, facades, image_size=(320, 240), weights="naive_real")
+    try:
+        real = load_filter(pretrained_file("dirichlet_real", "dirichlet.json"))
+        assert np.array_equal(worker.smooth_at.__self__.alpha, real.alpha)
+    finally:
+        worker.close()
 
 
 def test_build_bridge_checks_before_the_run(facades):

@@ -116,6 +116,12 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
     assert summary["runs"]["bayes_exact"]["building_keyframes"] > 0
     assert summary["inference_ms_per_keyframe"] > 0
     assert summary["async_time_ratio"] == summary["async_time_ratios"][0] > 0
+    # the asynchronous run's building rows replayed without its worker: the same trajectory
+    (pair,) = summary["timing_pairs"]
+    assert pair["replay_error_difference_m"] < 1e-9, pair
+    assert summary["async_time_ratio_same_rows"] * summary["building_rows_time_ratio"] == (
+        pytest.approx(summary["async_time_ratio"])
+    )
     for name in ("trajectories_exact", "association_gis", "reprojection_gis"):
         assert cv2.imread(str(out / f"{name}.png")) is not None, name
     assert "| bayes |" in (out / "buildings_ch4.md").read_text()
@@ -130,7 +136,7 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
     # another setting of the exact model's bridge: only the exact model's bridge runs are redone
     redone = []
 
-    def record(cfg, assets, method, model, asynchronous):
+    def record(cfg, assets, method, model, asynchronous, **kwargs):
         redone.append((method, model))
         return {"method": method, "model": model, "translation_error_m": 0.0}, None
 
