@@ -117,45 +117,28 @@ def load_segmenter(path: Path) -> Any:
 def filter_figures(name: str, model: Any, images: list, labels: list) -> dict[str, Any]:
     """The building false-positive filters of folder or shipped name ``name`` (its Dirichlet
     filter and max-probability baseline) on ``model``'s probabilities at 320x240, as
-    ``geoseg train dirichlet`` scores them on its evaluation city: the share of the argmax's
-    building false positives each removes and the false rejections it adds, as a share of the
-    true building pixels (:func:`training.metrics.building_filter_scores`)."""
-    import numpy as np
-    import torch
-
-    from geoseg.classes import BUILDING, IGNORE_INDEX
+    ``geoseg train dirichlet`` scores them on its evaluation city
+    (:func:`training.dirichlet_fit.score_filters`): the share of the argmax's building false
+    positives each removes and the false rejections it adds, as a share of the true building
+    pixels; beside them the share of the argmax's building pixels that are false."""
     from geoseg.dirichlet import load_filter
     from geoseg.pretrained import path_or_shipped
-    from training.metrics import building_filter_scores
+    from training.dirichlet_fit import score_filters
 
     folder = path_or_shipped(name)
-    filters = {
-        "dirichlet": load_filter(folder / "dirichlet.json"),
-        "maxprob": load_filter(folder / "max_probability.json"),
-    }
-    pred, keep, truth = [], {k: [] for k in filters}, []
-    for image, labels_full in zip(images, labels):
-        image, labels_small = resize_pair(image, labels_full, (240, 320))
-        probs = model(image).probabilities[0].transpose(1, 2, 0)
-        valid = labels_small != IGNORE_INDEX
-        argmax = probs.argmax(-1)
-        smoothed = filters["dirichlet"].smooth(probs)[valid]  # both filters share the window
-        pred.append(argmax[valid] == BUILDING)
-        truth.append(labels_small[valid] == BUILDING)
-        for key, flt in filters.items():
-            keep[key].append(flt.filter(smoothed, argmax[valid]))
+    filters = [load_filter(folder / "dirichlet.json"), load_filter(folder / "max_probability.json")]
+
+    def maps():
+        for image, truth in zip(images, labels):
+            image, truth = resize_pair(image, truth, (240, 320))
+            yield model(image).probabilities[0].transpose(1, 2, 0), truth
+
     figures: dict[str, Any] = {"dirichlet_filter": name}
-    pred_t, truth_t = (
-        torch.from_numpy(np.concatenate(pred)),
-        torch.from_numpy(np.concatenate(truth)),
-    )
-    for key in filters:
-        scores = building_filter_scores(
-            pred_t, torch.from_numpy(np.concatenate(keep[key])), truth_t
-        )
+    for key, scores in zip(("dirichlet", "maxprob"), score_filters(maps(), filters)):
         figures[f"{key}_fp_removed"] = scores["fp_removed"]
         figures[f"{key}_extra_false_rejections"] = scores["extra_false_rejections"]
-    figures["building_fp_argmax_share"] = float(pred_t[~truth_t].sum() / max(int(pred_t.sum()), 1))
+    predicted = scores["fp_argmax"] + scores["n_building"] - scores["fr_argmax"]
+    figures["building_fp_argmax_share"] = scores["fp_argmax"] / max(predicted, 1)
     return figures
 
 

@@ -290,21 +290,10 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     dirichlet.threshold_for_false_rejection(calib, rate)
     baseline.threshold_for_false_rejection(calib, rate)
 
-    pred_b, keep_d, keep_m, true_b = [], [], [], []
-    for probs, labels in dense_probabilities(
+    evaluation = dense_probabilities(
         model, val_set, range(cfg.calib_frames, need), desc="evaluation", **kw
-    ):
-        valid = labels != IGNORE_INDEX
-        argmax = probs.argmax(-1)[valid]
-        scored = dirichlet.smooth(probs)[valid]  # both filters share the window: smooth once
-        pred_b.append(argmax == BUILDING)
-        keep_d.append(dirichlet.filter(scored, argmax))
-        keep_m.append(baseline.filter(scored, argmax))
-        true_b.append(labels[valid] == BUILDING)
-    pred = torch.from_numpy(np.concatenate(pred_b))
-    truth = torch.from_numpy(np.concatenate(true_b))
-    d_scores = building_filter_scores(pred, torch.from_numpy(np.concatenate(keep_d)), truth)
-    m_scores = building_filter_scores(pred, torch.from_numpy(np.concatenate(keep_m)), truth)
+    )
+    d_scores, m_scores = score_filters(evaluation, [dirichlet, baseline])
 
     metrics: dict[str, Any] = {
         "dirichlet_fp_removed": d_scores["fp_removed"],
@@ -355,6 +344,24 @@ def _finite(value: Any) -> Any:
     if isinstance(value, list):
         return [_finite(v) for v in value]
     return value
+
+
+def score_filters(maps: Any, filters: Sequence[Any]) -> list[dict[str, Any]]:
+    """:func:`~training.metrics.building_filter_scores` of each of ``filters`` (sharing one
+    smoothing window) over ``maps``: ``(probs (..., H, W, K), labels (..., H, W))`` pairs, a
+    frame or a batch each (ignored pixels left out); one dict per filter, in order."""
+    pred_b, true_b, keep = [], [], [[] for _ in filters]
+    for probs, labels in maps:
+        valid = labels != IGNORE_INDEX
+        argmax = probs.argmax(-1)[valid]
+        scored = filters[0].smooth(probs)[valid]  # the filters share the window: smooth once
+        pred_b.append(argmax == BUILDING)
+        true_b.append(labels[valid] == BUILDING)
+        for kept, flt in zip(keep, filters):
+            kept.append(flt.filter(scored, argmax))
+    pred = torch.from_numpy(np.concatenate(pred_b))
+    truth = torch.from_numpy(np.concatenate(true_b))
+    return [building_filter_scores(pred, torch.from_numpy(np.concatenate(k)), truth) for k in keep]
 
 
 def filter_winner(d: dict[str, Any], m: dict[str, Any]) -> str:
