@@ -134,11 +134,13 @@ def filter_figures(name: str, model: Any, images: list, labels: list) -> dict[st
             yield model(image).probabilities[0].transpose(1, 2, 0), truth
 
     figures: dict[str, Any] = {"dirichlet_filter": name}
-    for key, scores in zip(("dirichlet", "maxprob"), score_filters(maps(), filters)):
+    scored = score_filters(maps(), filters)
+    for key, scores in zip(("dirichlet", "maxprob"), scored):
         figures[f"{key}_fp_removed"] = scores["fp_removed"]
         figures[f"{key}_extra_false_rejections"] = scores["extra_false_rejections"]
-    predicted = scores["fp_argmax"] + scores["n_building"] - scores["fr_argmax"]
-    figures["building_fp_argmax_share"] = scores["fp_argmax"] / max(predicted, 1)
+    argmax = scored[0]  # the argmax's counts: the same in every filter's scores
+    predicted = argmax["fp_argmax"] + argmax["n_building"] - argmax["fr_argmax"]
+    figures["building_fp_argmax_share"] = argmax["fp_argmax"] / max(predicted, 1)
     return figures
 
 

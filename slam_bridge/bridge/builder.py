@@ -11,6 +11,7 @@ do not match the images, is refused up front rather than at the first keyframe.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -24,6 +25,8 @@ from slam_bridge.bridge.constraints import BuildingConstraints
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import BridgeWorker, NetworkOutputs, segmenter_outputs
 from slam_bridge.errors import SlamError
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "ASSOCIATIONS",
@@ -148,8 +151,6 @@ def load_dirichlet_filter(filter_spec=None, weights: str | Path | None = None):
     Raises:
         GeosegError: no such file, or not a filter file.
     """
-    import logging
-
     from geoseg.dirichlet import load_filter
     from geoseg.pretrained import path_or_shipped
 
@@ -159,7 +160,7 @@ def load_dirichlet_filter(filter_spec=None, weights: str | Path | None = None):
         name = _shipped_naive(weights)
         filter_spec = SHIPPED_FILTERS.get(name, "dirichlet")
         if name is None:
-            logging.getLogger(__name__).warning(
+            logger.warning(
                 "dirichlet: no filter given for the network %s; using the shipped one, "
                 "calibrated on the shipped naive CNN (fit one: geoseg train dirichlet)",
                 weights,
