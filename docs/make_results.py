@@ -281,8 +281,9 @@ ABOUT: dict[str, str] = {
     "classes CamVid labels), the synthetic-only shipped weights zero-shot (with and without "
     "colour transfer) and fine-tuned on CamVid train for a fixed budget, beside the same budget "
     "from scratch; see docs/real_images.md.",
-    "accuracy_real_seg_real": "The shipped `seg_real` weights (`configs/seg_real.yaml`: the "
-    "shipped `seg` fine-tuned on the randomised synthetic city, no real image) on CamVid val, "
+    "accuracy_real_seg_real": "The shipped `seg_real` weights (`configs/seg_real.yaml` then "
+    "`configs/seg_real_480.yaml`: the shipped `seg` fine-tuned on the randomised synthetic city "
+    "at 320x240, then at 480x360, no real image) on CamVid val, "
     "zero-shot, with and without colour transfer, and what CamVid's labels say of the normals "
     "of `normals_real` (its joint network); see docs/real_images.md.",
     "buildings_ch4": "Building constraints chosen by the networks (thesis chapter 4): a 1.2 km "

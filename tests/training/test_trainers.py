@@ -345,9 +345,22 @@ def test_configs_in_the_repository_load():
         (normals_trainer, "normals"),
         (naive_trainer, "naive"),
         (dirichlet_trainer, "dirichlet"),
+        (seg_trainer, "seg_real"),
+        (seg_trainer, "seg_real_480"),
+        (normals_trainer, "normals_real"),
+        (naive_trainer, "naive_real"),
+        (dirichlet_trainer, "dirichlet_real"),
     ):
         cfg = load_config(module.CONFIG_CLASS, root / f"{name}.yaml")
         assert cfg.data.source == "synth"
+    # stage two of seg_real: stage one's run, at 480x360 with a cache of its own
+    stage_two = load_config(seg_trainer.SegConfig, root / "seg_real_480.yaml")
+    assert stage_two.init_checkpoint == Path("runs/seg_real/best.pt")
+    assert tuple(stage_two.data.size) == (360, 480)
+    assert (
+        stage_two.data.cache_dir
+        != load_config(seg_trainer.SegConfig, root / "seg_real.yaml").data.cache_dir
+    )
     with pytest.raises(ConfigError, match="train_crop"):
         load_config(seg_trainer.SegConfig, {"train_crop": [0, 4]})
     for key, value in (("window", 4), ("window", 0), ("fit_pixels", "argmax")):
