@@ -9,14 +9,15 @@ there; the model card's ``command`` reproduces it.
 
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
 street photographs: fine-tuned from ``seg`` on the randomised city at 320x240 then at 480x360,
-``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, docs/real_images.md), ``normals`` (the joint labels + normals network: the ``seg`` trunk and
-label head with a trained normals head), ``normals_real`` (the same for real photographs: the
-``seg_real`` trunk and label head with a normals head trained on the randomised city,
-``configs/normals_real.yaml``), ``naive`` (the 2015 patch CNN), ``dirichlet`` (its
-false-positive filter), ``naive_real`` and ``dirichlet_real`` (the same for real photographs:
-``configs/naive_real.yaml``, ``configs/dirichlet_real.yaml``), ``reloc`` and ``relpose`` (the
-relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
-one place, :class:`geoseg.localizer.GatedRelPoseHead`).
+``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, docs/real_images.md), ``normals``
+(the joint labels + normals network: the ``seg`` trunk and label head with a trained normals
+head), ``normals_real`` (the same for real photographs: the ``seg_real`` trunk and label
+head with a normals head trained on the randomised city, ``configs/normals_real.yaml``),
+``naive`` (the 2015 patch CNN), ``dirichlet`` (its false-positive filter), ``naive_real`` and
+``dirichlet_real`` (the same for real photographs: ``configs/naive_real.yaml``,
+``configs/dirichlet_real.yaml``), ``reloc`` and ``relpose`` (the relocalisation heads, when
+shipped) and ``relpose_near`` (the relative-pose head for views of one place,
+:class:`geoseg.localizer.GatedRelPoseHead`).
 """
 
 from __future__ import annotations
