@@ -130,32 +130,60 @@ def _associations(out: Path, model: str, runs: dict, facades) -> Path:
 def _reprojections(out: Path, model: str, runs: dict, folder: Path, facades, frame_times,
                    count: int = 3) -> Path:  # fmt: skip
     """The facades' outlines projected with each run's pose into ``count`` keyframes spread
-    over the drive (the images under them)."""
-    first = next(iter(runs.values()))
-    common = np.flatnonzero(first["in_world"])
+    over the drive (the images under them): keyframes that every run placed in the world, so
+    each tile of a row has its outline (the runs choose their keyframes themselves)."""
+    common = None
+    for r in runs.values():
+        placed = np.asarray(r["timestamps"])[np.asarray(r["in_world"], dtype=bool)]
+        placed = placed[np.isfinite(r["t_wc"][r["in_world"]]).all(1)]
+        common = placed if common is None else np.intersect1d(common, placed)
+    common = np.sort(common)
     picks = common[np.linspace(len(common) // 6, len(common) - 1, count).astype(int)]
     rows = []
-    for k in picks:
-        t = first["timestamps"][k]
+    for t in picks if len(common) else []:
         frame = int(np.argmin(np.abs(frame_times - t)))
         rgb = cv2.imread(str(folder / "rgb" / f"{frame:06d}.png"))
         tiles = []
         for method, r in runs.items():
-            j = int(np.argmin(np.abs(r["timestamps"] - t)))
+            j = int(np.flatnonzero(r["timestamps"] == t)[0])
             tile = rgb.copy()
-            if abs(r["timestamps"][j] - t) < 1e-6 and np.isfinite(r["t_wc"][j]).all():
-                _draw_model(tile, facades, r["R_wc"][j], r["t_wc"][j], r["K"])
+            _draw_model(tile, facades, r["R_wc"][j], r["t_wc"][j], r["K"])
             cv2.putText(tile, f"{method}, frame {frame}", (10, 28), cv2.FONT_HERSHEY_SIMPLEX,
                         0.8, (255, 255, 255), 2, cv2.LINE_AA)  # fmt: skip
             tiles.append(tile)
         rows.append(np.concatenate(tiles, axis=1))
     path = out / f"reprojection_{model}.png"
-    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
+    if rows:
+        cv2.imwrite(str(path), np.concatenate(rows, axis=0))
     return path
 
 
-def _draw_model(image: np.ndarray, facades, R_wc: np.ndarray, t_wc: np.ndarray, K) -> None:
-    """Each facade's rectangle (bottom edge, top edge, sides) in yellow where in front."""
+NEAR_M = 1.0  # the near plane the facade outlines are clipped at, metres in front of the camera
+
+
+def clip_near(polygon: np.ndarray, near: float = NEAR_M) -> np.ndarray:
+    """The part of a camera-frame polygon in front of the plane ``z = near``
+    (Sutherland-Hodgman against that one plane).
+
+    Args:
+        polygon: ``(N, 3)`` vertices in order, camera frame.
+
+    Returns:
+        ``(M, 3)`` vertices of the clipped polygon (``M = 0`` when it lies wholly behind).
+    """
+    kept = []
+    for a, b in zip(polygon, np.roll(polygon, -1, axis=0)):
+        if a[2] >= near:
+            kept.append(a)
+        if (a[2] >= near) != (b[2] >= near):  # the edge crosses the plane
+            kept.append(a + (near - a[2]) / (b[2] - a[2]) * (b - a))
+    return np.array(kept).reshape(-1, 3)
+
+
+def _draw_model(image: np.ndarray, facades, R_wc: np.ndarray, t_wc: np.ndarray, K,
+                max_range_m: float = 60.0) -> None:  # fmt: skip
+    """Each facade's rectangle (bottom edge, top edge, sides) in yellow, clipped at the near
+    plane: the facades along the street start beside or behind the camera."""
     corners = np.stack(
         [
             np.column_stack([facades.p0, facades.z_min]),
@@ -166,11 +194,13 @@ def _draw_model(image: np.ndarray, facades, R_wc: np.ndarray, t_wc: np.ndarray, 
         axis=1,
     )  # (F, 4, 3)
     X_c = (corners - t_wc) @ R_wc  # R_cw X = R_wc^T X
-    near = (X_c[:, :, 2] > 0.5).all(1) & (np.linalg.norm(X_c, axis=2).min(1) < 60.0)
-    uv = X_c[near] @ np.asarray(K).T
-    uv = uv[:, :, :2] / uv[:, :, 2:]
-    h, w = image.shape[:2]
-    for quad in uv:
-        if np.all(np.abs(quad) < 4 * max(h, w)):
-            cv2.polylines(image, [np.round(quad).astype(np.int32)], True, (0, 215, 255), 2,
+    K = np.asarray(K)
+    for quad in X_c[np.linalg.norm(X_c, axis=2).min(1) < max_range_m]:
+        clipped = clip_near(quad)
+        if len(clipped) < 3:
+            continue
+        uv = clipped @ K.T
+        uv = uv[:, :2] / uv[:, 2:]
+        if np.all(np.abs(uv) < 1e5):  # OpenCV clips the lines to the image
+            cv2.polylines(image, [np.round(uv).astype(np.int32)], True, (0, 215, 255), 2,
                           cv2.LINE_AA)  # fmt: skip
