@@ -74,6 +74,16 @@ def _draw_facades(ax, facades, colour="0.6") -> None:
         ax.plot([p0[0], p1[0]], [p0[1], p1[1]], color=colour, lw=0.6)
 
 
+def _zoom(ax, xy: np.ndarray, pad_m: float) -> None:
+    """Axis limits around the finite rows of ``xy (N, 2)`` (2nd to 98th percentile, padded):
+    a short drive covers a corner of the city, and at the city's scale its points vanish."""
+    xy = xy[np.isfinite(xy).all(1)]
+    if len(xy):
+        lo, hi = np.percentile(xy, [2, 98], axis=0)
+        ax.set_xlim(lo[0] - pad_m, hi[0] + pad_m)
+        ax.set_ylim(lo[1] - pad_m, hi[1] + pad_m)
+
+
 def _trajectories(out: Path, model: str, runs: dict, truth_xy: np.ndarray, facades) -> Path:
     """The keyframes over the model (left) and their horizontal error along the drive (right:
     at the map's scale the methods' centimetres to decimetres do not show)."""
@@ -88,6 +98,7 @@ def _trajectories(out: Path, model: str, runs: dict, truth_xy: np.ndarray, facad
         label = f"{method} (mean error {err:.3f} m)"
         ax.plot(xy[:, 0], xy[:, 1], "-", lw=1.0, color=COLOURS.get(method), label=label)
         ax_err.plot(r["error_m"], "-", lw=1.0, color=COLOURS.get(method), label=label)
+    _zoom(ax, truth_xy, 40.0)
     ax.set_aspect("equal")
     ax.set_xlabel("x (m)")
     ax.set_ylabel("y (m)")
@@ -118,6 +129,7 @@ def _associations(out: Path, model: str, runs: dict, facades) -> Path:
         right = np.mean(r["facade"][ok & on] == r["true_facade"][ok & on]) if on.any() else 0
         ax.set_title(f"{method}: {int((ok & on).sum())} of {int(ok.sum())} points on facades, "
                      f"{100 * right:.0f} % right")  # fmt: skip
+        _zoom(ax, pts[ok, :2], 15.0)
         ax.set_aspect("equal")
         ax.legend(loc="upper right", fontsize=7, markerscale=4)
     fig.suptitle(f"map points and their association, {model} building model")
