@@ -59,7 +59,7 @@ def write_pictures(out: Path, folder: Path, facades: dict, methods, models) -> l
         if pair:
             written.append(_reprojections(out, model, {m: runs[m] for m in pair}, folder,
                                           facades[model], poses["timestamp"]))  # fmt: skip
-    return written
+    return [path for path in written if path is not None]
 
 
 def _load(path: Path) -> dict | None:
@@ -140,19 +140,22 @@ def _associations(out: Path, model: str, runs: dict, facades) -> Path:
 
 
 def _reprojections(out: Path, model: str, runs: dict, folder: Path, facades, frame_times,
-                   count: int = 3) -> Path:  # fmt: skip
+                   count: int = 3) -> Path | None:  # fmt: skip
     """The facades' outlines projected with each run's pose into ``count`` keyframes spread
     over the drive (the images under them): keyframes that every run placed in the world, so
-    each tile of a row has its outline (the runs choose their keyframes themselves)."""
+    each tile of a row has its outline (the runs choose their keyframes themselves). None when
+    the runs share no such keyframe."""
     common = None
     for r in runs.values():
         placed = np.asarray(r["timestamps"])[np.asarray(r["in_world"], dtype=bool)]
         placed = placed[np.isfinite(r["t_wc"][r["in_world"]]).all(1)]
         common = placed if common is None else np.intersect1d(common, placed)
+    if not len(common):
+        return None
     common = np.sort(common)
     picks = common[np.linspace(len(common) // 6, len(common) - 1, count).astype(int)]
     rows = []
-    for t in picks if len(common) else []:
+    for t in picks:
         frame = int(np.argmin(np.abs(frame_times - t)))
         rgb = cv2.imread(str(folder / "rgb" / f"{frame:06d}.png"))
         tiles = []
@@ -165,8 +168,7 @@ def _reprojections(out: Path, model: str, runs: dict, folder: Path, facades, fra
             tiles.append(tile)
         rows.append(np.concatenate(tiles, axis=1))
     path = out / f"reprojection_{model}.png"
-    if rows:
-        cv2.imwrite(str(path), np.concatenate(rows, axis=0))
+    cv2.imwrite(str(path), np.concatenate(rows, axis=0))
     return path
 
 
