@@ -147,8 +147,8 @@ def _reprojections(out: Path, model: str, runs: dict, folder: Path, facades, fra
     the runs share no such keyframe."""
     common = None
     for r in runs.values():
-        placed = np.asarray(r["timestamps"])[np.asarray(r["in_world"], dtype=bool)]
-        placed = placed[np.isfinite(r["t_wc"][r["in_world"]]).all(1)]
+        placed_mask = np.asarray(r["in_world"], dtype=bool) & np.isfinite(r["t_wc"]).all(1)
+        placed = np.asarray(r["timestamps"])[placed_mask]
         common = placed if common is None else np.intersect1d(common, placed)
     if not len(common):
         return None
