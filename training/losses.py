@@ -48,7 +48,9 @@ def class_weights_from_dataset(
     Args:
         dataset: yields ``{"labels": (H, W) int}`` samples.
         max_samples: how many samples to count (drawn without replacement with ``seed``).
-        seed: picks the samples.
+        seed: picks the samples and seeds torch's generator for their random transforms (a
+            training set's zoom and flips), so that a run's weights do not depend on what drew
+            from the generator before (the global state is restored afterwards).
         num_classes: C.
         c: ENet's constant.
 
@@ -63,7 +65,11 @@ def class_weights_from_dataset(
         raise GeosegError("dataset: empty; cannot compute class weights")
     rng = np.random.default_rng(seed)
     picks = np.sort(rng.choice(n, size=min(n, max_samples), replace=False))
-    counts = class_counts((torch.as_tensor(dataset[int(i)]["labels"]) for i in picks), num_classes)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        counts = class_counts(
+            (torch.as_tensor(dataset[int(i)]["labels"]) for i in picks), num_classes
+        )
     if int(counts.sum()) == 0:
         raise GeosegError("dataset: no labelled pixel in the sampled frames")
     weights = enet_class_weights(counts, c=c)

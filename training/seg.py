@@ -62,6 +62,11 @@ class SegConfig(TrainConfig):
         export: export ``model.onnx`` at the end.
         train_crop: ``(h, w)`` random training crops of the ``data.size`` frames (None: whole
             frames); validation always uses whole frames.
+        freeze: ENet submodules kept as ``init_checkpoint`` has them, batch-norm statistics
+            included (:meth:`~geoseg.models.enet.ENet.freeze`): ``[trunk]`` trains the head
+            alone and keeps the trunk's layer-21 features, and so every normals or
+            relocalisation head trained on them, as they were; ``[trunk.initial, trunk.down1,
+            trunk.stage1]`` keeps the first layers' low-level filters. Needs ``init_checkpoint``.
     """
 
     model: str = "enet"
@@ -73,10 +78,18 @@ class SegConfig(TrainConfig):
     class_weight_c: float = 1.02
     export: bool = True
     train_crop: tuple[int, int] | None = None
+    freeze: list[str] = dataclasses.field(default_factory=list)
 
     def __post_init__(self) -> None:
         super().__post_init__()
         common.check_trainer_config(self, trainer="seg", model="enet")
+        if self.freeze and (self.init_checkpoint is None or self.encoder_epochs > 0):
+            raise ConfigError(
+                "freeze: needs init_checkpoint (trained weights to keep) and "
+                "encoder_epochs 0 (the encoder-first stage trains the trunk)"
+            )
+        if self.freeze:  # names checked now, not after the frames are rendered
+            get_model("enet", **self.model_config).freeze(self.freeze)
         if self.encoder_epochs < 0:
             raise ConfigError(f"encoder_epochs: expected >= 0, got {self.encoder_epochs}")
         if self.class_weight_samples < 1:
@@ -137,6 +150,7 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
     model = get_model("enet", **cfg.model_config)
     if cfg.init_checkpoint is not None:
         common.load_init_weights(model, cfg.init_checkpoint, model_name="enet")
+    model.freeze(cfg.freeze)
     if cfg.encoder_epochs > 0:
         enc_dir = Path(cfg.out_dir) / ENCODER_DIR
         enc_cfg = _stage_cfg(

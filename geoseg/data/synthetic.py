@@ -114,7 +114,9 @@ class SyntheticConfig:
             angle, as the default 12 m carriageway with parking never shows them.
         narrow_street: :class:`~geoseg.synth.world.WorldConfig` keys of those cities, over
             :attr:`world` (default: a 9 m carriageway without parking strips, 2.5 m pavements,
-            facades at most 0.3 m behind them).
+            facades at most 0.3 m behind them); or a list of such variants, which the narrow
+            cities of each preset take in turn (e.g. one without parking strips and one with
+            them: half the old town's streets lined with parked cars).
     """
 
     world: dict[str, Any] = field(default_factory=dict)
@@ -137,7 +139,7 @@ class SyntheticConfig:
     clean_share: float = 0.0
     clean_keeps_labels: bool = True
     narrow_street_share: float = 0.0
-    narrow_street: dict[str, Any] = field(
+    narrow_street: dict[str, Any] | list[dict[str, Any]] = field(
         default_factory=lambda: {
             "street_width": 9.0,
             "parking_width": 0.0,
@@ -160,9 +162,12 @@ class SyntheticConfig:
             )
         if self.drive_length_m <= 0 or self.yaw_jitter_deg < 0:
             raise ConfigError("synth.drive_length_m > 0 and synth.yaw_jitter_deg >= 0 expected")
-        for section in ("world", "narrow_street"):  # WorldConfig keys, all but these two
+        if not self.narrow_variants:
+            raise ConfigError("synth.narrow_street: expected a mapping or a non-empty list of them")
+        sections = [("world", self.world)] + [("narrow_street", v) for v in self.narrow_variants]
+        for section, keys in sections:  # WorldConfig keys, all but these two
             for key in ("seed", "preset"):
-                if key in getattr(self, section):
+                if key in keys:
                     raise ConfigError(
                         f"synth.{section}.{key}: set it with synth.seeds / synth.presets"
                     )
@@ -212,14 +217,28 @@ class SyntheticConfig:
         world = self.world_config(seed)
         return float(min(shift, world.lane_offset + world.parking_width - MIN_KERB_CLEARANCE_M))
 
+    @property
+    def narrow_variants(self) -> list[dict[str, Any]]:
+        """The :attr:`narrow_street` variants (one when it is a single mapping)."""
+        ns = self.narrow_street
+        return [ns] if isinstance(ns, Mapping) else list(ns)
+
+    def narrow_variant(self, seed: int) -> dict[str, Any] | None:
+        """The :attr:`narrow_street` keys city ``seed`` (one of :attr:`seeds`) is built with,
+        or None for a city of :attr:`world` alone. The ``k``-th narrow city of a preset takes
+        variant ``k mod len(variants)``."""
+        if self.narrow_street_share <= 0 or seed not in self.seeds:
+            return None
+        per_preset = -(-len(self.seeds) // len(self.presets))
+        rank = self.seeds.index(seed) // len(self.presets)
+        if rank >= round(self.narrow_street_share * per_preset):
+            return None
+        variants = self.narrow_variants
+        return variants[rank % len(variants)]
+
     def is_narrow(self, seed: int) -> bool:
         """Whether city ``seed`` (one of :attr:`seeds`) is built with :attr:`narrow_street`."""
-        if self.narrow_street_share <= 0 or seed not in self.seeds:
-            return False
-        per_preset = -(-len(self.seeds) // len(self.presets))
-        return self.seeds.index(seed) // len(self.presets) < round(
-            self.narrow_street_share * per_preset
-        )
+        return self.narrow_variant(seed) is not None
 
     def world_config(self, seed: int) -> Any:
         """The :class:`~geoseg.synth.world.WorldConfig` of city ``seed``."""
@@ -227,8 +246,9 @@ class SyntheticConfig:
 
         preset = self.presets[self.seeds.index(seed) % len(self.presets)]
         data = dict(self.world)
-        if self.is_narrow(seed):  # one level deep: `buildings` keys join the shared ones
-            for key, value in self.narrow_street.items():
+        narrow = self.narrow_variant(seed)
+        if narrow is not None:  # one level deep: `buildings` keys join the shared ones
+            for key, value in narrow.items():
                 shared = data.get(key)
                 both_dicts = isinstance(shared, Mapping) and isinstance(value, Mapping)
                 data[key] = {**shared, **value} if both_dicts else value

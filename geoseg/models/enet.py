@@ -47,13 +47,14 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
 from geoseg.classes import NUM_CLASSES
-from geoseg.errors import check_positive
+from geoseg.errors import ConfigError, check_positive
 from geoseg.models.checks import check_image_tensor
 
 logger = logging.getLogger(__name__)
@@ -329,6 +330,42 @@ class ENet(nn.Module):
         self.in_channels = in_channels
         self.trunk = ENetTrunk(in_channels)
         self.head = ENetHead(num_classes)
+        self._frozen: tuple[str, ...] = ()
+
+    def freeze(self, names: Sequence[str] = ("trunk",)) -> ENet:
+        """Freeze the named submodules (``trunk``, ``trunk.stage1``, ``head.up4``...) and
+        unfreeze the others, to fine-tune the rest alone.
+
+        Freezing the ``trunk`` (layers 1-21) keeps its layer-21 features, which the normals and
+        relocalisation heads read, so every head trained on them stays valid. Frozen parameters
+        get ``requires_grad=False`` and the frozen modules stay in eval mode (batch-norm
+        statistics and dropout fixed) even when ``train()`` is called.
+
+        Raises:
+            ConfigError: a name that is not a submodule (the error lists the trunk's and head's).
+
+        Returns:
+            ``self``.
+        """
+        modules = dict(self.named_modules())
+        unknown = [n for n in names if not n or n not in modules]
+        if unknown:
+            known = [n for n in modules if n.count(".") <= 1 and n]
+            raise ConfigError(f"freeze: no submodule {unknown} in ENet; e.g. {known}")
+        self._frozen = tuple(names)
+        for p in self.parameters():
+            p.requires_grad_(True)
+        for name in self._frozen:
+            for p in modules[name].parameters():
+                p.requires_grad_(False)
+        return self.train(self.training)
+
+    def train(self, mode: bool = True) -> ENet:
+        super().train(mode)
+        modules = dict(self.named_modules())
+        for name in self._frozen:
+            modules[name].eval()
+        return self
 
     def forward(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
         check_image_tensor("x", x, channels=self.in_channels)

@@ -71,6 +71,47 @@ def test_seg_fine_tunes_from_init_checkpoint_on_a_camvid_folder(tmp_path):
     assert len(card["colour_statistics"]["mean"]) == 3
 
 
+def test_freeze_trains_the_rest_alone_and_keeps_the_frozen_statistics(tmp_path):
+    root = _camvid_folder(tmp_path / "camvid")
+    init = _enet_file(tmp_path / "init" / "model.pt", seed=123)
+    settings = {
+        "epochs": 1,
+        "batch_size": 2,
+        "device": "cpu",
+        "progress": False,
+        "export": False,
+        "plots": False,
+        "class_weight_samples": 2,
+        "init_checkpoint": str(init),
+        "freeze": ["trunk"],
+        "optim": {"lr": 1e-2},
+        "out_dir": str(tmp_path / "run"),
+        "data": {"source": "camvid", "root": str(root), "size": [32, 48]},
+    }
+    run = seg_trainer.main(load_config(seg_trainer.SegConfig, settings))
+    tuned = load_model_checkpoint(run / "model.pt")[0].state_dict()
+    start = load_model_checkpoint(init)[0].state_dict()
+    trunk = [k for k in start if k.startswith("trunk.")]
+    running = [k for k in trunk if k.endswith("running_mean")]
+    assert running and all(torch.equal(tuned[k], start[k]) for k in trunk)  # BN stats too
+    head = [k for k in start if k.startswith("head.") and start[k].is_floating_point()]
+    assert any(not torch.allclose(tuned[k], start[k]) for k in head)
+
+    model = get_model("enet").freeze(["trunk.initial", "head.up4"])
+    model.train()
+    assert not model.trunk.initial.training and not model.head.up4.training
+    assert model.trunk.stage1.training and model.head.stage4.training
+    frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
+    assert frozen and all(n.startswith(("trunk.initial.", "head.up4.")) for n in frozen)
+    assert all(p.requires_grad for p in model.freeze([]).parameters())  # unfrozen again
+    with pytest.raises(ConfigError, match=r"freeze: no submodule \['trunk.stage9'\]"):
+        model.freeze(["trunk.stage9"])
+    with pytest.raises(ConfigError, match="freeze: needs init_checkpoint"):
+        load_config(seg_trainer.SegConfig, {**settings, "init_checkpoint": None})
+    with pytest.raises(ConfigError, match="freeze: no submodule"):  # before any data is read
+        load_config(seg_trainer.SegConfig, {**settings, "freeze": ["trunk.stage9"]})
+
+
 def test_init_checkpoint_refuses_another_architecture(tmp_path):
     model = get_model("enet")
     five = _enet_file(tmp_path / "five" / "model.pt", seed=0, num_classes=5)

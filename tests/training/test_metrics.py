@@ -7,6 +7,7 @@ import torch
 
 from geoseg.classes import BUILDING, IGNORE_INDEX
 from geoseg.errors import GeosegError
+from training.losses import class_weights_from_dataset
 from training.metrics import (
     MeterCollection,
     NormalsMeter,
@@ -71,6 +72,33 @@ def test_enet_class_weights_formula() -> None:
     assert class_counts(labels, 4).tolist() == [2, 1, 0, 0]
     with pytest.raises(GeosegError):
         enet_class_weights(torch.zeros(3))
+
+
+class _RandomlyCroppedLabels(torch.utils.data.Dataset):
+    """Labels whose visible part a random transform picks (torch's global generator)."""
+
+    def __len__(self) -> int:
+        return 6
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        labels = torch.zeros(4, 8, dtype=torch.int64)
+        labels[:, :i] = 1
+        shift = int(torch.randint(0, 8, ()))  # as a random zoom or crop draws
+        return {"labels": labels.roll(shift, dims=1)[:, :4]}
+
+
+def test_class_weights_from_a_randomly_transformed_dataset_do_not_depend_on_the_generator():
+    dataset = _RandomlyCroppedLabels()
+    torch.manual_seed(1)
+    first, counts = class_weights_from_dataset(dataset, max_samples=4, seed=0)
+    after = torch.rand(())  # the global stream goes on as if nothing had drawn from it
+    torch.manual_seed(1)
+    assert torch.equal(after, torch.rand(()))
+    torch.manual_seed(2)  # another state before the call: the same weights
+    second, _ = class_weights_from_dataset(dataset, max_samples=4, seed=0)
+    assert torch.equal(first, second) and int(counts.sum()) == 4 * 16
+    third, _ = class_weights_from_dataset(dataset, max_samples=4, seed=3)
+    assert not torch.equal(first, third)  # another seed, other samples and transforms
 
 
 def _rot_z(deg: float) -> torch.Tensor:

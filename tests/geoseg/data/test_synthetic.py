@@ -258,6 +258,32 @@ def test_narrow_street_cities_are_the_first_of_each_preset_and_keep_the_others_k
         _config(narrow_street_share=1.0, narrow_street={"street_width": 6.0, "parking_width": 2.0})
 
 
+def test_narrow_street_variants_are_taken_in_turn_and_keep_a_single_variants_cache_keys():
+    seeds = [1, 2, 3, 4, 5, 6, 7, 8]  # presets alternate: light, dense, light, dense, ...
+    bare = {"street_width": 9.0, "parking_width": 0.0}
+    parked = {"street_width": 11.0, "parking_width": 2.0}
+    mixed = _config(seeds=seeds, narrow_street_share=0.75, narrow_street=[bare, parked])
+    # 4 cities per preset, round(0.75 * 4) = 3 narrow: ranks 0, 2 bare, rank 1 parked, rank 3 wide
+    widths = [
+        (mixed.world_config(s).street_width, mixed.world_config(s).parking_width) for s in seeds
+    ]
+    assert widths[:6] == [(9.0, 0.0)] * 2 + [(11.0, 2.0)] * 2 + [(9.0, 0.0)] * 2
+    assert [mixed.is_narrow(s) for s in seeds] == [True] * 6 + [False] * 2
+    assert mixed.world_config(7) == _config(seeds=seeds).world_config(7)
+    # a one-entry list is the mapping itself: same cities, same cache keys
+    single = _config(seeds=seeds[:2], frames=4, narrow_street_share=1.0, narrow_street=bare)
+    listed = _config(seeds=seeds[:2], frames=4, narrow_street_share=1.0, narrow_street=[bare])
+    a, b = SyntheticDataset(single, size=SIZE), SyntheticDataset(listed, size=SIZE)
+    assert [a.cache_key(a.spec(i)) for i in range(4)] == [b.cache_key(b.spec(i)) for i in range(4)]
+    with pytest.raises(ConfigError, match="narrow_street"):
+        _config(narrow_street=[])
+    with pytest.raises(ConfigError, match="narrow_street.preset"):
+        _config(narrow_street=[bare, {"preset": "light"}])
+    with pytest.raises(ConfigError, match="parking_width"):  # every variant is checked
+        bad = {"street_width": 6.0, "parking_width": 2.0}
+        _config(seeds=seeds, narrow_street_share=1.0, narrow_street=[bare, bad])
+
+
 def test_clean_share_renders_some_samples_plain_and_transforms_them_apart():
     from geoseg.synth.realism import REALISTIC
 
