@@ -36,25 +36,32 @@ def _enet_file(path: Path, seed: int, **config) -> Path:
     return save_model_checkpoint(model, path, model_name="enet", model_config=config)
 
 
-def test_seg_fine_tunes_from_init_checkpoint_on_a_camvid_folder(tmp_path):
+def _tiny_seg_settings(tmp_path: Path, init: Path, **changes) -> dict:
+    """A one-epoch seg run on a tiny CamVid folder made in ``tmp_path``, from ``init``."""
     root = _camvid_folder(tmp_path / "camvid")
+    return {
+        "epochs": 1,
+        "batch_size": 2,
+        "device": "cpu",
+        "progress": False,
+        "export": False,
+        "plots": False,
+        "class_weight_samples": 2,
+        "init_checkpoint": str(init),
+        "out_dir": str(tmp_path / "run"),
+        "data": {"source": "camvid", "root": str(root), "size": [32, 48]},
+        **changes,
+    }
+
+
+def test_seg_fine_tunes_from_init_checkpoint_on_a_camvid_folder(tmp_path):
     init = _enet_file(tmp_path / "init" / "model.pt", seed=123)
-    cfg = load_config(
-        seg_trainer.SegConfig,
-        {
-            "epochs": 1,
-            "batch_size": 2,
-            "device": "cpu",
-            "progress": False,
-            "export": False,
-            "plots": False,
-            "class_weight_samples": 2,
-            "init_checkpoint": str(init.parent),  # a run directory works too
-            "optim": {"lr": 1e-12},  # the weights stay (numerically) where they started
-            "out_dir": str(tmp_path / "run"),
-            "data": {"source": "camvid", "root": str(root), "size": [32, 48]},
-        },
+    settings = _tiny_seg_settings(
+        tmp_path,
+        init.parent,  # a run directory works too
+        optim={"lr": 1e-12},  # the weights stay (numerically) where they started
     )
+    cfg = load_config(seg_trainer.SegConfig, settings)
     run = seg_trainer.main(cfg)
     tuned, _ = load_model_checkpoint(run / "model.pt")
     start, _ = load_model_checkpoint(init)
@@ -72,22 +79,8 @@ def test_seg_fine_tunes_from_init_checkpoint_on_a_camvid_folder(tmp_path):
 
 
 def test_freeze_trains_the_rest_alone_and_keeps_the_frozen_statistics(tmp_path):
-    root = _camvid_folder(tmp_path / "camvid")
     init = _enet_file(tmp_path / "init" / "model.pt", seed=123)
-    settings = {
-        "epochs": 1,
-        "batch_size": 2,
-        "device": "cpu",
-        "progress": False,
-        "export": False,
-        "plots": False,
-        "class_weight_samples": 2,
-        "init_checkpoint": str(init),
-        "freeze": ["trunk"],
-        "optim": {"lr": 1e-2},
-        "out_dir": str(tmp_path / "run"),
-        "data": {"source": "camvid", "root": str(root), "size": [32, 48]},
-    }
+    settings = _tiny_seg_settings(tmp_path, init, freeze=["trunk"], optim={"lr": 1e-2})
     run = seg_trainer.main(load_config(seg_trainer.SegConfig, settings))
     tuned = load_model_checkpoint(run / "model.pt")[0].state_dict()
     start = load_model_checkpoint(init)[0].state_dict()
