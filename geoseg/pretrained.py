@@ -5,11 +5,14 @@ benchmarks read (:data:`SHIPPED_FILES`): ``model.pt`` (torch checkpoint), ``mode
 ``model_card.json`` / ``.md`` (data, config, command, metrics, wall time), ``metrics.json`` /
 ``.csv`` and ``config.yaml``; the Dirichlet folder holds ``dirichlet.json`` and
 ``max_probability.json`` instead of a network. ``python -m training.ship RUN NAME`` copies a run
-there; the model card's ``command`` reproduces it.
+there; the model card's ``command`` reproduces it (``python -m training.average`` for averaged
+weights, whose card names their sources).
 
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
 street photographs: fine-tuned from ``seg`` on the randomised city at 320x240 then at 480x360,
-``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, docs/real_images.md), ``normals``
+``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, its weights averaged with those of
+the same stage two on cities with parked cars, ``configs/seg_real_parked.yaml`` and
+:mod:`training.average`; docs/real_images.md), ``normals``
 (the joint labels + normals network: the ``seg`` trunk and label head with a trained normals
 head), ``normals_real`` (the same for real photographs: the ``seg_real`` trunk and label
 head with a normals head trained on the randomised city, ``configs/normals_real.yaml``),

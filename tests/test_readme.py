@@ -32,6 +32,7 @@ NOT_RUN = {
     "pip install": "installation (the test runs on the installed package)",
     "python -m pytest": "the test suite itself",
     "geoseg train": "training takes minutes to hours; tests/training runs each trainer on tiny configs",
+    "python -m training.average": "it averages the runs trained above; tests/training/test_average.py",
 }
 # command -> option -> largest value the test uses (frames), or the value it uses (size)
 TINY = {

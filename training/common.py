@@ -252,16 +252,18 @@ def make_loaders(cfg: TrainConfig, train_set: Dataset, val_set: Dataset | None) 
         num_workers=cfg.data.num_workers,
         drop_last=len(train_set) > cfg.batch_size,
     )
-    val = None
-    if val_set is not None:
-        val = dd.make_loader(
-            val_set,
-            batch_size=cfg.val_batch_size or cfg.batch_size,
-            shuffle=False,
-            seed=cfg.seed,
-            num_workers=cfg.data.num_workers,
-        )
-    return train, val
+    return train, None if val_set is None else make_val_loader(cfg, val_set)
+
+
+def make_val_loader(cfg: TrainConfig, val_set: Dataset) -> Any:
+    """The validation loader of :func:`make_loaders`: in order, ``val_batch_size`` batches."""
+    return dd.make_loader(
+        val_set,
+        batch_size=cfg.val_batch_size or cfg.batch_size,
+        shuffle=False,
+        seed=cfg.seed,
+        num_workers=cfg.data.num_workers,
+    )
 
 
 def describe_data(data: DataConfig) -> dict[str, Any]:

@@ -11,6 +11,7 @@ import torch
 from geoseg.classes import BUILDING
 from geoseg.cli import main as cli_main
 from geoseg.config import load_config
+from geoseg.data.synthetic import synthetic_config
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
 from training import common
@@ -347,6 +348,7 @@ def test_configs_in_the_repository_load():
         (dirichlet_trainer, "dirichlet"),
         (seg_trainer, "seg_real"),
         (seg_trainer, "seg_real_480"),
+        (seg_trainer, "seg_real_parked"),
         (normals_trainer, "normals_real"),
         (naive_trainer, "naive_real"),
         (dirichlet_trainer, "dirichlet_real"),
@@ -361,6 +363,10 @@ def test_configs_in_the_repository_load():
         stage_two.data.cache_dir
         != load_config(seg_trainer.SegConfig, root / "seg_real.yaml").data.cache_dir
     )
+    # the branch averaged into seg_real: stage two with every second narrow city parked
+    parked = load_config(seg_trainer.SegConfig, root / "seg_real_parked.yaml").data.synth
+    variants = synthetic_config(parked, split="train").narrow_variants
+    assert [v["parking_width"] for v in variants] == [0.0, 2.0]
     with pytest.raises(ConfigError, match="train_crop"):
         load_config(seg_trainer.SegConfig, {"train_crop": [0, 4]})
     for key, value in (("window", 4), ("window", 0), ("fit_pixels", "argmax")):
