@@ -187,14 +187,12 @@ def average_runs(
     metrics = {f"val_{k}": v for k, v in scores.items()}
     logger.info("averaged %d networks: val_miou %.4f", len(sources), metrics.get("val_miou", 0))
 
-    from geoseg.colour_transfer import CARD_KEY
-    from training.colour_stats import training_colour_statistics
+    from training.colour_stats import card_entry
 
-    stats = training_colour_statistics(cfg.data, frames=common.COLOUR_STAT_FRAMES)
     described = [_describe_source(s, f, c) for s, f, (_, c) in zip(sources, files, loaded)]
     extra: dict[str, Any] = {
         "averaged_from": described,
-        CARD_KEY: {**stats.as_dict(), "frames": common.COLOUR_STAT_FRAMES},
+        **card_entry(cfg.data, frames=common.COLOUR_STAT_FRAMES),
     }
     for key, kind in (("epochs", int), ("train_minutes", int | float)):
         values = [d.get(key) for d in described]

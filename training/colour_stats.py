@@ -58,6 +58,13 @@ def training_colour_statistics(
     return typical_statistics(images())
 
 
+def card_entry(data: DataConfig, *, frames: int = DEFAULT_FRAMES) -> dict[str, dict]:
+    """``{"colour_statistics": {...statistics, "frames": frames}}``: what a model card records
+    of ``data``'s training frames (:func:`training_colour_statistics`)."""
+    stats = training_colour_statistics(data, frames=frames)
+    return {CARD_KEY: {**stats.as_dict(), "frames": int(frames)}}
+
+
 def record_in_card(run_dir: str | Path, *, frames: int = DEFAULT_FRAMES) -> ColourStatistics:
     """Compute the statistics of the run's training data and write them into its model card.
 
@@ -75,11 +82,10 @@ def record_in_card(run_dir: str | Path, *, frames: int = DEFAULT_FRAMES) -> Colo
     data_dict["cache_dir"] = None  # read-only: render or read the frames, write no cache
     data_dict["prerender_workers"] = 0
     data = from_dict(DataConfig, data_dict, where="data")
-    stats = training_colour_statistics(data, frames=frames)
-    card[CARD_KEY] = {**stats.as_dict(), "frames": int(frames)}
+    card.update(card_entry(data, frames=frames))
     atomic_write(card_path, json.dumps(card, indent=1, default=str))
     logger.info("%s: %s = %s", card_path, CARD_KEY, card[CARD_KEY])
-    return stats
+    return ColourStatistics.from_dict(card[CARD_KEY])
 
 
 def main(argv: list[str] | None = None) -> int:

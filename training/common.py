@@ -520,17 +520,14 @@ def finish_run(
     Returns:
         ``run_dir`` as a :class:`~pathlib.Path`.
     """
-    from geoseg.colour_transfer import CARD_KEY
-    from training.colour_stats import training_colour_statistics
+    from training.colour_stats import card_entry
 
     _, metrics = load_best_weights(model, run_dir)
     if extra_metrics is not None:
         metrics.update(extra_metrics(model))
     card = dict(extra_card or {})
     if dd.is_main_process():  # the training set's colours, for the colour transfer at inference
-        frames = COLOUR_STAT_FRAMES
-        stats = training_colour_statistics(cfg.data, frames=frames)
-        card[CARD_KEY] = {**stats.as_dict(), "frames": frames}
+        card.update(card_entry(cfg.data, frames=COLOUR_STAT_FRAMES))
     return finalize_run(
         run_dir,
         model.cpu(),
