@@ -287,6 +287,7 @@ class ModelRecord:
         epochs: epochs trained (None: unknown).
         train_frames: training frames of the synthetic data (None: unknown).
         size_hw: ``(H, W)`` of the training frames (None: unknown).
+        init_checkpoint: the weights it was fine-tuned from (None: trained from scratch).
         source: where the numbers came from (``model_card.json``, ``metrics.json``...).
     """
 
@@ -296,6 +297,7 @@ class ModelRecord:
     epochs: int | None = None
     train_frames: int | None = None
     size_hw: tuple[int, int] | None = None
+    init_checkpoint: str | None = None
     source: str | None = None
 
 
@@ -361,6 +363,10 @@ def model_record(path: str | os.PathLike, kind: str) -> ModelRecord:
             rec.train_minutes = float(card["train_minutes"])
         if isinstance(card.get("epochs"), int):
             rec.epochs = int(card["epochs"])
+        run_config = card.get("config")
+        init = run_config.get("init_checkpoint") if isinstance(run_config, dict) else None
+        if isinstance(init, str) and init:
+            rec.init_checkpoint = init
         data = card.get("data") or {}
         size = data.get("size_hw")
         if isinstance(size, list) and len(size) == 2:

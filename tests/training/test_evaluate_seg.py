@@ -241,9 +241,9 @@ def test_planted_filter_case_matches_hand_counts(cfg, heldout):
 
 
 # ----------------------------------------------------------------------------- records
-def _card(run: Path, *, minutes: float, size, frames: int, epochs: int = 3) -> None:
+def _card(run: Path, *, minutes: float, size, frames: int, epochs: int = 3, init=None) -> None:
     run.mkdir(parents=True, exist_ok=True)
-    card = {"train_minutes": minutes, "epochs": epochs,
+    card = {"train_minutes": minutes, "epochs": epochs, "config": {"init_checkpoint": init},
             "data": {"size_hw": list(size), "train": {"frames": frames}}}  # fmt: skip
     (run / "model_card.json").write_text(json.dumps(card))
 
@@ -254,7 +254,7 @@ def test_training_records_and_untrained_reasons(tmp_path):
     (tmp_path / "seg" / "encoder" / "metrics.json").write_text(
         json.dumps([{"epoch": 1, "time_s": 300.0}, {"epoch": 2, "time_s": 300.0}])
     )
-    _card(tmp_path / "naive", minutes=12.5, size=(48, 64), frames=4, epochs=1)
+    _card(tmp_path / "naive", minutes=12.5, size=(48, 64), frames=4, epochs=1, init="naive")
     (tmp_path / "dir").mkdir()
     (tmp_path / "dir" / "metrics.json").write_text(
         json.dumps({"fit_seconds": 1.5, "fit_inference_seconds": 58.5})
@@ -262,6 +262,8 @@ def test_training_records_and_untrained_reasons(tmp_path):
     (tmp_path / "bare").mkdir()
     seg = ev.model_record(tmp_path / "seg" / "model.pt", "seg")
     assert seg.train_minutes == pytest.approx(40.0) and seg.epochs == 3
+    assert seg.init_checkpoint is None
+    assert ev.model_record(tmp_path / "naive", "naive").init_checkpoint == "naive"
     assert ev.model_record(tmp_path / "dir", "dirichlet").train_minutes == pytest.approx(1.0)
     bare = ev.model_record(tmp_path / "bare", "normals")
     assert bare.train_minutes is None and bare.source is None
@@ -370,3 +372,12 @@ def test_load_predictor_reads_training_checkpoints_and_names_bad_files(tmp_path)
         ev.load_predictor(tmp_path / "missing")
     with pytest.raises(GeosegError, match="no such filter"):
         ev.load_filters(tmp_path)
+
+
+def test_bench_training_budget_only_judges_from_scratch_runs():
+    table = _load_bench().markdown_table(
+        {"train_minutes_naive": 78.1, "init_checkpoint_naive": "naive", "train_minutes_seg": 50.0}
+    )
+    rows = {line.split(" | ")[0]: line for line in table.splitlines()}
+    assert rows["| training wall time, naive (min)"].endswith("| (fine-tuned from naive) |  |")
+    assert rows["| training wall time, seg (min)"].endswith("| <= 45 | **no** |")
