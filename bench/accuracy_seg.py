@@ -11,8 +11,9 @@ one never trained on (:mod:`training.evaluate_seg`):
   max-probability threshold adding the same false rejections (which wins is printed).
 
 Prints a Markdown table (each figure beside its target), writes ``accuracy_seg.json`` (flat:
-figure → number, the training minutes of each model from its run's records, ``machine``,
-``command``) and two PNG panels (``accuracy_seg_fig4_20.png``: RGB | labels | normals | ground
+figure → number, the training minutes of each model from its run's records and, for a
+fine-tuned one, the weights it started from (``init_checkpoint_<kind>``; the 45-min budget
+judges from-scratch runs only), ``machine``, ``command``) and two PNG panels (``accuracy_seg_fig4_20.png``: RGB | labels | normals | ground
 truth; ``accuracy_seg_fig4_8.png``: argmax building | after the filter | ground truth) into
 ``--out``.
 
