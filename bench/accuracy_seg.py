@@ -13,9 +13,9 @@ one never trained on (:mod:`training.evaluate_seg`):
 Prints a Markdown table (each figure beside its target), writes ``accuracy_seg.json`` (flat:
 figure → number, the training minutes of each model from its run's records and, for a
 fine-tuned one, the weights it started from (``init_checkpoint_<kind>``; the 45-min budget
-judges from-scratch runs only), ``machine``, ``command``) and two PNG panels (``accuracy_seg_fig4_20.png``: RGB | labels | normals | ground
-truth; ``accuracy_seg_fig4_8.png``: argmax building | after the filter | ground truth) into
-``--out``.
+judges from-scratch runs only), ``machine``, ``command``) and two PNG panels
+(``accuracy_seg_fig4_20.png``: RGB | labels | normals | ground truth; ``accuracy_seg_fig4_8.png``:
+argmax building | after the filter | ground truth) into ``--out``.
 
 Defaults point at the shipped weights, ``geoseg/weights/{seg,normals,naive,dirichlet}`` (run
 directories as ``geoseg train`` writes them); ``--seg none`` (etc.) skips a part. Untrained,
