@@ -210,8 +210,8 @@ HEADLINE: tuple[Figure, ...] = (
     Figure(
         "accuracy_real_naive_real",
         ("heldout_dirichlet_fp_removed", "heldout_dirichlet_extra_false_rejections"),
-        "`naive_real` + `dirichlet_real` on the held-out synthetic city: building false "
-        "positives removed / extra false rejections",
+        "`naive_real` on the held-out synthetic city, with `dirichlet_real_synth` (its filter "
+        "for renders): building false positives removed / extra false rejections",
         ">= 70 % / <= 15 %",
         "~70 % / ~15 %",
         fmt=_pct,

@@ -18,7 +18,8 @@ head), ``normals_real`` (the same for real photographs: the ``seg_real`` trunk a
 head with a normals head trained on the randomised city, ``configs/normals_real.yaml``),
 ``naive`` (the 2015 patch CNN), ``dirichlet`` (its false-positive filter), ``naive_real`` and
 ``dirichlet_real`` (the same for real photographs: ``configs/naive_real.yaml``,
-``configs/dirichlet_real.yaml``), ``reloc`` and ``relpose`` (the relocalisation heads, when
+``configs/dirichlet_real.yaml``), ``dirichlet_real_synth`` (``naive_real``'s filter for rendered
+frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose`` (the relocalisation heads, when
 shipped) and ``relpose_near`` (the relative-pose head for views of one place,
 :class:`geoseg.localizer.GatedRelPoseHead`).
 """
@@ -42,6 +43,7 @@ PRETRAINED: dict[str, str] = {
     "naive_real": "naive patch CNN for real street photographs, trained on the randomised city",
     "dirichlet": "Dirichlet false-positive filter of the naive CNN",
     "dirichlet_real": "Dirichlet false-positive filter of naive_real",
+    "dirichlet_real_synth": "Dirichlet false-positive filter of naive_real for synthetic renders",
     "reloc": "relocalisation embedding on the layer-21 features",
     "relpose": "relative-pose head on the layer-21 features",
     "relpose_near": "relative-pose head for views of one place, gated with relpose",

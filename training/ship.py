@@ -29,7 +29,9 @@ from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, WEIGHTS_DIR
 
 # What a run must hold to be shipped, per name (networks: the model and its card).
 FILTER_REQUIRED = ("dirichlet.json", "max_probability.json", "metrics.json")
-REQUIRED = {"dirichlet": FILTER_REQUIRED, "dirichlet_real": FILTER_REQUIRED}
+REQUIRED = {
+    name: FILTER_REQUIRED for name in ("dirichlet", "dirichlet_real", "dirichlet_real_synth")
+}
 NETWORK_REQUIRED = ("model.pt", "model.onnx", "model_card.json")
 # The files whose SHA-256 the shipped card records.
 WEIGHT_FILES = ("model.pt", "model.onnx", "dirichlet.json", "max_probability.json")

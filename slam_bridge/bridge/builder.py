@@ -144,7 +144,8 @@ def load_dirichlet_filter(filter_spec=None, weights: str | Path | None = None):
             (``dirichlet_real``); None: the one shipped for ``weights``.
         weights: the naive CNN it filters (:func:`load_network`; None: the shipped
             ``naive``): a shipped naive CNN, by name or by its folder or files, gets the filter
-            calibrated on it (``naive_real`` -> ``dirichlet_real``); any other the shipped
+            calibrated on it for its domain (``naive_real`` -> ``dirichlet_real``, for
+            photographs; ``dirichlet_real_synth`` is its filter for renders); any other the shipped
             ``dirichlet``, with a warning (a filter is calibrated on one network's
             probabilities).
 

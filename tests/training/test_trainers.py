@@ -352,6 +352,7 @@ def test_configs_in_the_repository_load():
         (normals_trainer, "normals_real"),
         (naive_trainer, "naive_real"),
         (dirichlet_trainer, "dirichlet_real"),
+        (dirichlet_trainer, "dirichlet_real_synth"),
     ):
         cfg = load_config(module.CONFIG_CLASS, root / f"{name}.yaml")
         assert cfg.data.source == "synth"
