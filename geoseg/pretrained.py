@@ -19,9 +19,9 @@ head with a normals head trained on the randomised city, ``configs/normals_real.
 ``naive`` (the 2015 patch CNN), ``dirichlet`` (its false-positive filter), ``naive_real`` and
 ``dirichlet_real`` (the same for real photographs: ``configs/naive_real.yaml``,
 ``configs/dirichlet_real.yaml``), ``dirichlet_real_synth`` (``naive_real``'s filter for rendered
-frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose`` (the relocalisation heads, when
-shipped) and ``relpose_near`` (the relative-pose head for views of one place,
-:class:`geoseg.localizer.GatedRelPoseHead`).
+frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose``
+(the relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
+one place, :class:`geoseg.localizer.GatedRelPoseHead`).
 """
 
 from __future__ import annotations
