@@ -27,6 +27,10 @@ max-probability baseline beside it) score the filter on the CamVid building pred
 Published context, not the same protocol: ENet reports 51.3 % class-average IoU over CamVid's
 11 classes on its test split (Paszke et al. 2016).
 
+``--split train`` measures a synthetic-only ``--model`` on CamVid's train split instead
+(``accuracy_real_<tag>_train.json``): weights that never trained on CamVid can be compared and
+chosen there, leaving val to measure the one chosen.
+
 The fine-tuning runs are stages (``<runs>/from_shipped``, ``<runs>/from_scratch``): evaluated
 when they exist, trained first only with ``--full`` (each is ``geoseg train seg --config
 configs/seg_camvid.yaml``, minutes to an hour on a CPU).
@@ -40,6 +44,7 @@ Usage::
     python bench/accuracy_real.py --model geoseg/weights/seg_real --tag seg_real --normals normals_real
     python bench/accuracy_real.py --model geoseg/weights/naive_real --tag naive_real \
         --dirichlet dirichlet_real --normals normals_real
+    python bench/accuracy_real.py --model runs/candidate --tag candidate --split train
 """
 
 from __future__ import annotations
@@ -87,6 +92,13 @@ def build_parser() -> argparse.ArgumentParser:
         f"{NAME}_<tag>.json and a panel beside the shipped weights' predictions",
     )
     parser.add_argument("--tag", default="model", help="output name suffix with --model")
+    parser.add_argument(
+        "--split",
+        choices=("val", "train"),
+        default="val",
+        help="CamVid split measured (default val); train only with --model, to choose among "
+        "synthetic-only models without looking at val",
+    )
     parser.add_argument(
         "--normals",
         default="normals",
@@ -144,11 +156,14 @@ def filter_figures(name: str, model: Any, images: list, labels: list) -> dict[st
     return figures
 
 
-def load_frames(root: Path, limit: int) -> tuple[list[Any], list[Any], tuple[int, ...]]:
-    """Val frames as uint8 RGB `(H, W, 3)` and geoseg labels `(H, W)`, and the labelled classes."""
+def load_frames(
+    root: Path, limit: int, split: str = "val"
+) -> tuple[list[Any], list[Any], tuple[int, ...]]:
+    """``split``'s frames as uint8 RGB `(H, W, 3)` and geoseg labels `(H, W)`, and the labelled
+    classes."""
     from geoseg.data.camvid import CamVidDataset
 
-    dataset = CamVidDataset(root, "val")
+    dataset = CamVidDataset(root, split)
     count = len(dataset) if limit <= 0 else min(limit, len(dataset))
     images = [dataset.load_image(i) for i in range(count)]
     labels = [dataset.load_labels(i) for i in range(count)]
@@ -374,13 +389,16 @@ def _put(figures: dict[str, Any], prefix: str, suffix: str, scores: dict[str, fl
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.split != "val" and args.model is None:
+        parser.error("--split train: only with --model (the fine-tuning runs train on it)")
     load_start = os.getloadavg()[0]
 
     from geoseg.infer import Segmenter, colour_transfer_for
     from geoseg.pretrained import pretrained_file
 
-    images, labels, classes = load_frames(args.camvid, args.frames)
+    images, labels, classes = load_frames(args.camvid, args.frames, args.split)
     figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
     seg_onnx = pretrained_file("seg", "model.onnx")
     if args.model is not None:
@@ -452,6 +470,7 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
         "frames": len(images),
         "classes": len(classes),
         "model": str(args.model),
+        "split": args.split,
     }
     for size_key, size in SIZES.items():
         for ct_key, ct in variants:
@@ -468,14 +487,15 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     args.out.mkdir(parents=True, exist_ok=True)
     shipped = Segmenter.from_onnx(pretrained_file("seg", "model.onnx"))
     normals_net = normals_figures(args.normals, images, labels, figures)
-    panel = args.out / f"{NAME}_{args.tag}_panel.png"
+    name = f"{NAME}_{args.tag}" + ("" if args.split == "val" else f"_{args.split}")
+    panel = args.out / f"{name}_panel.png"
     segmenters = {"shipped seg": shipped, str(args.model): model}
     write_panel(panel, images, labels, segmenters, normals_net, args.normals)
     figures["machine"] = _machine(load_start)
     figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
     print(markdown_table(figures))
-    _write_json(args.out / f"{NAME}_{args.tag}.json", figures)
-    print(f"wrote {args.out / f'{NAME}_{args.tag}.json'} and {panel}")
+    _write_json(args.out / f"{name}.json", figures)
+    print(f"wrote {args.out / f'{name}.json'} and {panel}")
     return 0
 
 
