@@ -29,9 +29,7 @@ from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, WEIGHTS_DIR
 
 # What a run must hold to be shipped, per name (networks: the model and its card).
 FILTER_REQUIRED = ("dirichlet.json", "max_probability.json", "metrics.json")
-REQUIRED = {
-    name: FILTER_REQUIRED for name in ("dirichlet", "dirichlet_real", "dirichlet_real_synth")
-}
+REQUIRED = {name: FILTER_REQUIRED for name in PRETRAINED if name.startswith("dirichlet")}
 NETWORK_REQUIRED = ("model.pt", "model.onnx", "model_card.json")
 # The files whose SHA-256 the shipped card records.
 WEIGHT_FILES = ("model.pt", "model.onnx", "dirichlet.json", "max_probability.json")

@@ -86,7 +86,7 @@ def test_real_image_naive_cnn_labels_an_unseen_frame_and_its_backends_agree(fram
     assert (ort.labels == pt.labels).mean() >= 0.999
 
 
-@pytest.mark.parametrize("name", ["dirichlet", "dirichlet_real", "dirichlet_real_synth"])
+@pytest.mark.parametrize("name", [n for n in sorted(PRETRAINED) if n.startswith("dirichlet")])
 def test_shipped_dirichlet_filter_is_calibrated(name):
     flt = load_filter(pretrained_file(name, "dirichlet.json"))
     assert isinstance(flt, DirichletFilter) and flt.threshold is not None
