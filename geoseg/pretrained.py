@@ -11,8 +11,8 @@ weights, whose card names their sources).
 Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
 street photographs: fine-tuned from ``seg`` on the randomised city at 320x240 then at 480x360,
 ``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, its weights averaged with those of
-the same stage two on cities with parked cars, ``configs/seg_real_parked.yaml`` and
-:mod:`training.average`; docs/real_images.md), ``normals``
+the same stage two on cities with parked cars, ``configs/seg_real_parked.yaml``, and that
+average with a tenth of ``seg``, :mod:`training.average`; docs/real_images.md), ``normals``
 (the joint labels + normals network: the ``seg`` trunk and label head with a trained normals
 head), ``normals_real`` (the same for real photographs: the ``seg_real`` trunk and label
 head with a normals head trained on the randomised city, ``configs/normals_real.yaml``),

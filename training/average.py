@@ -11,8 +11,9 @@ Integer buffers (batch-norm step counts) come from the heaviest source.
 The result is evaluated on the validation set of ``--config`` (a ``geoseg train seg`` config;
 its metrics go into the card, as a trained run's best epoch's do) and written as a run folder:
 ``model.pt``, ``model.onnx`` (when the config's ``export`` is on) and a model card with the
-training frames' colour statistics and the sources (files, SHA-256, weights, and the epochs and
-minutes of the runs they come from, summed as the card's own). :mod:`training.ship` ships it.
+training frames' colour statistics and the sources (files, SHA-256, weights, the commands, epochs
+and minutes of the runs they come from, the last two summed as the card's own; a source that is
+itself an average keeps its own sources). :mod:`training.ship` ships it.
 
 Usage::
 
@@ -134,9 +135,11 @@ def _describe_source(source: Source, file: Path, checkpoint: Mapping[str, Any]) 
     if checkpoint.get("epoch") is not None:
         entry["epoch"] = int(checkpoint["epoch"])
     card = file.parent / common.CARD_JSON
-    if card.is_file():  # the run the weights come from: how long it trained
+    if card.is_file():  # the run the weights come from: how long it trained, and how it was made
         run = json.loads(card.read_text())
-        entry.update({k: run.get(k) for k in ("epochs", "train_minutes")})
+        entry.update({k: run.get(k) for k in ("epochs", "train_minutes", "command")})
+        if run.get("averaged_from"):  # an average of averages keeps its whole ancestry
+            entry["averaged_from"] = run["averaged_from"]
     return entry
 
 

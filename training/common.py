@@ -575,6 +575,8 @@ def _card_markdown(card: Mapping[str, Any]) -> str:
     for key, value in card["metrics"].items():
         shown = f"{value:.4f}" if isinstance(value, float) else str(value)
         lines.append(f"| {key} | {shown} |")
+    if card.get("averaged_from"):  # training/average.py: the weights' ancestry
+        lines += ["", "## Averaged from", "", *_source_lines(card["averaged_from"], depth=0)]
     lines += [
         "",
         "## Data",
@@ -591,3 +593,16 @@ def _card_markdown(card: Mapping[str, Any]) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _source_lines(sources: Sequence[Mapping[str, Any]], depth: int) -> list[str]:
+    """Markdown bullets for an average's sources, nested under the averages they come from."""
+    lines = []
+    for source in sources:
+        made_by = f", made by `{source['command']}`" if source.get("command") else ""
+        lines.append(
+            f"{'  ' * depth}- {source['weight']} x `{source['file']}` "
+            f"(SHA-256 {source['sha256'][:12]}...){made_by}"
+        )
+        lines += _source_lines(source.get("averaged_from") or [], depth + 1)
+    return lines

@@ -73,6 +73,10 @@ def test_two_checkpoints_averaged_into_a_run_folder(tmp_path):
     second = _enet_file(tmp_path / "b" / "model.pt", seed=1)
     for run_dir in (first.parent, second.parent):  # the runs' cards: how long each trained
         (run_dir / "model_card.json").write_text(json.dumps({"epochs": 2, "train_minutes": 1.5}))
+    ancestry = [{"file": "runs/older/model.pt", "weight": 1.0, "sha256": "0" * 64}]
+    (first.parent / "model_card.json").write_text(  # the first is itself an average
+        json.dumps({"epochs": 2, "train_minutes": 1.5, "command": "avg", "averaged_from": ancestry})
+    )
     sources = [average.Source(first, 3.0), average.Source(second.parent, 1.0)]  # a run folder too
     run = average.average_runs(tmp_path / "avg", sources, cfg, command="test")
 
@@ -85,6 +89,11 @@ def test_two_checkpoints_averaged_into_a_run_folder(tmp_path):
     card = json.loads((run / "model_card.json").read_text())
     assert [s["weight"] for s in card["averaged_from"]] == [3.0, 1.0]
     assert card["averaged_from"][1]["file"] == str(second)
+    assert card["averaged_from"][0]["averaged_from"] == ancestry  # the ancestry is kept
+    assert card["averaged_from"][0]["command"] == "avg"
+    assert "averaged_from" not in card["averaged_from"][1]
+    markdown = (run / "model_card.md").read_text()
+    assert "## Averaged from" in markdown and "  - 1.0 x `runs/older/model.pt`" in markdown
     assert 0.0 <= card["metrics"]["val_miou"] <= 1.0 and "colour_statistics" in card
     assert card["epochs"] == 4 and card["train_minutes"] == 3.0
     assert not (run / "model.onnx").exists()  # export off in this config
