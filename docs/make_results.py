@@ -32,7 +32,9 @@ BEGIN, END = "<!-- results:begin -->", "<!-- results:end -->"
 
 
 def _num(v: float) -> str:
-    return f"{v:.3g}" if abs(v) < 1000 else f"{v:,.0f}"
+    if abs(v) >= 1000:
+        return f"{v:,.0f}"
+    return f"{v:.3g}" if v == round(v) else f"{v:#.3g}"  # 0.630, not 0.63; 0 stays 0
 
 
 def _pct(v: float) -> str:

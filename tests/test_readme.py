@@ -201,7 +201,16 @@ def test_results_page_takes_unknown_and_broken_results_files(tmp_path: Path) -> 
     assert "## new_bench" in page and "| `nested.a` | 1 |" in page
     # a headline figure whose file is there; the others (files missing) are left out
     rows = mr.headline_rows(results)
-    assert [r[1] for r in rows] == ["0.5"]
+    assert [r[1] for r in rows] == ["0.500"]
+    # three significant digits, trailing zeros kept (0.630 is not 0.63); whole numbers plain
+    assert [mr._num(v) for v in (0.63047, 0.0555, 17.6, 0.0, 3.0, 12345.6)] == [
+        "0.630",
+        "0.0555",
+        "17.6",
+        "0",
+        "3",
+        "12,346",
+    ]
     readme = f"intro\n{mr.BEGIN}\nold table\n{mr.END}\nrest\n"
     new = mr.readme_with_table(readme, "NEW")
     assert new == f"intro\n{mr.BEGIN}\nNEW\n{mr.END}\nrest\n"
