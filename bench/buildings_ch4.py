@@ -6,8 +6,8 @@ drive with loops through a ``dense_occlusion`` city at 640x480, 10 fps; without,
 ``quick_length_m``. Methods (each on the same rendered drive, same front end): ``nobuild``,
 ``raycast`` (chapter-2 baseline), ``dirichlet`` (naive CNN + Dirichlet filter), ``bayes`` (joint
 network + eq. 4.14), ``oracle`` (the renderer's truth); models ``exact`` (true facades,
-odometry + DEM, no GPS, known first pose) and ``gis`` (the render's erroneous GIS model, GPS
-sigma 0.75 m + DEM + odometry).
+odometry + DEM, no GPS, known first pose, a 60-keyframe window) and ``gis`` (the render's
+erroneous GIS model, GPS sigma 0.75 m + DEM + odometry).
 
 Keys (``<m>`` a method, ``<model>`` ``exact`` or ``gis``): ``association_precision_<m>``,
 ``association_recall_<m>`` (against the exact model; ``..._<m>_gis`` beside them),

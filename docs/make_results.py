@@ -308,8 +308,8 @@ ABOUT: dict[str, str] = {
     "buildings_ch4": "Building constraints chosen by the networks (thesis chapter 4): a 1.2 km "
     "drive with loops through a city full of trees, vehicles and shelters, the image SLAM with "
     "the ray-cast baseline, the naive CNN + Dirichlet filter, the joint network + eq. 4.14 and "
-    "an oracle, against the exact building model (odometry + elevation, no GPS) and the GIS "
-    "model with its errors (GPS sigma_b 0.75 m); see docs/bridge.md.",
+    "an oracle, against the exact building model (odometry + elevation, no GPS, a 60-keyframe "
+    "window) and the GIS model with its errors (GPS sigma_b 0.75 m); see docs/bridge.md.",
     "accuracy_real_naive": "The shipped 2015 naive patch CNN (synthetic only) zero-shot on "
     "CamVid val, and what CamVid's labels say of the shipped joint network's normals; see "
     "docs/real_images.md.",

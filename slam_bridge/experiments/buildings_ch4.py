@@ -18,7 +18,8 @@ against two building models (``models``):
 * ``exact``: the true facades, wheel odometry + the road DEM, no GPS; the first keyframes
   take their true poses (:class:`~slam_bridge.slam.loop.KnownStartPoses`), as the thesis's
   synthetic run starts from a known pose. Buildings constrain some axes, odometry and the DEM
-  the rest (§4.2.4.2).
+  the rest (§4.2.4.2). Its k-BA window may be longer (``exact_window_keyframes``): with no GPS
+  it is what remembers the facades that last crossed the street.
 * ``gis``: the GIS model ``geoseg render`` writes (shifted and rotated footprints, missing and
   extra buildings) with a GPS of ``sigma_b = gps_sigma_m`` + the DEM + odometry, started as a
   user starts it (two views, georeferenced by the GPS; no ground truth).
@@ -116,6 +117,10 @@ class BuildingsConfig:
         exact_bridge: the bridge settings that differ with the exact model (``radius_m``: no
             model error to cover, only the map's own drift; ``window_weight``: None, no cap:
             the model is right, the more rows the better).
+        exact_window_keyframes: the k-BA window's length ``l`` with the exact model (None:
+            ``slam``'s). Without a GPS the window is what remembers the last facades that
+            crossed the street's axis; the GIS model's runs keep ``slam``'s (its GPS anchors
+            every keyframe).
         naive_infer_every: the naive CNN labels every this many keyframes (its dense
             prediction costs ~40x the joint network's on a CPU; a point is seen in several
             keyframes, so most still gather its evidence).
@@ -139,6 +144,7 @@ class BuildingsConfig:
     drive: DriveConfig = field(default_factory=DriveConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     exact_bridge: dict = field(default_factory=lambda: {"radius_m": 1.5, "window_weight": None})
+    exact_window_keyframes: int | None = None
     naive_infer_every: int = 3
     async_run: bool = True
     timing_pairs: int = 3
@@ -161,7 +167,12 @@ class BuildingsConfig:
             raise SlamError(f"gps_sigma_m: expected >= 0, got {self.gps_sigma_m}")
         if self.start_keyframes < 2:
             raise SlamError(f"start_keyframes: expected >= 2, got {self.start_keyframes}")
-        check_covers_window(self.bridge, self.slam.slam.window)
+        try:
+            exact_window = self.slam_for("exact").slam.window
+        except SlamError as exc:  # e.g. shorter than the pose-graph cameras of a hybrid
+            raise SlamError(f"exact_window_keyframes: {exc}") from None
+        for window in (self.slam.slam.window, exact_window):  # recent_keyframes cover both
+            check_covers_window(self.bridge, window)
         known = {f.name for f in dataclasses.fields(BridgeConfig)} - {"association"}
         if set(self.exact_bridge) - known:
             raise SlamError(
@@ -172,6 +183,14 @@ class BuildingsConfig:
             raise SlamError(f"naive_infer_every: expected >= 1, got {self.naive_infer_every}")
         if self.timing_pairs < 0:
             raise SlamError(f"timing_pairs: expected >= 0, got {self.timing_pairs}")
+
+    def slam_for(self, model: str) -> ImageSlamConfig:
+        """The image SLAM's settings of the runs on ``model`` (``exact_window_keyframes``)."""
+        if model != "exact" or self.exact_window_keyframes is None:
+            return self.slam
+        window = dataclasses.replace(self.slam.slam.window, l=self.exact_window_keyframes)
+        loop = dataclasses.replace(self.slam.slam, window=window)
+        return dataclasses.replace(self.slam, slam=loop)
 
     def timing_model(self) -> str:
         """The model of the asynchronous timing run."""
@@ -324,7 +343,9 @@ def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool
 
     parts = {
         "method": method, "model": model, "drive": to_dict(cfg.drive),
-        "slam": {k: v for k, v in to_dict(cfg.slam).items() if k != "bridge"},  # not this one's
+        "slam": {  # its own `bridge` is not this experiment's
+            k: v for k, v in to_dict(cfg.slam_for(model)).items() if k != "bridge"
+        },
         "gps_sigma_m": cfg.gps_sigma_m, "start_keyframes": cfg.start_keyframes,
         "seed": cfg.seed,
     }  # fmt: skip
@@ -381,12 +402,13 @@ def run_one(
         odometry=folder / "gis" / "odometry.csv",
         dem=folder / "gis" / "dem.csv",
     )
+    slam = cfg.slam_for(model)
     start = None
     if model == "exact":  # a known first pose (evaluation truth used for the start only)
         _, R_true, t_true = inputs.truth
         start = KnownStartPoses(
-            R_true, t_true, cfg.slam.slam.tracking.outlier_gate_px, cfg.start_keyframes,
-            cfg.slam.slam.mapping,
+            R_true, t_true, slam.slam.tracking.outlier_gate_px, cfg.start_keyframes,
+            slam.slam.mapping,
         )  # fmt: skip
     truth = FacadeTruth(folder, inputs.frames.timestamps)
     if replay is not None:
@@ -396,7 +418,7 @@ def run_one(
     if record:  # the worker updates, and the fusion reads, the recording copy
         worker.constraints = RecordingConstraints(worker.constraints)
     t0 = time.perf_counter()
-    result, _ = run_on_images(inputs, cfg.slam, progress=False, bridge=worker, start=start)
+    result, _ = run_on_images(inputs, slam, progress=False, bridge=worker, start=start)
     wall = time.perf_counter() - t0
     m = result.map
     figures = {"method": method, "model": model, "asynchronous": asynchronous}
@@ -668,7 +690,8 @@ def _drive_length(folder: Path) -> float:
 THESIS = {"exact": "1.3 cm, ~0.05 rad (bayes, 1.2 km)"}
 MODEL_NOTES = {
     "exact": "The true facades, wheel odometry and the DEM, no GPS: the buildings are the only "
-    "horizontal reference to the map, so `nobuild` drifts.",
+    "horizontal reference to the map, so `nobuild` drifts (the k-BA window: "
+    "`exact_window_keyframes`).",
     "gis": "The GIS building model with its errors (shifted and rotated footprints, missing and "
     "extra buildings), a GPS, the DEM and odometry: the buildings refine a GPS trajectory, "
     "and the model's own errors bound how much (on a short drive the methods can sit within "

@@ -85,6 +85,18 @@ def test_config_refuses_unknown_methods_and_models():
         ch4.BuildingsConfig(models=[])
     with pytest.raises(SlamError, match="exact_bridge.*radius"):
         ch4.BuildingsConfig(exact_bridge={"radius": 1.0})
+    with pytest.raises(SlamError, match="exact_window_keyframes.*l - 3"):
+        ch4.BuildingsConfig(exact_window_keyframes=20)  # the window's n = 30 pose-graph cameras
+    with pytest.raises(SlamError, match="recent_keyframes"):
+        ch4.BuildingsConfig(exact_window_keyframes=400)
+
+
+def test_exact_window_is_the_exact_models_alone():
+    cfg = ch4.BuildingsConfig(exact_window_keyframes=60)
+    assert cfg.slam_for("exact").slam.window.l == 60
+    assert cfg.slam_for("exact").slam.window.n == cfg.slam.slam.window.n
+    assert cfg.slam_for("gis") is cfg.slam and cfg.slam.slam.window.l == 40
+    assert ch4.BuildingsConfig(exact_window_keyframes=None).slam_for("exact").slam.window.l == 40
 
 
 def _short_config() -> ch4.BuildingsConfig:
@@ -146,3 +158,9 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
     other = dataclasses.replace(cfg, exact_bridge={"radius_m": 1.0})
     ch4.run_experiment(other, tmp_path / "out", data_dir=data)
     assert sorted(redone) == [("bayes", "exact"), ("oracle", "exact"), ("raycast", "exact")]
+    # another window with the exact model: every exact run is redone, nobuild's too
+    redone.clear()
+    ch4.run_experiment(
+        dataclasses.replace(cfg, exact_window_keyframes=50), tmp_path / "out", data_dir=data
+    )
+    assert sorted(redone) == [(m, "exact") for m in sorted(cfg.methods)]
