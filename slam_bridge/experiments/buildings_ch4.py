@@ -129,9 +129,10 @@ class BuildingsConfig:
             follow ``bridge.asynchronous`` (false in the config: deterministic figures that do
             not depend on the machine's load).
         timing_pairs: after the runs, this many pairs of ``nobuild`` and asynchronous
-            ``bayes`` runs on the same model, one right after the other: ``async_time_ratio``
-            is the median of the pairs' ratios (0: from ``nobuild_<model>`` and the
-            ``async_run``, measured far apart while the machine's load drifts).
+            ``bayes`` runs on the same model, one right after the other (``nobuild`` first in
+            every other pair): ``async_time_ratio`` is the median of the pairs' ratios (0:
+            from ``nobuild_<model>`` and the ``async_run``, measured far apart while the
+            machine's load drifts).
         slam: the image SLAM (default: ``configs/slam_images.yaml``).
         methods: among :data:`METHODS`.
         models: among :data:`MODELS`.
@@ -584,17 +585,19 @@ def _plan(cfg: BuildingsConfig) -> list[tuple[str, str, bool, str]]:
 
 
 def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> list[dict]:
-    """``cfg.timing_pairs`` pairs of runs on the timing model, ``nobuild`` then ``bayes`` with
+    """``cfg.timing_pairs`` pairs of runs on the timing model, ``nobuild`` and ``bayes`` with
     the worker asynchronous: main-loop milliseconds per keyframe of each, side by side; and
-    right after each pair the asynchronous run's building rows replayed without its worker
+    right after the asynchronous run its building rows replayed without its worker
     (:mod:`~slam_bridge.experiments.replay`), which parts the ratio into the rows' cost and the
-    worker's. Saved in ``saved``, reused like the runs."""
+    worker's. ``nobuild`` runs first in even pairs and last in odd ones: a host whose speed
+    drifts during a pass (a shared machine) then biases neither side. Saved in ``saved``,
+    reused like the runs."""
     if cfg.timing_pairs == 0 or "bayes" not in cfg.methods:
         return []
     model = cfg.timing_model()
     signature = json.dumps(
         [_signature(cfg, "nobuild", model, False), _signature(cfg, "bayes", model, True)]
-        + [cfg.timing_pairs, "replay"]
+        + [cfg.timing_pairs, "replay", "alternating"]
     )
     if saved.is_file() and not force:
         earlier = json.loads(saved.read_text())
@@ -602,10 +605,14 @@ def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> lis
             return earlier["pairs"]
     pairs = []
     for i in range(cfg.timing_pairs):
+        nobuild_first = i % 2 == 0
         try:
-            off, _ = run_one(cfg, assets, "nobuild", model, False)
+            if nobuild_first:
+                off, _ = run_one(cfg, assets, "nobuild", model, False)
             on, arrays = run_one(cfg, assets, "bayes", model, True, record=True)
             rows, _ = run_one(cfg, assets, "bayes", model, False, replay=arrays["recorded"])
+            if not nobuild_first:
+                off, _ = run_one(cfg, assets, "nobuild", model, False)
         except SlamError as exc:
             logger.error("timing pair %d failed: %s", i, exc)
             continue
@@ -613,6 +620,7 @@ def _timing_pairs(cfg: BuildingsConfig, assets, saved: Path, force: bool) -> lis
         rows_ms = rows["loop_ms_per_keyframe"]
         pairs.append({
             "nobuild_ms": off_ms, "async_ms": on_ms, "ratio": on_ms / off_ms,
+            "nobuild_first": nobuild_first,
             "replay_ms": rows_ms, "worker_ratio": on_ms / rows_ms, "rows_ratio": rows_ms / off_ms,
             "replay_error_difference_m": abs(
                 rows["translation_error_m"] - on["translation_error_m"]

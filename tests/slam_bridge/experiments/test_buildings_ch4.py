@@ -99,6 +99,29 @@ def test_exact_window_is_the_exact_models_alone():
     assert ch4.BuildingsConfig(exact_window_keyframes=None).slam_for("exact").slam.window.l == 40
 
 
+def test_timing_pairs_alternate_which_side_runs_first(tmp_path, monkeypatch):
+    calls = []
+
+    def fake_run_one(cfg, assets, method, model, asynchronous, record=False, replay=None):
+        side = "replay" if replay is not None else "async" if asynchronous else method
+        calls.append(side)
+        ms = {"nobuild": 100.0, "async": 108.0, "replay": 102.0}[side]
+        figures = {"loop_ms_per_keyframe": ms, "translation_error_m": 0.1}
+        return figures, {"recorded": "rows"} if record else {}
+
+    monkeypatch.setattr(ch4, "run_one", fake_run_one)
+    cfg = dataclasses.replace(ch4.BuildingsConfig(), timing_pairs=3)
+    pairs = ch4._timing_pairs(cfg, None, tmp_path / "pairs.json", force=False)
+    # nobuild first, then last, then first: a drifting host favours neither side
+    first, last = ["nobuild", "async", "replay"], ["async", "replay", "nobuild"]
+    assert calls == first + last + first
+    assert [p["nobuild_first"] for p in pairs] == [True, False, True]
+    assert all(p["ratio"] == pytest.approx(1.08) for p in pairs)
+    # saved and reused: no run the second time
+    assert ch4._timing_pairs(cfg, None, tmp_path / "pairs.json", force=False) == pairs
+    assert len(calls) == 9
+
+
 def _short_config() -> ch4.BuildingsConfig:
     return ch4.BuildingsConfig(
         drive=ch4.DriveConfig(length_m=45.0),
