@@ -23,8 +23,11 @@ is an unfinished run):
   window sizes, k-BA and fusion times, constraints fused);
 * ``trajectory.png``: a top-down plot of the trajectory over the GPS fixes (and the ground
   truth when the folder has a ``poses.csv``);
-* ``summary.json``: the figures (keyframes, tracking failures, frames per second, and the
-  errors against the ground truth when there is one: evaluation only, never used by the run).
+* ``frame_poses.csv``, ``trajectory_tum.txt``, ``trajectory_kitti.txt``: a pose for every
+  frame (:mod:`slam_bridge.slam.frame_poses`: keyframe, interpolated or extrapolated);
+* ``summary.json``: the figures (keyframes, tracking failures, frames per second, the run's
+  ``status`` with its reasons from :mod:`slam_bridge.slam.health`, and the errors against the
+  ground truth when there is one: evaluation only, never used by the run).
 """
 
 from __future__ import annotations
@@ -46,12 +49,14 @@ from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.frontend.vertical_lines import VerticalLinesConfig
 from slam_bridge.sensor_logs import read_columns, read_dem_csv, read_gps_csv, read_odometry_csv
 from slam_bridge.slam.config import SlamConfig
+from slam_bridge.slam.frame_poses import POSE_SOURCES, frame_poses
 from slam_bridge.slam.fusion import (
     DemConstraints,
     GpsConstraints,
     OdometryConstraints,
     VerticalConstraints,
 )
+from slam_bridge.slam.health import HealthConfig, assess_run
 from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
 from slam_bridge.slam.loop import SlamResult, run_slam
 from slam_bridge.slam.windows import METHODS
@@ -65,10 +70,23 @@ __all__ = [
     "run_on_images",
     "run_image_slam",
     "evaluate_run",
+    "gps_fix_errors",
+    "read_truth_csv",
 ]
 
 PRODUCER = "slam run"
-OUTPUTS = ["trajectory.csv", "keyframes.csv", "map_points.ply", "trajectory.png", "summary.json"]
+#: farthest a truth's positions may be from the GPS fixes (median) to be in their frame, metres
+TRUTH_GPS_MAX_M = 50.0
+OUTPUTS = [
+    "trajectory.csv",
+    "frame_poses.csv",
+    "trajectory_tum.txt",
+    "trajectory_kitti.txt",
+    "keyframes.csv",
+    "map_points.ply",
+    "trajectory.png",
+    "summary.json",
+]
 
 
 @dataclass
@@ -89,6 +107,7 @@ class ImageSlamConfig:
             (:class:`slam_bridge.slam.fusion.VerticalConstraints`).
         vertical_lines: how those segments are found and fitted.
         bridge: the network bridge, when a building model is given (``--buildings``).
+        health: the gates of the run's consistency checks (its ``status``).
     """
 
     method: str = "ba"
@@ -102,6 +121,7 @@ class ImageSlamConfig:
     vertical: bool = True
     vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    health: HealthConfig = field(default_factory=HealthConfig)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -144,11 +164,15 @@ def load_inputs(
     odometry: str | Path | None = None,
     dem: str | Path | None = None,
     georeference: str | Path | None = None,
+    truth: str | Path | None = None,
 ) -> SlamInputs:
     """Read and check everything a run needs, before any work.
 
     Args:
-        frames_dir: the image folder.
+        frames_dir: the image folder, or a KITTI odometry sequence folder
+            (:class:`slam_bridge.frontend.kitti.KittiSequence`: ``calib.txt``, ``image_0/`` or
+            ``image_2/``, ``times.txt``; its ``poses.txt`` is not read: it is in the first
+            camera's frame, see ``geoseg slam simulate-logs``).
         camera: its ``camera.json`` (default: in the folder).
         timestamps: a timestamps CSV (default: see :class:`ImageFolder`).
         gps: GPS log CSV.
@@ -157,16 +181,28 @@ def load_inputs(
         georeference: JSON with the world origin's WGS84 position (``origin_lat_deg``,
             ``origin_lon_deg``, ``origin_alt_m``; default: ``frames_dir/gis/georeference.json``
             when present; a GPS log in WGS84 without it puts the origin at its first fix).
+        truth: true poses in the GPS's world frame (:func:`read_truth_csv`), for evaluation
+            only (default: the folder's ``poses.csv``, as a render writes it). A truth whose
+            positions are far from the GPS fixes is refused (given) or ignored (the folder's).
 
     Raises:
         SlamError: any unreadable or inconsistent input, naming the file and the problem
-            (logs that do not overlap the images' time span included).
+            (logs that do not overlap the images' time span included; images of another size
+            than the first).
     """
     from geoseg.synth.georef import Georeference
+    from slam_bridge.frontend.kitti import KITTI_CAMERA_HEIGHT_M, KittiSequence, is_kitti_sequence
 
-    frames = ImageFolder(frames_dir, camera=camera, timestamps=timestamps)
+    kitti = camera is None and is_kitti_sequence(frames_dir)
+    if kitti:
+        frames = KittiSequence(frames_dir, timestamps=timestamps)
+    else:
+        frames = ImageFolder(frames_dir, camera=camera, timestamps=timestamps)
+    frames.check_sizes()
     cam_path = Path(camera) if camera is not None else Path(frames_dir) / "camera.json"
     rig = _read_rig(cam_path)
+    if kitti and not cam_path.is_file():
+        rig = VehicleRig(camera_height_m=KITTI_CAMERA_HEIGHT_M)
     span = (float(frames.timestamps[0]), float(frames.timestamps[-1]))
     geo_path = (
         Path(georeference) if georeference else Path(frames_dir) / "gis" / "georeference.json"
@@ -188,14 +224,14 @@ def load_inputs(
             xy[valid] = xyz[:, :2]
         inputs.gps_timestamps, inputs.gps_xy = log.timestamps, xy
     if odometry is not None:
-        t, v = read_odometry_csv(odometry)
+        t, v, yaw_rate = read_odometry_csv(odometry)
         _check_overlap(Path(odometry), t, span)
-        inputs.odometry = OdometryDistance(t, v)
+        inputs.odometry = OdometryDistance(t, v, yaw_rate)
     if dem is not None:
         inputs.dem = read_dem_csv(dem)
-    poses = Path(frames_dir) / "poses.csv"
-    if poses.is_file():
-        inputs.truth = _read_truth(poses)
+    poses = Path(truth) if truth is not None else Path(frames_dir) / "poses.csv"
+    if truth is not None or poses.is_file():
+        inputs.truth = _checked_truth(poses, inputs, given=truth is not None)
     return inputs
 
 
@@ -258,11 +294,22 @@ def run_image_slam(
                 "no map point was associated with a facade: is the building model in the "
                 "images' world frame, and does it cover the route? (no building constraint)"
             )
+    health = assess_run(
+        result,
+        gps=_gps_constraints(inputs, cfg),
+        odometry=inputs.odometry,
+        antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
+        config=cfg.health,
+    )
+    summary.update(status=health.status, status_reasons=health.reasons, checks=health.figures)
+    poses = frame_poses(result, inputs.frames.timestamps)
+    summary["frames_with_pose"] = {s: int(np.sum(poses.source == s)) for s in POSE_SOURCES}
     if inputs.truth is not None:
         summary.update(evaluate_run(result, inputs))
     from slam_bridge import slam_outputs as so
 
     so.write_trajectory_csv(out / "trajectory.csv", result, frame_of, inputs.georef)
+    so.write_frame_poses(out, poses)
     so.write_keyframe_log(out / "keyframes.csv", result, frame_of)
     so.write_map_points(out / "map_points.ply", result.map)
     so.plot_run(out / "trajectory.png", result, inputs, title=f"{cfg.method}: {out.name}")
@@ -275,10 +322,10 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
 
     Returns:
         ``translation_error_m`` (mean horizontal error, no alignment), ``translation_error_3d_m``,
-        ``rotation_error_deg`` (mean), ``gps_error_m`` (mean horizontal error of the fixes the
-        keyframes were given, against the true antenna positions) and their ratio
-        ``translation_error_over_gps``; over the keyframes placed in the world frame only
-        (``keyframes_in_world``).
+        ``rotation_error_deg`` (mean), ``gps_error_m`` (mean horizontal error of the valid
+        fixes over the keyframes' time span, each against the true antenna position at the
+        fix's own time: :func:`gps_fix_errors`) and their ratio ``translation_error_over_gps``;
+        over the keyframes placed in the world frame only (``keyframes_in_world``).
     """
     from slam_bridge.evaluate import rotation_errors
 
@@ -301,18 +348,46 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         rotation_error_deg=float(e_r.mean()),
     )
     if inputs.gps_xy is not None:
-        gps = GpsConstraints(inputs.gps_timestamps, inputs.gps_xy, tolerance_s=0.5)
-        antenna = np.asarray(inputs.rig.antenna_c, dtype=np.float64)
-        errs = []
-        for j in np.flatnonzero(keep):
-            fix = gps.fix_at(float(m.timestamps[j]))
-            if fix is not None:
-                true_antenna = T_true[idx[j]] + R_true[idx[j]] @ antenna
-                errs.append(np.linalg.norm(fix - true_antenna[:2]))
-        if errs:
-            out["gps_error_m"] = float(np.mean(errs))
+        t0, t1 = float(m.timestamps[keep][0]), float(m.timestamps[keep][-1])
+        errors = gps_fix_errors(inputs, (t0, t1))
+        if errors.size:
+            out["gps_error_m"] = float(errors.mean())
+            out["gps_fixes_evaluated"] = int(errors.size)
             out["translation_error_over_gps"] = out["translation_error_m"] / out["gps_error_m"]
     return out
+
+
+def gps_fix_errors(inputs: SlamInputs, span: tuple[float, float] | None = None) -> np.ndarray:
+    """Horizontal errors of the valid GPS fixes against the truth at each fix's own time.
+
+    The true antenna position is the true pose interpolated at the fix's time (positions
+    linearly, the lever arm with the nearest pose's rotation): a fix compared with the truth at
+    another time (a keyframe's) would count the vehicle's motion in between as GPS error.
+
+    Args:
+        inputs: with ``gps_xy`` and ``truth``.
+        span: ``(t0, t1)``: only the fixes in this time span (default: the truth's).
+
+    Returns:
+        ``(F,)`` metres, one per valid fix inside the span and the truth's time span.
+    """
+    t_true, R_true, T_true = inputs.truth
+    t, xy = inputs.gps_timestamps, inputs.gps_xy
+    lo, hi = (t_true[0], t_true[-1]) if span is None else span
+    lo, hi = max(lo, t_true[0]), min(hi, t_true[-1])
+    use = np.isfinite(xy).all(axis=1) & (t >= lo - 1e-9) & (t <= hi + 1e-9)
+    if not use.any():
+        return np.zeros(0)
+    tf = t[use]
+    pos = np.column_stack([np.interp(tf, t_true, T_true[:, i]) for i in range(3)])
+    nearest = np.clip(np.searchsorted(t_true, tf), 0, t_true.size - 1)
+    earlier = np.clip(nearest - 1, 0, t_true.size - 1)
+    nearest = np.where(
+        np.abs(t_true[earlier] - tf) < np.abs(t_true[nearest] - tf), earlier, nearest
+    )
+    antenna = np.asarray(inputs.rig.antenna_c, dtype=np.float64)
+    true_antenna = pos + R_true[nearest] @ antenna
+    return np.linalg.norm(xy[use] - true_antenna[:, :2], axis=1)
 
 
 def run_on_images(
@@ -339,16 +414,7 @@ def run_on_images(
         ``(the SLAM's result, the front end with its timings and counters)``.
     """
     cfg = cfg or ImageSlamConfig()
-    gps = None
-    if inputs.gps_xy is not None:
-        gps = GpsConstraints(
-            inputs.gps_timestamps,
-            inputs.gps_xy,
-            tolerance_s=cfg.gps_tolerance_s,
-            interpolate_gap_s=cfg.gps_interpolate_gap_s,
-            weight=cfg.gps_weight,
-            antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
-        )
+    gps = _gps_constraints(inputs, cfg)
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
     start = start or TwoViewStart(
         cfg.init,
@@ -389,6 +455,19 @@ def run_on_images(
 
 
 # --------------------------------------------------------------------------------- internals
+def _gps_constraints(inputs: SlamInputs, cfg: ImageSlamConfig) -> GpsConstraints | None:
+    if inputs.gps_xy is None:
+        return None
+    return GpsConstraints(
+        inputs.gps_timestamps,
+        inputs.gps_xy,
+        tolerance_s=cfg.gps_tolerance_s,
+        interpolate_gap_s=cfg.gps_interpolate_gap_s,
+        weight=cfg.gps_weight,
+        antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
+    )
+
+
 class _Progress:
     """The front end seen by the loop, with a progress bar over the frames."""
 
@@ -452,11 +531,47 @@ def _check_overlap(path: Path, t: np.ndarray, span: tuple[float, float]) -> None
         )
 
 
-def _read_truth(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _checked_truth(path: Path, inputs: SlamInputs, given: bool):
+    """The truth of ``path`` when it can be in the GPS's frame (module docstring)."""
+    truth = read_truth_csv(path)
+    if inputs.gps_xy is None:
+        return truth
+    saved, inputs.truth = inputs.truth, truth
+    errors = gps_fix_errors(inputs)
+    inputs.truth = saved
+    if errors.size and np.median(errors) <= TRUTH_GPS_MAX_M:
+        return truth
+    why = (
+        "its times do not overlap the GPS log's"
+        if not errors.size
+        else f"its positions are {np.median(errors):.0f} m from the GPS fixes (median)"
+    )
+    message = (
+        f"{path}: not a truth in the GPS's world frame: {why}; give true poses in that frame "
+        "(geoseg slam simulate-logs writes truth.csv beside its logs)"
+    )
+    if given:
+        raise SlamError(message)
+    logger.warning("%s; no evaluation", message)
+    return None
+
+
+def read_truth_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """True poses of a ``poses.csv`` (columns ``timestamp, tx, ty, tz, r00 ... r22``).
+
+    Returns:
+        ``(timestamps (T,), R_wc (T, 3, 3), t_wc (T, 3))``.
+
+    Raises:
+        SlamError: missing columns, non-finite values, times that do not increase.
+    """
+    path = Path(path)
     names = ["timestamp", "tx", "ty", "tz"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
     cols = read_columns(path, names)
     for n in names:
         check_finite(f"{path}: {n}", cols[n])
     R = np.stack([cols[f"r{i}{j}"] for i in range(3) for j in range(3)], axis=1).reshape(-1, 3, 3)
     t = np.column_stack([cols["tx"], cols["ty"], cols["tz"]])
+    if np.any(np.diff(cols["timestamp"]) <= 0):
+        raise SlamError(f"{path}: timestamps must increase")
     return cols["timestamp"], R, t

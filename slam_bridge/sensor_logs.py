@@ -7,7 +7,8 @@ user's own files with the same column names both work:
 * GPS: ``timestamp`` (seconds, on the images' clock) and ``x, y`` (metres in the world frame)
   or ``lat_deg, lon_deg`` (WGS84, converted by the caller); optional ``valid`` (0 marks a
   dropout, whose position may be empty or NaN);
-* odometry: ``timestamp``, ``speed_mps``;
+* odometry: ``timestamp``, ``speed_mps``, optionally ``yaw_rate_radps`` (the heading's rate,
+  counter-clockwise seen from above: a gyro or the wheels' speed difference);
 * DEM: road segments ``x0, y0, z0, x1, y1, z1`` (metres, world frame).
 
 Every problem (missing file or column, a cell that is not a number, NaN or infinite values where
@@ -147,23 +148,23 @@ def read_gps_csv(path: str | Path) -> GpsLogData:
     return GpsLogData(t, xy, None if xy is not None else pos, path)
 
 
-def read_odometry_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Wheel odometry: ``(timestamps (N,), speed_mps (N,))``.
+def read_odometry_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Wheel odometry: ``(timestamps (N,), speed_mps (N,), yaw_rate_radps (N,) or None)``.
 
     Raises:
-        SlamError: see :func:`read_columns`; non-finite or negative speeds; times that do not
-            increase; fewer than two samples.
+        SlamError: see :func:`read_columns`; non-finite or negative speeds or non-finite yaw
+            rates; times that do not increase; fewer than two samples.
     """
     path = Path(path)
-    cols = read_columns(path, ["timestamp", "speed_mps"])
+    cols = read_columns(path, ["timestamp", "speed_mps"], ["yaw_rate_radps"])
     _check_times(path, cols["timestamp"])
-    _check_finite(path, cols, ["speed_mps"])
+    _check_finite(path, cols, [n for n in ("speed_mps", "yaw_rate_radps") if n in cols])
     if np.any(cols["speed_mps"] < 0):
         i = int(np.flatnonzero(cols["speed_mps"] < 0)[0])
         raise SlamError(f"{path}: row {i + 2}: negative speed {cols['speed_mps'][i]}")
     if cols["timestamp"].size < 2:
         raise SlamError(f"{path}: expected at least two odometry samples")
-    return cols["timestamp"], cols["speed_mps"]
+    return cols["timestamp"], cols["speed_mps"], cols.get("yaw_rate_radps")
 
 
 def read_dem_csv(path: str | Path) -> DemSegments:

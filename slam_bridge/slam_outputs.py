@@ -2,7 +2,10 @@
 
 * :func:`write_trajectory_csv`: one row per keyframe, columns :data:`TRAJECTORY_HEADER`;
 * :func:`write_keyframe_log`: the per-keyframe log, columns :data:`KEYFRAME_LOG_HEADER`;
-* :func:`write_map_points`: the triangulated points as a PLY point cloud (trimesh);
+* :func:`write_frame_poses`: a pose for every frame (``frame_poses.csv``), and the same in the
+  TUM (``trajectory_tum.txt``) and KITTI (``trajectory_kitti.txt``) formats that evaluation
+  tools such as ``evo`` read;
+* :func:`write_map_points`: the triangulated points as a PLY point cloud (float64);
 * :func:`plot_run`: the top-down plot of the trajectory over the GPS fixes and the truth;
 * :func:`write_summary`: the run's figures as JSON.
 """
@@ -22,6 +25,7 @@ __all__ = [
     "KEYFRAME_LOG_HEADER",
     "write_trajectory_csv",
     "write_keyframe_log",
+    "write_frame_poses",
     "write_map_points",
     "plot_run",
     "write_summary",
@@ -115,14 +119,68 @@ def write_keyframe_log(path: Path, result, frame_of: np.ndarray) -> Path:
 
 
 def write_map_points(path: Path, slam_map) -> Path:
-    """The triangulated points as a PLY point cloud (world frame)."""
-    import trimesh
-
+    """The triangulated points as a binary PLY point cloud (world frame), in float64: world-sized
+    coordinates (UTM, Lambert-93) keep their millimetres, which float32 would round to ~0.5 m."""
     ids, X = slam_map.triangulated_points()
-    if X.shape[0] == 0:  # trimesh cannot export an empty cloud: the header alone
-        header = "ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
-        return atomic_write(path, header + "property float y\nproperty float z\nend_header\n")
-    return atomic_write(path, trimesh.PointCloud(X).export(file_type="ply"))
+    X = np.ascontiguousarray(X, dtype="<f8").reshape(-1, 3)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {X.shape[0]}\n"
+        "property double x\nproperty double y\nproperty double z\nend_header\n"
+    )
+    return atomic_write(path, header.encode("ascii") + X.tobytes())
+
+
+FRAME_POSES_HEADER = "frame,timestamp,tx,ty,tz,qw,qx,qy,qz,source,segment,in_world"
+
+
+def write_frame_poses(out_dir: Path, poses, names=None) -> list[Path]:
+    """A pose for every frame (:class:`slam_bridge.slam.frame_poses.FramePoses`).
+
+    Writes ``frame_poses.csv`` (columns :data:`FRAME_POSES_HEADER`, empty pose cells for a frame
+    without one), ``trajectory_tum.txt`` (``timestamp tx ty tz qx qy qz qw``, the frames with a
+    pose) and ``trajectory_kitti.txt`` (12 numbers per frame with a pose: row-major 3x4
+    ``[R_wc | t_wc]``). All in the run's frame: the world frame once georeferenced.
+
+    Returns:
+        The three paths.
+    """
+    from scipy.spatial.transform import Rotation
+
+    has = poses.has_pose
+    q = np.full((has.size, 4), np.nan)  # (x, y, z, w)
+    if has.any():
+        q[has] = Rotation.from_matrix(poses.R_wc[has]).as_quat()
+        q[has] *= np.where(q[has][:, 3:] < 0, -1.0, 1.0)
+    rows, tum, kitti = [FRAME_POSES_HEADER], [], []
+    for i in range(has.size):
+        t = poses.timestamps[i]
+        if has[i]:
+            p = poses.t_wc[i]
+            cells = (
+                ",".join(f"{v:.6f}" for v in p)
+                + ","
+                + ",".join(f"{v:.9f}" for v in (q[i, 3], *q[i, :3]))
+            )
+            tum.append(
+                f"{t:.6f} "
+                + " ".join(f"{v:.6f}" for v in p)
+                + " "
+                + " ".join(f"{v:.9f}" for v in q[i])
+            )
+            P = np.column_stack([poses.R_wc[i], p])
+            kitti.append(" ".join(f"{v:.9e}" for v in P.reshape(-1)))
+        else:
+            cells = ",,,,,,"
+        rows.append(
+            f"{i},{t:.6f},{cells},{poses.source[i]},{int(poses.segment[i])},"
+            f"{int(poses.in_world[i])}"
+        )
+    return [
+        atomic_write(out_dir / "frame_poses.csv", "\n".join(rows) + "\n"),
+        atomic_write(out_dir / "trajectory_tum.txt", "\n".join(tum) + "\n"),
+        atomic_write(out_dir / "trajectory_kitti.txt", "\n".join(kitti) + "\n"),
+    ]
 
 
 def plot_run(path: Path, result, inputs, *, title: str = "") -> Path:

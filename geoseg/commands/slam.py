@@ -25,9 +25,12 @@ CSV with WGS84 positions, map points PLY, per-keyframe log, top-down plot, summa
 from __future__ import annotations
 
 import argparse
+import json
 from pathlib import Path
 
 DEFAULT_CONFIG = Path("configs/slam_images.yaml")
+#: exit code of a run whose status is ``failed`` (its outputs are written all the same)
+EXIT_FAILED = 3
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -82,10 +85,72 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--overwrite", action="store_true", help="write into a folder of other files"
     )
     run_p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run_p.add_argument(
+        "--truth", type=Path,
+        help="true poses in the GPS's world frame (poses.csv columns: timestamp, tx, ty, tz, "
+        "r00..r22), for evaluation only; default: the folder's own poses.csv (a render)",
+    )  # fmt: skip
+
+    sim = sub.add_parser(
+        "simulate-logs",
+        help="GPS, odometry and DEM logs simulated from a drive's true poses (KITTI poses.txt "
+        "or poses.csv)",
+    )
+    sim.add_argument("frames", type=Path, help="a KITTI sequence folder or a render folder")
+    sim.add_argument("--out", type=Path, required=True, help="folder for the logs")
+    sim.add_argument("--poses", type=Path, help="the true poses (default: FRAMES/poses.txt)")
+    sim.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sim.add_argument("--gps-rate", type=float, default=1.0, help="fixes per second (1)")
+    sim.add_argument("--gps-sigma", type=float, default=0.75, help="GPS noise per axis, m (0.75)")
+    sim.add_argument(
+        "--gps-bias", type=float, default=0.0,
+        help="bound of the GPS's locally constant bias, m (0: none; thesis eq. 1.84)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--speed-noise", type=float, default=0.01, help="relative wheel-speed noise (0.01)"
+    )
+    sim.add_argument("--dem-noise", type=float, default=0.2, help="DEM vertex error, m (0.2)")
+    sim.add_argument(
+        "--camera-height", type=float, default=None,
+        help="camera height above the road, m (default 1.65, KITTI's; 1.5 for a render)",
+    )  # fmt: skip
+    sim.add_argument(
+        "--offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+        help="metres added to every world position (e.g. UTM coordinates)",
+    )  # fmt: skip
 
 
 def run(args: argparse.Namespace) -> int:
-    import json
+    if args.action == "simulate-logs":
+        return _simulate_logs(args)
+    return _run(args)
+
+
+def _simulate_logs(args: argparse.Namespace) -> int:
+    from slam_bridge.experiments.simulated_logs import SimulatedLogsConfig, simulate_from_folder
+
+    cfg = SimulatedLogsConfig(
+        gps_rate_hz=args.gps_rate,
+        gps_sigma_m=args.gps_sigma,
+        gps_bias_max_m=args.gps_bias,
+        speed_noise_rel=args.speed_noise,
+        dem_noise_m=args.dem_noise,
+        offset_m=tuple(args.offset),
+        seed=args.seed,
+        **({} if args.camera_height is None else {"camera_height_m": args.camera_height}),
+    )
+    out = simulate_from_folder(args.frames, args.out, cfg, poses=args.poses)
+    meta = json.loads((out / "frame.json").read_text())
+    print(
+        f"simulated logs of {meta['source']} (seed {args.seed}; GPS fixes off by "
+        f"{meta['gps_error_m_mean']:.2f} m on average):"
+    )
+    for name in meta["files"] + ["frame.json"]:
+        print(f"  {name:13s} {out / name}")
+    return 0
+
+
+def _run(args: argparse.Namespace) -> int:
 
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
@@ -110,6 +175,7 @@ def run(args: argparse.Namespace) -> int:
         odometry=args.odometry,
         dem=args.dem,
         georeference=args.georeference,
+        truth=args.truth,
     )
     bridge = None if args.buildings is None else _bridge(args, cfg, inputs)
     out = run_image_slam(
@@ -135,9 +201,19 @@ def run(args: argparse.Namespace) -> int:
             f"buildings ({s['association']}): {s['associated_points']} map points on facades, "
             f"fused at {s['building_keyframes']} of {s['keyframes']} keyframes"
         )
-    for name in ("trajectory.csv", "map_points.ply", "keyframes.csv", "trajectory.png"):
-        print(f"  {name:15s} {out / name}")
-    return 0
+    for name in (
+        "trajectory.csv", "trajectory_tum.txt", "trajectory_kitti.txt", "frame_poses.csv",
+        "map_points.ply", "keyframes.csv", "trajectory.png", "summary.json",
+    ):  # fmt: skip
+        print(f"  {name:20s} {out / name}")
+    print(f"status: {s['status']}")
+    for r in s["status_reasons"]:
+        ranges = ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in r["keyframes"])
+        print(
+            f"  {r['severity']}: {r['check']}: {r['detail']}"
+            + (f" (keyframes {ranges})" if ranges else "")
+        )
+    return EXIT_FAILED if s["status"] == "failed" else 0
 
 
 def _bridge(args, cfg, inputs):

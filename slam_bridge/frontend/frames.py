@@ -1,8 +1,8 @@
 """Frame sequences for the visual front end: a folder of images, or frames held in memory.
 
 A *frame sequence* is anything with ``K`` ``(3, 3)``, ``image_size`` ``(W, H)``, ``timestamps``
-``(T,)``, ``len()`` and ``seq[i] -> (timestamp, rgb (H, W, 3) uint8)``
-(:class:`FrameSequence`). Two exist:
+``(T,)``, ``len()`` and ``seq[i] -> (timestamp, image)``, the image ``(H, W, 3)`` uint8 RGB or,
+from a monochrome camera, ``(H, W)`` uint8 grayscale (:class:`FrameSequence`). Three exist:
 
 * :class:`ImageFolder`: what a user has on disk. Layout::
 
@@ -13,8 +13,11 @@ A *frame sequence* is anything with ``K`` ``(3, 3)``, ``image_size`` ``(W, H)``,
 
   Images (``.png``, ``.jpg``, ``.jpeg``, any case) sit in ``folder/rgb/`` when that folder holds
   any, else directly in ``folder``; they are sorted by name and read lazily, one per access.
-  ``camera.json`` holds ``K`` (3x3) and ``image_size`` ``[W, H]`` (optionally ``fps``); it is
-  looked for in ``folder`` unless a path is given. Timestamps come from the first source found:
+  ``camera.json`` holds ``K`` (3x3) and ``image_size`` ``[W, H]`` (or ``width`` and ``height``;
+  optionally ``fps``); it is looked for in ``folder`` unless a path is given. A folder whose
+  first image has one channel is a monochrome camera's: its frames are read as ``(H, W)``
+  grayscale (no colour copy is made for the front end, which works on intensities).
+  Timestamps come from the first source found:
 
   1. a ``timestamps.csv`` (in ``folder``, or the path given) with columns ``image,timestamp``
      (``image``: the file name, with or without its extension) or ``frame,timestamp``
@@ -28,6 +31,8 @@ A *frame sequence* is anything with ``K`` ``(3, 3)``, ``image_size`` ``(W, H)``,
   when the folder is opened, the others as they are read), a ``camera.json`` without a valid
   ``K`` or ``image_size``, no timestamp source, timestamps that are not finite and strictly
   increasing, a timestamps file whose rows do not match the images one to one.
+* :class:`slam_bridge.frontend.kitti.KittiSequence`: a KITTI odometry sequence as it is on
+  disk (``image_0/`` or ``image_2/``, ``calib.txt``, ``times.txt``).
 * :class:`FrameList`: frames already in memory (or made on demand by a callable), for programs
   that render or decode frames themselves, and for tests.
 """
@@ -82,8 +87,8 @@ def check_intrinsics(K: object, source: str) -> np.ndarray:
     Returns:
         ``(3, 3)`` float64.
     """
-    try:
-        K = np.asarray(K, dtype=np.float64)
+    try:  # a contiguous copy: OpenCV misreads a strided view (a block of a 3x4 projection)
+        K = np.array(K, dtype=np.float64, order="C")
     except (TypeError, ValueError):
         raise SlamError(f"{source}: K: expected a 3x3 matrix of numbers, got {K!r}") from None
     if K.shape != (3, 3):
@@ -158,6 +163,7 @@ class ImageFolder:
         image_size: ``(W, H)``.
         timestamps: ``(T,)`` seconds.
         timestamp_source: the file the timestamps came from (or ``camera.json fps``).
+        grayscale: the images have one channel (frames are ``(H, W)``).
 
     Raises:
         SlamError: see the module docstring.
@@ -180,11 +186,15 @@ class ImageFolder:
         self.timestamps, self.timestamp_source = self._read_timestamps(
             None if timestamps is None else Path(timestamps), fps, cam_path
         )
+        self.grayscale = False
+        first = cv2.imread(str(self.paths[0]), cv2.IMREAD_UNCHANGED)
+        self.grayscale = first is not None and first.ndim == 2
         first = self._read(0)
         logger.info(
-            "%s: %d images %dx%d, timestamps from %s",
+            "%s: %d %s images %dx%d, timestamps from %s",
             self.image_dir,
             len(self),
+            "grayscale" if self.grayscale else "colour",
             first.shape[1],
             first.shape[0],
             self.timestamp_source,
@@ -220,9 +230,14 @@ class ImageFolder:
             raise SlamError(f"{path}: cannot read the camera file as JSON ({err})") from None
         if not isinstance(data, dict):
             raise SlamError(f"{path}: expected a JSON object with K and image_size")
+        if "image_size" not in data and {"width", "height"} <= data.keys():
+            data["image_size"] = [data["width"], data["height"]]
         for key in ("K", "image_size"):
             if key not in data:
-                raise SlamError(f"{path}: missing {key!r} (expected K 3x3 and image_size [W, H])")
+                raise SlamError(
+                    f"{path}: missing {key!r} (expected K 3x3 and image_size [W, H] or width "
+                    "and height)"
+                )
         K = check_intrinsics(data["K"], str(path))
         size = _check_size(data["image_size"], str(path))
         fps = data.get("fps")
@@ -306,19 +321,44 @@ class ImageFolder:
 
     def _read(self, index: int) -> np.ndarray:
         path = self.paths[index]
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
+        flag = cv2.IMREAD_GRAYSCALE if self.grayscale else cv2.IMREAD_COLOR
+        image = cv2.imread(str(path), flag)
+        if image is None:
             raise SlamError(f"{path}: cannot read the image (missing, corrupt or not an image)")
         W, H = self.image_size
-        if bgr.shape[:2] != (H, W):
+        if image.shape[:2] != (H, W):
             raise SlamError(
-                f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, expected {W}x{H} "
+                f"{path}: image is {image.shape[1]}x{image.shape[0]}, expected {W}x{H} "
                 f"(image_size of the camera file and of the first image)"
             )
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return image if self.grayscale else cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+    def check_sizes(self) -> None:
+        """Every image has the camera's size (read from the files' headers, not decoded).
+
+        Raises:
+            SlamError: naming the first image of another size, or one that is not an image.
+        """
+        from PIL import Image, UnidentifiedImageError
+
+        W, H = self.image_size
+        for path in self.paths:
+            try:
+                with Image.open(path) as im:
+                    size = im.size
+            except (OSError, UnidentifiedImageError):
+                raise SlamError(
+                    f"{path}: cannot read the image (missing, corrupt or not an image)"
+                ) from None
+            if size != (W, H):
+                raise SlamError(
+                    f"{path}: image is {size[0]}x{size[1]}, expected {W}x{H} (image_size of "
+                    "the camera file and of the first image)"
+                )
 
     def __getitem__(self, index: int) -> tuple[float, np.ndarray]:
-        """``(timestamp, rgb (H, W, 3) uint8)`` of frame ``index`` (read from disk now)."""
+        """``(timestamp, image)`` of frame ``index`` (read from disk now): ``(H, W, 3)`` RGB,
+        or ``(H, W)`` for a grayscale folder."""
         index = _check_index(index, len(self))
         return float(self.timestamps[index]), self._read(index)
 
@@ -334,8 +374,8 @@ class FrameList:
         K: ``(3, 3)`` intrinsics.
         image_size: ``(W, H)``.
         timestamps: ``(T,)`` seconds, strictly increasing.
-        frames: a sequence of ``T`` RGB images ``(H, W, 3)`` uint8, or a callable
-            ``index -> rgb``.
+        frames: a sequence of ``T`` images, ``(H, W, 3)`` uint8 RGB or ``(H, W)`` uint8
+            grayscale, or a callable ``index -> image``.
         names: optional frame names (default ``000000`` ...).
 
     Raises:
@@ -367,17 +407,17 @@ class FrameList:
         return int(self.timestamps.size)
 
     def __getitem__(self, index: int) -> tuple[float, np.ndarray]:
-        """``(timestamp, rgb (H, W, 3) uint8)`` of frame ``index``."""
+        """``(timestamp, image (H, W, 3) or (H, W) uint8)`` of frame ``index``."""
         index = _check_index(index, len(self))
-        rgb = self._frames(index) if callable(self._frames) else self._frames[index]
-        rgb = np.asarray(rgb)
+        image = self._frames(index) if callable(self._frames) else self._frames[index]
+        image = np.asarray(image)
         W, H = self.image_size
-        if rgb.shape != (H, W, 3) or rgb.dtype != np.uint8:
+        if image.shape not in ((H, W, 3), (H, W)) or image.dtype != np.uint8:
             raise SlamError(
-                f"frame {index}: expected an (H, W, 3) = ({H}, {W}, 3) uint8 image, got "
-                f"{rgb.shape} {rgb.dtype}"
+                f"frame {index}: expected an (H, W, 3) = ({H}, {W}, 3) or ({H}, {W}) uint8 "
+                f"image, got {image.shape} {image.dtype}"
             )
-        return float(self.timestamps[index]), rgb
+        return float(self.timestamps[index]), image
 
     def __iter__(self) -> Iterator[tuple[float, np.ndarray]]:
         for i in range(len(self)):

@@ -325,7 +325,7 @@ class ImageTracks:
         t0 = time.process_time()
         t, rgb = self.frames[i]
         t1 = time.process_time()
-        gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
+        gray = rgb if rgb.ndim == 2 else cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY)
         if self._clahe is not None:
             gray = self._clahe.apply(gray)
         elif self._gamma is not None:

@@ -136,14 +136,21 @@ class InitConfig:
 
 
 class OdometryDistance:
-    """Distance driven between two times, integrated from wheel-odometry speeds.
+    """Distance driven (and heading turned) between two times, integrated from wheel odometry.
 
     Args:
         timestamps: ``(N,)`` seconds, increasing.
         speed_mps: ``(N,)`` speeds (trapezoidal integration; constant beyond the ends).
+        yaw_rate_radps: ``(N,)`` heading rates, counter-clockwise seen from above, or None
+            (the log gives speeds only).
     """
 
-    def __init__(self, timestamps: np.ndarray, speed_mps: np.ndarray) -> None:
+    def __init__(
+        self,
+        timestamps: np.ndarray,
+        speed_mps: np.ndarray,
+        yaw_rate_radps: np.ndarray | None = None,
+    ) -> None:
         t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         v = np.asarray(speed_mps, dtype=np.float64).reshape(-1)
         check_shape("speed_mps", v, (t.size,))
@@ -153,18 +160,34 @@ class OdometryDistance:
             raise SlamError("odometry: expected at least two samples with increasing times")
         self.t = t
         self.v = v
-        self.s = np.concatenate([[0.0], np.cumsum(np.diff(t) * 0.5 * (v[1:] + v[:-1]))])
+        self.s = self._integral(v)
+        self.yaw_rate = None
+        if yaw_rate_radps is not None:
+            self.yaw_rate = np.asarray(yaw_rate_radps, dtype=np.float64).reshape(-1)
+            check_shape("yaw_rate_radps", self.yaw_rate, (t.size,))
+            check_finite("yaw_rate_radps", self.yaw_rate)
+            self.psi = self._integral(self.yaw_rate)
 
-    def _arc(self, time_s: float) -> float:
+    def _integral(self, rate: np.ndarray) -> np.ndarray:
+        return np.concatenate([[0.0], np.cumsum(np.diff(self.t) * 0.5 * (rate[1:] + rate[:-1]))])
+
+    def _at(self, time_s: float, rate: np.ndarray, total: np.ndarray) -> float:
         if time_s <= self.t[0]:
-            return float(self.v[0] * (time_s - self.t[0]))
+            return float(rate[0] * (time_s - self.t[0]))
         if time_s >= self.t[-1]:
-            return float(self.s[-1] + self.v[-1] * (time_s - self.t[-1]))
-        return float(np.interp(time_s, self.t, self.s))
+            return float(total[-1] + rate[-1] * (time_s - self.t[-1]))
+        return float(np.interp(time_s, self.t, total))
 
     def __call__(self, t0: float, t1: float) -> float:
         """Metres driven from ``t0`` to ``t1``."""
-        return self._arc(t1) - self._arc(t0)
+        return self._at(t1, self.v, self.s) - self._at(t0, self.v, self.s)
+
+    def yaw_change(self, t0: float, t1: float) -> float | None:
+        """Heading turned from ``t0`` to ``t1`` (radians, counter-clockwise), or None without
+        yaw rates."""
+        if self.yaw_rate is None:
+            return None
+        return self._at(t1, self.yaw_rate, self.psi) - self._at(t0, self.yaw_rate, self.psi)
 
 
 def fit_similarity(

@@ -426,9 +426,14 @@ class _Loop:
         m, cfg = self.map, self.cfg
         # 3. k-BA
         t0 = time.perf_counter()
+        window_terms = [p for p in self.providers if hasattr(p, "window_factors")]
         win = optimise_window(
-            m, k, self.method, cfg.window, self.links, self.fixed, self.segment_start
-        )
+            m, k, self.method, cfg.window, self.links, self.fixed, self.segment_start,
+            extra_terms=(
+                (lambda problem: [f for p in window_terms for f in p.window_factors(m, problem)])
+                if window_terms else None
+            ),
+        )  # fmt: skip
         rec.ba_seconds = time.perf_counter() - t0
         rec.ba_iterations, rec.fallback = win.iterations, win.fallback
         problem = win.problem

@@ -178,6 +178,7 @@ def optimise_window(
     links: LinkMemory,
     fixed_keyframes: np.ndarray,
     segment_start: int = 0,
+    extra_terms=None,
 ) -> WindowOutcome:
     """``X* = argmin zeta`` of keyframe ``k``'s window (module docstring).
 
@@ -189,6 +190,8 @@ def optimise_window(
         links: the run's pose-graph links (updated).
         fixed_keyframes: keyframe ids held fixed (the gauge of the start-up).
         segment_start: first keyframe of ``k``'s segment (the window never reaches before it).
+        extra_terms: ``problem -> list of factor families`` joining ``zeta`` beside the
+            reprojection rows (the wheel odometry between keyframes), or None.
 
     Returns:
         A :class:`WindowOutcome`; the map is not modified.
@@ -204,7 +207,7 @@ def optimise_window(
     none = np.zeros(0, dtype=np.int64)
     if n_eff == 0:
         problem, lm = _plain_kba(
-            slam_map, keyframes, sel, cfg.l, k, cfg.ba_iterations, fixed_keyframes
+            slam_map, keyframes, sel, cfg.l, k, cfg.ba_iterations, fixed_keyframes, extra_terms
         )
         return WindowOutcome(
             problem, sel, sel, 0, none, np.zeros((0, 3, 3)), np.zeros((0, 3)), int(lm.iterations)
@@ -216,6 +219,8 @@ def optimise_window(
     links.freeze(problem)
     if kind == "mpc":
         links.add_length_terms(problem, cfg.mpc_length_sigma_m)
+    if extra_terms is not None:
+        problem.vision.extend(extra_terms(problem))
     if problem.state.free_cameras.size == 0:
         raise SlamError(f"keyframe {k}: the window has no free camera")
     problem, lm = minimize_zeta(problem, LMConfig(max_iterations=cfg.ba_iterations))
@@ -233,8 +238,9 @@ def optimise_window(
         )  # fmt: skip
         links.forget_from(int(pg_ids[0]))
         problem, lm = _plain_kba(
-            slam_map, keyframes, sel, cfg.l, k, cfg.consistency_iterations, fixed_keyframes
-        )
+            slam_map, keyframes, sel, cfg.l, k, cfg.consistency_iterations, fixed_keyframes,
+            extra_terms,
+        )  # fmt: skip
         return WindowOutcome(
             problem, sel, sel, 0, none, np.zeros((0, 3, 3)), np.zeros((0, 3)),
             iterations + int(lm.iterations), fallback=True,
@@ -252,9 +258,11 @@ def _plain_kba(
     k: int,
     iterations: int,
     fixed_keyframes: np.ndarray,
+    extra_terms=None,
 ):
     """The plain (``n = 0``) k-BA of the ``l`` latest keyframes over the observations ``sel``,
-    minimised by ``iterations`` LM iterations, ``fixed_keyframes`` held fixed.
+    minimised by ``iterations`` LM iterations, ``fixed_keyframes`` held fixed, with the
+    families of ``extra_terms(problem)`` beside the reprojection rows.
 
     Returns:
         ``(problem at its optimum, the LM result)``.
@@ -267,6 +275,8 @@ def _plain_kba(
     kba.state.camera_fixed[np.isin(kba.camera_ids, fixed_keyframes)] = True
     if kba.state.free_cameras.size == 0:
         raise SlamError(f"keyframe {k}: the window has no free camera")
+    if extra_terms is not None:
+        kba.vision.extend(extra_terms(kba))
     return minimize_zeta(kba, LMConfig(max_iterations=iterations))
 
 

@@ -36,3 +36,32 @@ def test_baseline_length_factor_jacobian():
         BaselineLengthFactor(np.array([[0, 1]]), np.array([1.0]), 0.0)
     with pytest.raises(SlamError, match="lengths"):
         BaselineLengthFactor(np.array([[0, 1]]), np.array([1.0, 2.0]), 0.1)
+
+
+def test_yaw_change_factor_jacobian_and_sign():
+    from slam_bridge.factors.yaw_change import YawChangeFactor
+    from slam_bridge.lie import so3_exp
+
+    rng = np.random.default_rng(1)
+    R = np.stack([so3_exp(rng.normal(scale=0.3, size=3)) for _ in range(3)])
+    R[1] = R[0] @ so3_exp(np.array([0.02, -0.1, 0.01]))  # turned 0.1 rad about its -y
+    st = BAState(R, rng.normal(size=(3, 3)), np.zeros((0, 3)))
+    f = YawChangeFactor(np.array([[0, 1], [1, 2]]), np.array([0.1, 0.05]), 0.01)
+    blk = f.evaluate(st)
+    assert abs(blk.residuals[0, 0]) < 0.5  # a 0.1 rad turn about -y is a +0.1 heading change
+    eps = 1e-6
+    for cam in range(3):
+        for k in range(6):
+            d = np.zeros((3, 6))
+            d[cam, k] = eps
+            rp = f.evaluate(st.retract(d, np.zeros((0, 3)))).residuals
+            rm = f.evaluate(st.retract(-d, np.zeros((0, 3)))).residuals
+            num = (rp - rm)[:, 0] / (2 * eps)
+            ana = np.zeros(2)
+            for row in range(2):
+                for slot in range(2):
+                    if blk.cameras[row, slot] == cam:
+                        ana[row] += blk.J_cameras[row, slot, 0, k]
+            np.testing.assert_allclose(ana, num, rtol=1e-5, atol=1e-6)
+    with pytest.raises(SlamError, match="sigma"):
+        YawChangeFactor(np.array([[0, 1]]), np.array([0.1]), 0.0)
