@@ -191,6 +191,31 @@ HEADLINE: tuple[Figure, ...] = (
         "slam_images", ("frames_per_second",), "SLAM on images: frames per second (CPU)", ">= 10"
     ),
     Figure(
+        "slam_real",
+        ("real_translation_error_over_gps_mean", "real_translation_error_over_gps_max"),
+        "SLAM on real KITTI clips (GPS simulated): error / the fixes', mean / max",
+        "<= 0.6 / <= 1.0",
+    ),
+    Figure(
+        "slam_real",
+        ("real_translation_error_over_oracle_mean", "real_scale_error_max"),
+        "SLAM on real clips: error / the true shape fitted to the fixes; odometry-only scale error",
+        "<= 1.25 / <= 0.03",
+    ),
+    Figure(
+        "slam_real",
+        ("real_rotation_error_deg_mean", "real_rotation_error_deg_max"),
+        "SLAM on real clips: rotation error, mean / max",
+        "<= 1.0 / <= 2.0",
+        unit=" deg",
+    ),
+    Figure(
+        "slam_real",
+        ("real_tracking_failures", "real_status_failed", "real_frames_per_second"),
+        "SLAM on real clips: lost keyframes / failed runs / frames per second (1226x370, loaded)",
+        "0 / 0 / >= 10 (idle)",
+    ),
+    Figure(
         "accuracy_real",
         ("zero_shot_miou", "zero_shot_building_iou"),
         "real images (CamVid val, 7 classes), `seg` (plain synthetic city): mIoU / building IoU",
@@ -324,6 +349,9 @@ ABOUT: dict[str, str] = {
     "same drive; see docs/bridge.md.",
     "slam_images": "The SLAM on rendered image sequences (six 600 m drives), georeferenced "
     "without ground truth, against COLMAP.",
+    "slam_real": "The SLAM on two real KITTI clips (the tuning split) with GPS, odometry and "
+    "DEM logs simulated from their true poses, three seeds, four sensor sets; see "
+    "bench/slam_real.py.",
     "frontend_tracks": "The visual front end's tracks against rendered depth and poses.",
     "train_speed": "Training step time under thread settings.",
 }
