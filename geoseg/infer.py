@@ -224,6 +224,39 @@ def _softmax(logits: np.ndarray) -> np.ndarray:
     return e / e.sum(axis=1, keepdims=True)
 
 
+def as_rgb(images: Any) -> np.ndarray:
+    """Images as an RGB batch `(B, H, W, 3)`, grey ones replicated to three channels.
+
+    A monochrome camera's frame (KITTI ``image_0``, say) is the grey image whose three channels
+    are equal: the networks see exactly what they see for an RGB image of that grey (and
+    ``training.common.RandomGrayscale`` trains them on such images).
+
+    Args:
+        images: `(B, H, W, 3)`, `(H, W, 3)` (RGB), `(B, H, W, 1)`, `(H, W, 1)`, `(B, H, W)` or
+            `(H, W)` (grey). A 3-D array whose last axis is 3 is one RGB image, any other 3-D
+            array a batch of grey images (an image is at least ``MIN_IMAGE_SIDE`` wide).
+
+    Returns:
+        `(B, H, W, 3)`, of the input's dtype (a view or a copy).
+
+    Raises:
+        GeosegError: another number of dimensions or of channels.
+    """
+    images = np.asarray(images)
+    if images.ndim == 2:
+        images = images[None, :, :, None]
+    elif images.ndim == 3:
+        images = images[None] if images.shape[-1] in (1, 3) else images[..., None]
+    if images.ndim != 4 or images.shape[-1] not in (1, 3):
+        raise GeosegError(
+            "images: expected RGB (B, H, W, 3) / (H, W, 3) or grey (B, H, W, 1) / (H, W, 1) / "
+            f"(B, H, W) / (H, W), got shape {images.shape}"
+        )
+    if images.shape[-1] == 1:
+        images = np.repeat(images, 3, axis=-1)
+    return images
+
+
 class Segmenter:
     """Image → labels (+ normals, features), over a torch module or an onnxruntime session.
 
@@ -373,13 +406,18 @@ class Segmenter:
         return cls.from_checkpoint(path, device=kwargs.get("device", "cpu"))
 
     def preprocess(self, images: np.ndarray) -> np.ndarray:
-        """RGB uint8 `(B, H, W, 3)` or `(H, W, 3)` → normalised float32 `(B, 3, H, W)`."""
-        images = np.asarray(images)
-        if images.ndim == 3:
-            images = images[None]
-        check_shape("images", images, (None, None, None, 3))
+        """uint8 images → normalised float32 `(B, 3, H, W)`.
+
+        Args:
+            images: RGB `(B, H, W, 3)` or `(H, W, 3)`, or grey (a monochrome camera's frames)
+                `(B, H, W)`, `(H, W)`, `(B, H, W, 1)` or `(H, W, 1)`, replicated to three
+                channels (:func:`as_rgb`).
+        """
+        images = as_rgb(images)
         if images.dtype != np.uint8:
-            raise GeosegError(f"images: expected uint8 RGB images, got dtype {images.dtype}")
+            raise GeosegError(
+                f"images: expected uint8 RGB or grey images, got dtype {images.dtype}"
+            )
         if images.shape[0] < 1:
             raise GeosegError(f"images: empty batch, shape {images.shape}")
         if min(images.shape[1:3]) < MIN_IMAGE_SIDE:
@@ -396,7 +434,8 @@ class Segmenter:
         """Segment RGB images.
 
         Args:
-            images: `(B, H, W, 3)` or `(H, W, 3)` uint8 RGB.
+            images: `(B, H, W, 3)` or `(H, W, 3)` uint8 RGB, or grey `(B, H, W)`, `(H, W)`,
+                `(B, H, W, 1)`, `(H, W, 1)` (replicated to RGB, :func:`as_rgb`).
 
         Returns:
             A :class:`SegmentationResult` with a batch axis even for a single image.

@@ -109,6 +109,29 @@ class NormalizeImage:
         return out
 
 
+LUMA_WEIGHTS: tuple[float, float, float] = (0.299, 0.587, 0.114)
+"""ITU-R BT.601 luma weights of R, G, B: the grey a monochrome camera's frame is taken to be
+(:func:`geoseg.infer.as_rgb` replicates such a frame to three channels)."""
+
+
+class RandomGrayscale:
+    """Sample transform: with probability ``p``, the `(3, H, W)` image in [0, 1] becomes its
+    BT.601 luma replicated to three channels (a monochrome camera's frame as the networks see
+    it). Draws from torch's global generator, as the other augmentations do."""
+
+    def __init__(self, p: float) -> None:
+        self.p = float(p)
+        self.weights = torch.tensor(LUMA_WEIGHTS, dtype=torch.float32)[:, None, None]
+
+    def __call__(self, sample: Mapping[str, Any]) -> dict[str, Any]:
+        out = dict(sample)
+        if self.p > 0 and float(torch.rand(())) < self.p:
+            image = out["image"]
+            luma = (image * self.weights.to(image.dtype)).sum(dim=0, keepdim=True)
+            out["image"] = luma.expand_as(image).clone()
+        return out
+
+
 class Chain:
     """Apply sample transforms in order (picklable, for DataLoader workers)."""
 
@@ -174,6 +197,7 @@ def build_frame_dataset(
         build_transforms(data.augment, size=tuple(data.size), train=augment),
         CameraEffects(data.augment.camera) if augment and data.augment.camera.enabled else None,
         random_crop(crop) if crop is not None else None,
+        RandomGrayscale(data.grayscale) if augment and data.grayscale > 0 else None,
         NormalizeImage() if normalize else None,
     )
     if data.source == "synth":
@@ -281,6 +305,7 @@ def describe_data(data: DataConfig) -> dict[str, Any]:
     from geoseg.config import to_dict
 
     out["augment"] = to_dict(data.augment)
+    out["grayscale"] = data.grayscale
     return out
 
 

@@ -92,6 +92,9 @@ class DataConfig:
     # (then num_workers=0 suffices: cached frames load in ~10-25 ms)
     prerender_workers: int = 0
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    # probability that a training image becomes grey (BT.601 luma on all three channels,
+    # training.common.RandomGrayscale): trains the network for monochrome cameras
+    grayscale: float = 0.0
     synth: dict[str, Any] = field(default_factory=dict)  # options for the synthetic dataset
 
     def __post_init__(self) -> None:
@@ -100,6 +103,8 @@ class DataConfig:
                 "data.num_workers / data.prerender_workers: expected >= 0, got "
                 f"{self.num_workers}, {self.prerender_workers}"
             )
+        if not 0.0 <= self.grayscale <= 1.0:
+            raise ConfigError(f"data.grayscale: expected a probability, got {self.grayscale}")
         if any(s < 1 for s in self.size):
             raise ConfigError(f"data.size: expected positive (H, W), got {self.size}")
         if self.label_map is not None:

@@ -111,7 +111,9 @@ def test_bad_images_raise(joint_files) -> None:
     with pytest.raises(GeosegError, match="images"):
         seg(np.zeros((8, 8, 4), np.uint8))
     with pytest.raises(GeosegError, match="images"):
-        seg(np.zeros((8, 8), np.uint8))
+        seg(np.zeros((1, 8, 8, 2), np.uint8))
+    with pytest.raises(GeosegError, match="too small"):  # one grey image, 6 pixels wide
+        seg(np.zeros((8, 6), np.uint8))
 
 
 def test_corrupt_and_mismatched_checkpoints_name_the_file(tmp_path) -> None:
