@@ -154,10 +154,16 @@ def main(argv: list[str] | None = None) -> dict:
     p.add_argument("--clips", type=Path, default=ROOT.parent / "shared" / "data" / "kitti_clips")
     p.add_argument("--out", type=Path, default=ROOT / "runs" / "slam_real")
     p.add_argument("--results", type=Path, default=ROOT / "bench" / "results" / "slam_real.json")
+    p.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a setting of configs/slam_images.yaml (as geoseg slam run --set)",
+    )  # fmt: skip
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     meta = provenance(SPLIT)
-    cfg = load_config(ImageSlamConfig, ROOT / "configs" / "slam_images.yaml")
+    cfg = load_config(
+        ImageSlamConfig, ROOT / "configs" / "slam_images.yaml", overrides=args.overrides
+    )
     runs = {}
     for clip_name in CLIPS:
         clip = args.clips / clip_name

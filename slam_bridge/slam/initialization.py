@@ -58,6 +58,7 @@ __all__ = [
     "OdometryDistance",
     "TwoViewStart",
     "fit_similarity",
+    "fit_level_similarity",
 ]
 
 
@@ -188,6 +189,62 @@ class OdometryDistance:
         if self.yaw_rate is None:
             return None
         return self._at(t1, self.yaw_rate, self.psi) - self._at(t0, self.yaw_rate, self.psi)
+
+
+def fit_level_similarity(
+    src: np.ndarray, dst: np.ndarray, *, up_src: np.ndarray, fix_scale: bool = False
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity ``dst ~ s R src + T`` whose tilt maps ``up_src`` onto ``+z`` exactly, the rest
+    (heading, horizontal position, scale) fitted to the horizontal coordinates only; ``T_z``
+    puts the mean altitude at the mean of ``dst``'s.
+
+    Args:
+        src: ``(N, 3)`` points in the source frame.
+        dst: ``(N, 3)`` targets (their ``z`` only sets the mean altitude).
+        up_src: ``(3,)`` the source frame's up direction.
+        fix_scale: keep ``s = 1``.
+
+    Returns:
+        ``(s, R (3, 3), T (3,))``.
+
+    Raises:
+        SlamError: fewer than 2 points, coincident points, a zero up direction.
+    """
+    src = np.asarray(src, dtype=np.float64)
+    dst = np.asarray(dst, dtype=np.float64)
+    check_shape("src", src, (None, 3))
+    check_shape("dst", dst, (src.shape[0], 3))
+    if src.shape[0] < 2:
+        raise SlamError("fit_level_similarity: needs at least 2 points")
+    u = np.asarray(up_src, dtype=np.float64)
+    if not np.linalg.norm(u) > 0:
+        raise SlamError("fit_level_similarity: zero up direction")
+    u = u / np.linalg.norm(u)
+    axis = np.cross(u, [0.0, 0.0, 1.0])
+    angle = np.arctan2(np.linalg.norm(axis), u[2])
+    R_level = so3_exp(axis / max(np.linalg.norm(axis), 1e-12) * angle)
+    level = src @ R_level.T
+    a = level[:, :2] - level[:, :2].mean(axis=0)
+    b = dst[:, :2] - dst[:, :2].mean(axis=0)
+    U, _, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    R2 = U @ D @ Vt
+    var = float(np.sum(a * a))
+    if fix_scale:
+        s = 1.0
+    else:
+        if var < 1e-12:
+            raise SlamError("fit_level_similarity: the source points coincide")
+        s = float(np.sum(b * (a @ R2.T)) / var)
+        if not s > 0:
+            raise SlamError(f"fit_level_similarity: non-positive scale {s}")
+    R_yaw = np.eye(3)
+    R_yaw[:2, :2] = R2
+    R = R_yaw @ R_level
+    moved = s * src @ R.T
+    T = np.append(dst[:, :2].mean(axis=0) - moved[:, :2].mean(axis=0), 0.0)
+    T[2] = dst[:, 2].mean() - moved[:, 2].mean()
+    return s, R, T
 
 
 def fit_similarity(
@@ -337,9 +394,16 @@ class TwoViewStart:
         for _ in range(2):  # the antenna offset depends on the rotation being fitted
             offset = np.einsum("ij,kjl,l->ki", R, m.R_wc[kf], antenna)[:, :2]
             target = np.column_stack([xy - offset, z])
-            s, R, T = fit_similarity(
-                m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
-            )
+            if self.dem is None:
+                # nothing measures the altitudes: a level road (z = camera height) would tilt
+                # a map that climbs by its slope, so the tilt comes from the up direction alone
+                s, R, T = fit_level_similarity(
+                    m.t_wc[kf], target, up_src=up_local, fix_scale=fix_scale
+                )
+            else:
+                s, R, T = fit_similarity(
+                    m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
+                )
         self._transform(m, seg, s, R, T)
         resid = np.linalg.norm((m.t_wc[kf, :2] + offset) - xy, axis=1)
         rms = float(np.sqrt(np.mean(resid**2)))

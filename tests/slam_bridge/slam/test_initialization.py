@@ -240,3 +240,28 @@ def test_measured_verticals_hold_the_tilt_that_a_sloping_dem_error_gives(noisy, 
         assert tilt.mean() < 0.5  # (0.36)
     else:
         assert tilt.mean() > 1.5  # the DEM error's slope, 2.3 degrees (2.17)
+
+
+def test_level_similarity_takes_its_tilt_from_the_up_direction_only():
+    from slam_bridge.lie import so3_exp
+    from slam_bridge.slam.initialization import fit_level_similarity
+
+    rng = np.random.default_rng(4)
+    # a climbing track (3 % slope) in a map frame turned and tilted against the world
+    world = np.column_stack(
+        [np.linspace(0, 60, 20), 5 * np.sin(np.linspace(0, 2, 20)), 0.03 * np.linspace(0, 60, 20)]
+    )
+    R_true = so3_exp(np.array([0.05, -0.03, 0.8]))
+    src = (world - [10.0, 2.0, 1.0]) @ R_true / 1.1  # world = 1.1 R_true src + (10, 2, 1)
+    up_src = R_true.T @ np.array([0.0, 0.0, 1.0])
+    dst = world + np.column_stack([rng.normal(0, 0.05, (20, 2)), np.full(20, 7.0)])  # level z
+    s, R, T = fit_level_similarity(src, dst, up_src=up_src)
+    np.testing.assert_allclose(R, R_true, atol=0.003)  # the slope is kept, not levelled
+    assert s == pytest.approx(1.1, rel=0.003)
+    moved = s * src @ R.T + T
+    np.testing.assert_allclose(moved[:, :2], world[:, :2], atol=0.1)
+    assert moved[:, 2].mean() == pytest.approx(dst[:, 2].mean())
+    s1, _, _ = fit_level_similarity(src, dst, up_src=up_src, fix_scale=True)
+    assert s1 == 1.0
+    with pytest.raises(SlamError, match="zero up"):
+        fit_level_similarity(src, dst, up_src=np.zeros(3))
