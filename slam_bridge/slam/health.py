@@ -12,7 +12,9 @@ of that measurement's noise, and names the keyframe ranges where it does not:
   mounting offset, the median over the first third of the chords), over ``heading_gate_deg``; this catches a trajectory whose
   positions follow the fixes while its cameras look the wrong way;
 * ``tracking``: lost tracking (a new segment) and weak keyframes (few PnP inliers) over
-  ``weak_share``; with a GPS, a map never georeferenced.
+  ``weak_share``; with a GPS, a map never georeferenced;
+* recoveries made during the run (a segment georeferenced again when its fixes had left the
+  trajectory: :class:`slam_bridge.slam.initialization.TwoViewStart`) are reported too.
 
 The status is ``failed`` when a check fails on more than ``fail_share`` of what it checks (or
 the map was never georeferenced despite a GPS), ``degraded`` when any range was flagged, else
@@ -135,6 +137,10 @@ def assess_run(result, *, gps=None, odometry=None, antenna_c=None, config=None) 
               f"{100 * weak.mean():.0f} % of the keyframes tracked on few PnP inliers",
               flagged_ranges(ids, weak, cfg.min_run))  # fmt: skip
     h.figures["weak_keyframe_share"] = float(weak.mean()) if weak.size else 0.0
+    for k, before, after in getattr(result, "recoveries", []):
+        h.add("gps", "degraded",
+              f"the GPS fixes had left the trajectory ({before:.1f} m rms): the segment was "
+              f"georeferenced again ({after:.1f} m rms)", [[k, k]])  # fmt: skip
     world = result.in_world
     if gps is not None and not world.any():
         h.add("gps", "failed", "a GPS was given but the map was never georeferenced")

@@ -109,6 +109,13 @@ class InitConfig:
         warn_residual_m: a fit whose horizontal residual exceeds this (rms, metres) is
             logged as a warning: the map's shape does not follow the GPS track (a poor
             two-view start, a bent map), several times a consumer GPS's noise.
+        recover_keyframes: once the fits have stopped (``refit_distance_m``), this many
+            successive keyframes whose fix is more than ``warn_residual_m`` from the camera
+            make the segment be georeferenced again, to all its fixes (a recovery, reported in
+            :attr:`TwoViewStart.recoveries`); 0: never.
+        scale_tolerance: with odometry the fit keeps the odometry's scale, unless the fixes
+            call for a scale further than this from 1 (a wheel calibration off, a map whose
+            scale drifted): the fit then takes the GPS's scale, and says so.
     """
 
     min_matches: int = 40
@@ -121,6 +128,8 @@ class InitConfig:
     measured_up_weight: float = 5.0
     refit_distance_m: float = 200.0
     warn_residual_m: float = 3.0
+    recover_keyframes: int = 5
+    scale_tolerance: float = 0.05
 
     def __post_init__(self) -> None:
         if self.min_matches < 8 or self.min_points < 8:
@@ -335,6 +344,9 @@ class TwoViewStart:
         self._motion = None  # (keyframe, rad/s, m/s) of the segment before a restart
         self._spread = 0.0  # spread of the fixes of the last georeferencing, metres
         self._warned = False  # the segment's fit was reported as not following the GPS
+        self._misfits = 0  # successive keyframes far from their fix after the fits stopped
+        #: ``(keyframe, rms before, rms after)`` of each re-georeferencing
+        self.recoveries: list[tuple[int, float, float]] = []
 
     # ------------------------------------------------------------------------- StartUp
     def start(self, slam_map: Map, source: ObservationSource) -> StartResult | None:
@@ -350,6 +362,7 @@ class TwoViewStart:
         self._motion = None
         self._spread = 0.0  # the new segment is fitted to its own fixes
         self._warned = False
+        self._misfits = 0
         if k >= 2 and m.segment[k - 1] == m.segment[k - 2]:  # the last motion, per second
             dt = m.timestamps[k - 1] - m.timestamps[k - 2]
             omega = so3_log(m.R_wc[k - 1] @ m.R_wc[k - 2].T) / dt
@@ -373,8 +386,11 @@ class TwoViewStart:
             return False
         m, cfg = slam_map, self.config
         seg = np.flatnonzero(m.segment[: k + 1] == m.segment[k])
+        recovering = False
         if self.georeferenced and self._spread >= cfg.refit_distance_m:
-            return False
+            if not self._misfit(m, k):
+                return False
+            recovering = True
         fixes = [self.gps.fix_at(float(m.timestamps[j])) for j in seg]
         have = np.array([f is not None for f in fixes])
         if have.sum() < cfg.min_fixes:
@@ -404,9 +420,29 @@ class TwoViewStart:
                 s, R, T = fit_similarity(
                     m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
                 )
+        if fix_scale and spread >= 2 * cfg.min_distance_m:  # does the GPS agree on the scale?
+            fit = fit_level_similarity if self.dem is None else fit_similarity
+            kw = {} if self.dem is None else {"up_weight": up_weight}
+            s_free, R_free, T_free = fit(m.t_wc[kf], target, up_src=up_local, **kw)
+            if abs(s_free - 1.0) > cfg.scale_tolerance:
+                logger.warning(
+                    "keyframe %d: the GPS fixes call for a scale of %.3f against the odometry's "
+                    "(over %.0f m): the map takes the GPS's",
+                    k, s_free, spread,
+                )  # fmt: skip
+                s, R, T = s_free, R_free, T_free
+        before = self._rms(m, kf, xy) if recovering else 0.0
         self._transform(m, seg, s, R, T)
         resid = np.linalg.norm((m.t_wc[kf, :2] + offset) - xy, axis=1)
         rms = float(np.sqrt(np.mean(resid**2)))
+        if recovering:
+            self._misfits = 0
+            self.recoveries.append((int(k), before, rms))
+            logger.warning(
+                "keyframe %d: %d successive keyframes more than %.1f m from their GPS fix: the "
+                "segment was georeferenced again (%.1f -> %.1f m rms over %d fixes)",
+                k, cfg.recover_keyframes, cfg.warn_residual_m, before, rms, kf.size,
+            )  # fmt: skip
         logger.log(
             logging.DEBUG if self.georeferenced else logging.INFO,
             "keyframe %d: georeferenced on %d fixes over %.0f m: scale %.3f, horizontal residual "
@@ -426,6 +462,22 @@ class TwoViewStart:
         return True
 
     # ------------------------------------------------------------------------- internals
+    def _misfit(self, m: Map, k: int) -> bool:
+        """Keyframe ``k`` is the ``recover_keyframes``-th in a row far from its fix."""
+        cfg = self.config
+        fix = self.gps.fix_at(float(m.timestamps[k]))
+        if cfg.recover_keyframes <= 0 or fix is None:
+            return False
+        far = self._rms(m, np.array([k]), fix[None]) > cfg.warn_residual_m
+        self._misfits = self._misfits + 1 if far else 0
+        return self._misfits >= cfg.recover_keyframes
+
+    def _rms(self, m: Map, kf: np.ndarray, xy: np.ndarray) -> float:
+        """Horizontal rms distance of the keyframes' antennas from the fixes ``xy``."""
+        antenna = np.einsum("kij,j->ki", m.R_wc[kf], np.asarray(self.rig.antenna_c, float))
+        d = m.t_wc[kf, :2] + antenna[:, :2] - xy
+        return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
     def _up(self, m: Map, seg: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, float]:
         """The segment's up direction in the map frame and its weight in the fit: from the
         measured verticals when enough keyframes have one, else the cameras' -y axes."""

@@ -232,6 +232,8 @@ class SlamResult:
         georeferenced_segments: the segments placed in the world frame (the others stayed in
             their first camera's frame: a start or restart that never met the GPS).
         seconds: total wall time.
+        recoveries: ``(keyframe, rms before, rms after)`` of each time the start-up had to
+            georeference a segment again (its fixes had left the trajectory).
     """
 
     method: str
@@ -240,6 +242,7 @@ class SlamResult:
     georeferenced: bool = True
     georeferenced_segments: list[int] = field(default_factory=list)
     seconds: float = 0.0
+    recoveries: list[tuple[int, float, float]] = field(default_factory=list)
 
     @property
     def placed(self) -> np.ndarray:
@@ -370,6 +373,7 @@ class _Loop:
             georeferenced=self.georeferenced,
             georeferenced_segments=sorted(self.georeferenced_segments),
             seconds=time.perf_counter() - t_start,
+            recoveries=list(getattr(self.start_up, "recoveries", [])),
         )
 
     def _start_records(self, first: int, state: str) -> None:

@@ -265,3 +265,36 @@ def test_level_similarity_takes_its_tilt_from_the_up_direction_only():
     assert s1 == 1.0
     with pytest.raises(SlamError, match="zero up"):
         fit_level_similarity(src, dst, up_src=np.zeros(3))
+
+
+def test_fixes_that_leave_the_trajectory_make_the_segment_georeferenced_again(noisy):
+    """After the fits have stopped, the GPS jumps 8 m (a receiver re-acquiring with another
+    bias): five keyframes in a row far from their fixes re-georeference the segment, which the
+    run records and its status reports."""
+    from slam_bridge.slam.health import assess_run
+
+    cfg, seq = noisy
+    gps_xy = gps_for_setting(cfg, seq, "sigma=0.75")
+    jump = seq.timestamps >= seq.timestamps[seq.num_keyframes // 2]
+    gps_xy[jump] += [8.0, 0.0]
+    gps = GpsConstraints(seq.timestamps, gps_xy)
+    start = TwoViewStart(
+        InitConfig(min_distance_m=20.0, refit_distance_m=30.0),
+        gps=gps,
+        odometry=_odometry(seq),
+        mapping=cfg.slam.mapping,
+    )
+    res = run_slam(seq.source(), "ba", start, [gps], cfg.slam)
+    assert res.recoveries, "the jump was not caught"
+    k, before, after = res.recoveries[0]
+    assert seq.timestamps[k] >= seq.timestamps[jump][0] and after < before
+    health = assess_run(res, gps=gps)
+    assert any("georeferenced again" in r["detail"] for r in health.reasons)
+    assert health.status in ("degraded", "failed")
+    quiet = TwoViewStart(
+        InitConfig(min_distance_m=20.0, refit_distance_m=30.0),
+        gps=GpsConstraints(seq.timestamps, gps_for_setting(cfg, seq, "sigma=0.75")),
+        odometry=_odometry(seq),
+        mapping=cfg.slam.mapping,
+    )
+    assert not run_slam(seq.source(), "ba", quiet, [quiet.gps], cfg.slam).recoveries
