@@ -286,6 +286,14 @@ def run_image_slam(
         a = bridge.constraints.association
         summary.update(
             association=cfg.bridge.association,
+            bridge_mode=(
+                "inline"
+                if not cfg.bridge.asynchronous
+                else f"repeatable: each keyframe's results applied {cfg.bridge.lag_keyframes} "
+                "keyframes later, waited for when late"
+                if cfg.bridge.lag_keyframes is not None
+                else "as ready: results applied when done, never waited for (runs may differ)"
+            ),
             building_keyframes=sum("building" in r.constraints for r in result.records),
             associated_points=0 if a is None else int(a.associated.sum()),
         )

@@ -230,6 +230,8 @@ def _bridge(args, cfg, inputs):
     if method != "dirichlet" and args.dirichlet:
         raise GeosegError("--dirichlet: only the dirichlet association uses the filter")
     facades = Facades.read_csv(args.buildings)
+    if method != "raycast":  # the first inference can take a while on a busy machine
+        print(f"loading the {method} network and running it once on a blank image ...", flush=True)
     mesh = None
     if method == "raycast":
         import trimesh

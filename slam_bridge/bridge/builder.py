@@ -74,6 +74,10 @@ class BridgeConfig:
         recent_keyframes: the online associations cover the points seen in this many latest
             keyframes (None: all points, a snapshot that grows with the map); at least the
             k-BA window's ``l + history_keyframes`` (checked by the SLAM's config).
+        lag_keyframes: the worker's results for keyframe ``k`` are applied at keyframe
+            ``k + lag_keyframes`` exactly, waited for when late (a repeatable run: its result
+            does not depend on the machine's speed); None: as soon as they are ready, never
+            waited for (the fastest run, but two runs may differ).
     """
 
     association: str = "bayes"
@@ -87,8 +91,11 @@ class BridgeConfig:
     asynchronous: bool = True
     worker: str = "process"
     recent_keyframes: int | None = 150
+    lag_keyframes: int | None = None
 
     def __post_init__(self) -> None:
+        if self.lag_keyframes is not None and self.lag_keyframes < 1:
+            raise SlamError(f"lag_keyframes: expected >= 1 or None, got {self.lag_keyframes}")
         if self.association not in ASSOCIATIONS:
             raise SlamError(
                 f"association: expected one of {list(ASSOCIATIONS)}, got {self.association!r}"
@@ -279,6 +286,7 @@ def build_bridge(
         asynchronous=cfg.asynchronous,
         make_network=make_network,
         recent_keyframes=cfg.recent_keyframes,
+        lag_keyframes=cfg.lag_keyframes,
     )
     if uses_network:
         try:

@@ -16,9 +16,11 @@ At each keyframe it
    them all). The loop's thread gathers only those rows (:class:`PointRows`); the association's
    thread spreads them over the map's points.
 
-The SLAM never waits: a job that is not finished is applied at a later keyframe (its *lag*, in
-keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe adds no
-evidence). Association runs in a thread of its own (an association does not queue behind
+By default the SLAM never waits: a job that is not finished is applied at a later keyframe
+(its *lag*, in keyframes), and inference jobs beyond ``max_pending`` are dropped (that keyframe
+adds no evidence); the result then depends on the machine's speed. With ``lag_keyframes = L``
+the jobs submitted at keyframe ``k`` are applied at keyframe ``k + L`` exactly, waited for when
+late, and none is dropped: a repeatable run, the same as the inline worker with the same lag. Association runs in a thread of its own (an association does not queue behind
 inference). Inference runs in a thread too, or, given ``make_network``, in a **child process**
 that builds the network once, at a lower scheduling priority than the loop: the network
 runtime releases the GIL, but the resizing, smoothing and sampling around it do not, and in a
@@ -176,6 +178,9 @@ class BridgeWorker:
         recent_keyframes: the snapshots of the online associations hold the points observed
             in this many latest keyframes (None: all points). It must cover the fusion's window
             (the k-BA's ``l`` and ``history_keyframes``) with the lag of the associations.
+        lag_keyframes: apply each job exactly this many keyframes after its submission,
+            waiting for it when late (repeatable); None: as soon as it is done (inline: at the
+            next keyframe).
     """
 
     def __init__(
@@ -193,7 +198,11 @@ class BridgeWorker:
         image_at: Callable[[float], np.ndarray] | None = None,
         make_network: Callable[[], NetworkOutputs] | None = None,
         recent_keyframes: int | None = None,
+        lag_keyframes: int | None = None,
     ) -> None:
+        if lag_keyframes is not None and lag_keyframes < 1:
+            raise SlamError(f"lag_keyframes: expected >= 1 or None, got {lag_keyframes}")
+        self.lag_keyframes = lag_keyframes
         if min(associate_every, infer_every, max_pending) < 1:
             raise SlamError("associate_every, infer_every and max_pending must be >= 1")
         if recent_keyframes is not None and recent_keyframes < 1:
@@ -247,7 +256,7 @@ class BridgeWorker:
             image = self.image_at(float(slam_map.timestamps[k]))
         if infer and image is not None and 0 <= k < slam_map.num_keyframes:
             waiting = sum(not f.done() for _, _, f in self._pending["infer"])
-            if waiting >= self.max_pending:
+            if waiting >= self.max_pending and self.lag_keyframes is None:
                 self.stats.dropped += 1
             else:
                 idx = slam_map.keyframe_observations(k)
@@ -306,8 +315,11 @@ class BridgeWorker:
 
     def _apply(self, slam_map: Map, k: int, wait: bool) -> None:
         """Apply the finished jobs of each kind in submission order (all when ``wait``)."""
+        lag = self.lag_keyframes
         for kind, pending in self._pending.items():
-            while pending and (wait or pending[0][2].done()):
+            while pending and (
+                wait or (pending[0][2].done() if lag is None else k - pending[0][0] >= lag)
+            ):
                 k_sub, payload, fut = pending.popleft()
                 result, seconds = fut.result()  # re-raises a job's error here, in the main thread
                 if kind == "infer":

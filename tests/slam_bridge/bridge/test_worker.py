@@ -136,6 +136,30 @@ def test_the_loop_never_waits_for_a_slow_network(scene):
     assert np.isfinite(res.map.t_wc).all()
 
 
+def test_a_fixed_lag_makes_a_slow_asynchronous_run_repeatable(scene):
+    """``lag_keyframes=2``: a slow network and association in threads, waited for when late,
+    give exactly the trajectory of the inline worker with the same lag (and nothing dropped)."""
+    stand_in = scene[4]
+
+    def slow(image):
+        time.sleep(0.05)
+        return stand_in(image)
+
+    inline, c_inline = _worker(scene, asynchronous=False, lag_keyframes=2)
+    reference = _run(scene, inline, [c_inline])
+    inline.finish(reference.map)
+    threaded, c_threaded = _worker(
+        scene, network=slow, delay_s=0.05, max_pending=1, lag_keyframes=2
+    )
+    res = _run(scene, threaded, [c_threaded])
+    threaded.finish(res.map)
+    assert threaded.stats.dropped == 0 and set(threaded.stats.lags) == {2}
+    assert set(inline.stats.lags) == {2}
+    np.testing.assert_array_equal(res.map.t_wc, reference.map.t_wc)
+    with pytest.raises(SlamError, match="lag_keyframes"):
+        _worker(scene, lag_keyframes=0)
+
+
 def test_a_slow_network_labels_every_few_keyframes(scene):
     """``infer_every=3``: the network sees keyframes 0, 3, 6, ... only; the points still gather
     evidence from them (each is seen in several keyframes) and get associated."""
