@@ -58,6 +58,10 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+#: exit code after Ctrl-C (the shell's convention: 128 + SIGINT)
+EXIT_INTERRUPTED = 130
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
@@ -77,6 +81,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     except GeosegError as err:
         print(f"geoseg {args.command}: error: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        out = getattr(args, "out", None)
+        kept = (
+            f": {out} keeps what was written before (outputs are written whole or not at "
+            "all; a folder without its summary is an unfinished run)"
+            if out is not None
+            else ""
+        )
+        print(f"geoseg {args.command}: interrupted{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 def _load(module_name: str):

@@ -270,7 +270,9 @@ def run_image_slam(
     summary = {
         "method": cfg.method,
         "frames": len(inputs.frames),
-        "frames_processed": int(frame_of[-1]) + 1,
+        # every frame read by the front end; the ones after the last keyframe have
+        # extrapolated poses (frames_with_pose)
+        "frames_processed": int(tracks.timings.get("frames", frame_of[-1] + 1)),
         "keyframes": result.map.num_keyframes,
         "segments": int(result.map.segment.max()) + 1,
         "tracking_failures": result.tracking_failures,
@@ -279,7 +281,7 @@ def run_image_slam(
         "map_points": int(result.map.triangulated.sum()),
         "gps_fused_keyframes": sum(r.gps_used for r in result.records),
         "seconds": seconds,
-        "frames_per_second": (int(frame_of[-1]) + 1) / seconds,
+        "frames_per_second": int(tracks.timings.get("frames", frame_of[-1] + 1)) / seconds,
         "frontend_seconds": float(tracks.timings.get("total", 0.0)),
     }
     if bridge is not None:
