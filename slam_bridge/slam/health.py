@@ -7,10 +7,12 @@ of that measurement's noise, and names the keyframe ranges where it does not:
   ``gps_gate_m``);
 * ``odometry``: each step between successive keyframes against the distance driven (relative
   miss over ``odometry_gate``: five sigma of a 2 % odometry);
-* ``heading``: over chords of at least ``chord_m`` metres, the SLAM's track direction against
-  the GPS track's, and the cameras' heading against the SLAM's own track (less the camera's
-  mounting offset, the median over the first third of the chords), over ``heading_gate_deg``; this catches a trajectory whose
-  positions follow the fixes while its cameras look the wrong way;
+* ``heading``: each camera's heading against its own track's on straight stretches (the
+  tangent through the neighbouring keyframes, less the camera's mounting offset: the median
+  over the first third of the run), and over chords of at least ``chord_m`` metres the SLAM's track direction
+  against the GPS track's (that gate widened to three times the GPS chord's own heading noise,
+  from the fixes' median residual), over ``heading_gate_deg``: cameras that look the wrong way
+  while the positions follow the fixes, or a trajectory turned away from the GPS track;
 * ``tracking``: lost tracking (a new segment) and weak keyframes (few PnP inliers) over
   ``weak_share``; with a GPS, a map never georeferenced;
 * recoveries made during the run (a segment georeferenced again when its fixes had left the
@@ -40,8 +42,11 @@ class HealthConfig:
         gps_gate_m: a fix further than this from its keyframe's fused antenna position.
         odometry_gate: a keyframe step whose length misses the odometry by this share.
         odometry_min_m: steps shorter than this are not checked (the floor of the noise).
-        heading_gate_deg: a chord whose heading misses by more than this.
-        chord_m: shortest chord of the heading check.
+        heading_gate_deg: a heading that misses by more than this, degrees.
+        chord_m: shortest chord of the heading check against the GPS track.
+        tangent_min_m: shortest span of the tangent a camera's heading is checked against.
+        max_turn: the cameras are checked on stretches turning less than this (rad/m: a
+            camera 2 m ahead of the rear axle moves 1 deg sideways at 0.01).
         weak_share: share of weak keyframes that makes a run degraded.
         fail_share: share of flagged checks that makes a run failed.
         min_run: consecutive flagged keyframes that make a range (isolated ones are noise).
@@ -52,6 +57,8 @@ class HealthConfig:
     odometry_min_m: float = 0.5
     heading_gate_deg: float = 6.0
     chord_m: float = 20.0
+    tangent_min_m: float = 1.0
+    max_turn: float = 0.01
     weak_share: float = 0.2
     fail_share: float = 0.5
     min_run: int = 2
@@ -201,44 +208,51 @@ def _check_odometry(h: Health, m, placed, distance, cfg: HealthConfig) -> None:
 
 
 def _check_heading(h: Health, m, world, gps, cfg: HealthConfig) -> None:
+    gps_noise_m = h.figures.get("gps_residual_median_m", 0.0)
     ks = np.flatnonzero(world)
-    t = m.timestamps[ks]
-    fixes = [gps.fix_at(float(ti)) for ti in t]
     pos = m.t_wc[ks, :2]
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     yaw = _heading(m.R_wc[ks][:, :, 2])  # the optical axis's heading
-    mids, track_dev, cam_off = [], [], []
+    flagged = np.zeros(ks.size, dtype=bool)
+    # the cameras against their own track: the tangent from the neighbouring keyframes
+    ids, dev = [], []
+    for i in range(1, ks.size - 1):
+        span = pos[i + 1] - pos[i - 1]
+        length = float(np.linalg.norm(span))
+        # in a turn a camera ahead of the rear axle moves sideways: straight stretches only
+        turn = abs(np.radians(_wrap_deg(yaw[i + 1] - yaw[i - 1]))) / max(length, 1e-6)
+        if ks[i + 1] - ks[i - 1] == 2 and length >= cfg.tangent_min_m and turn <= cfg.max_turn:
+            ids.append(i)
+            dev.append(_wrap_deg(yaw[i] - _heading(span)))
+    if len(ids) >= 3:
+        dev_a = np.array(dev)
+        # the mounting offset from the first third, right after the georeferencing (a run's
+        # median would split a failure that covers half of it)
+        reference = np.median(dev_a[: max(3, dev_a.size // 3)])
+        dev_a = _wrap_deg(np.radians(dev_a - reference))
+        flagged[np.array(ids)] |= np.abs(dev_a) > cfg.heading_gate_deg
+        h.figures["heading_camera_deviation_max_deg"] = float(np.max(np.abs(dev_a)))
+    # the track against the GPS track over chords of chord_m
+    fixes = [gps.fix_at(float(m.timestamps[k])) for k in ks]
+    s_along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
+    track = []
     for i in range(ks.size):
-        j = int(np.searchsorted(s, s[i] + cfg.chord_m))
+        j = int(np.searchsorted(s_along, s_along[i] + cfg.chord_m))
         if j >= ks.size:
             break
+        if fixes[i] is None or fixes[j] is None:
+            continue
         chord = pos[j] - pos[i]
-        mid = int(np.argmin(np.abs(s - 0.5 * (s[i] + s[j]))))  # a chord is parallel to
-        # the arc's tangent at its middle (a circle's exactly)
-        mids.append(mid)
-        cam_off.append(_wrap_deg(yaw[mid] - _heading(chord)))
-        if fixes[i] is not None and fixes[j] is not None:
-            track_dev.append(_wrap_deg(_heading(chord) - _heading(fixes[j] - fixes[i])))
-        else:
-            track_dev.append(np.nan)
-    if not mids:
-        return
-    mids_a = ks[np.array(mids)]
-    cam = np.array(cam_off)
-    # the mounting offset from the first third of the chords, right after the georeferencing
-    # (a run's median would split a failure that covers half of it)
-    reference = np.median(cam[: max(3, cam.size // 3)])
-    cam_dev = _wrap_deg(np.radians(cam - reference))
-    track = np.array(track_dev)
-    bad = (np.abs(cam_dev) > cfg.heading_gate_deg) | (
-        np.isfinite(track) & (np.abs(np.nan_to_num(track)) > cfg.heading_gate_deg)
-    )
-    h.figures["heading_camera_deviation_max_deg"] = float(np.max(np.abs(cam_dev)))
-    if np.isfinite(track).any():
-        h.figures["heading_track_deviation_max_deg"] = float(np.nanmax(np.abs(track)))
-    ranges = flagged_ranges(mids_a, bad, cfg.min_run)
+        d = _wrap_deg(_heading(chord) - _heading(fixes[j] - fixes[i]))
+        # the GPS chord's own heading noise: two fixes of the run's typical error
+        noise = np.degrees(np.sqrt(2.0) * gps_noise_m / max(np.linalg.norm(chord), 1e-6))
+        track.append(abs(d))
+        if abs(d) > max(cfg.heading_gate_deg, 3 * noise):
+            flagged[(i + j) // 2] = True
+    if track:
+        h.figures["heading_track_deviation_max_deg"] = float(np.max(track))
+    ranges = flagged_ranges(ks, flagged, cfg.min_run)
     if ranges:
-        severity = "failed" if bad.mean() > cfg.fail_share else "degraded"
+        severity = "failed" if flagged.mean() > cfg.fail_share else "degraded"
         h.add("heading", severity,
-              f"the cameras' heading or the track's departs from the GPS track by more than "
-              f"{cfg.heading_gate_deg:g} deg over {cfg.chord_m:g} m chords", ranges)  # fmt: skip
+              f"the cameras' heading departs from their track, or the track from the GPS "
+              f"track, by more than {cfg.heading_gate_deg:g} deg", ranges)  # fmt: skip

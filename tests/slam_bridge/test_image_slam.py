@@ -63,8 +63,18 @@ def test_slam_run_writes_a_georeferenced_trajectory(drive, tmp_path, capsys):
         assert (out / name).is_file(), name
     s = json.loads((out / "summary.json").read_text())
     assert s["georeferenced"] and s["tracking_failures"] == 0 and s["keyframes"] >= 15
-    # a ~50 m drive: the fused keyframes sit within about the GPS noise of the truth
-    assert s["translation_error_m"] < 1.5 and s["rotation_error_deg"] < 3.0
+    # a ~50 m drive with a 0.75 m GPS (measured: 0.18 m against the fixes' 0.97 m, 0.22 deg):
+    # the SLAM beats its GPS by a wide margin, and says the run is sound
+    assert s["translation_error_m"] < 0.5 * s["gps_error_m"] and s["rotation_error_deg"] < 1.0
+    assert s["status"] == "ok" and s["status_reasons"] == []
+    assert printed.strip().splitlines()[-1] == "status: ok"
+    assert s["frames_processed"] == s["frames"] == sum(s["frames_with_pose"].values())
+    for name in ("frame_poses.csv", "trajectory_tum.txt", "trajectory_kitti.txt"):
+        assert (out / name).is_file(), name
+    tum = np.loadtxt(out / "trajectory_tum.txt")
+    kitti = np.loadtxt(out / "trajectory_kitti.txt")
+    assert tum.shape == (s["frames"] - s["frames_with_pose"]["none"], 8) == (len(kitti), 8)
+    np.testing.assert_allclose(kitti[:, [3, 7, 11]], tum[:, 1:4], atol=1e-5)
     rows, poses = read_trajectory(out / "trajectory.csv")
     assert len(rows) == s["keyframes"]
     world = np.array([r["in_world"] == "1" for r in rows])
