@@ -103,6 +103,10 @@ class ImageSlamConfig:
             this far apart (None: not).
         gps_weight: weight of a GPS fix in the fusion (per square metre).
         dem_weight: weight of the terrain-elevation term (per square metre).
+        odometry_band: the odometry rows' dead zone in the k-BA, in sigmas of its 2 % distance
+            (:class:`slam_bridge.slam.fusion.OdometryConstraints`): a wheel scale error of a few
+            percent passes, a monocular scale drift of 20 % cannot survive; None: the odometry
+            in the fusion only.
         vertical: the tilt from each keyframe's vertical line segments joins the fusion
             (:class:`slam_bridge.slam.fusion.VerticalConstraints`).
         vertical_lines: how those segments are found and fitted.
@@ -118,6 +122,7 @@ class ImageSlamConfig:
     gps_interpolate_gap_s: float | None = 1.5
     gps_weight: float = 1.0
     dem_weight: float = 1.0
+    odometry_band: float | None = 2.0
     vertical: bool = True
     vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
@@ -441,7 +446,7 @@ def run_on_images(
             DemConstraints(inputs.dem, inputs.rig.camera_height_m, weight=cfg.dem_weight)
         )
     if inputs.odometry is not None:
-        providers.append(OdometryConstraints(inputs.odometry))
+        providers.append(OdometryConstraints(inputs.odometry, band=cfg.odometry_band))
     source = _Progress(tracks, progress)
     if cfg.vertical:
         providers.append(VerticalConstraints(source.image_at, tracks.K, cfg.vertical_lines))

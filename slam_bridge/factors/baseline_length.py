@@ -29,9 +29,16 @@ class BaselineLengthFactor:
         pairs: ``(Q, 2)`` state camera indices.
         lengths: ``(Q,)`` reference lengths ``L_hat`` (metres).
         sigma: metres, scalar or ``(Q,)``.
+        kernel: robust kernel of the rows (default least squares).
     """
 
-    def __init__(self, pairs: np.ndarray, lengths: np.ndarray, sigma: float) -> None:
+    def __init__(
+        self, pairs: np.ndarray, lengths: np.ndarray, sigma: float, *, kernel=None
+    ) -> None:
+        from slam_bridge.solvers.robust import TrivialKernel, get_kernel
+
+        self.kernel = get_kernel(kernel)
+        self._trivial = isinstance(self.kernel, TrivialKernel)
         self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         self.lengths = np.asarray(lengths, dtype=np.float64).reshape(-1)
         if self.lengths.shape != (self.pairs.shape[0],):
@@ -70,7 +77,9 @@ class BaselineLengthFactor:
     def evaluate(self, state):
         """Rows ``(Q, 1)``, ``a = 2``."""
         r, J = self._rows(state)
-        return FactorBlock(r[:, None], self.pairs, J.reshape(-1, 2, 1, 6), name=self.name)
+        return FactorBlock(
+            r[:, None], self.pairs, J.reshape(-1, 2, 1, 6), kernel=self.kernel, name=self.name
+        )
 
     def _normal_equations(self, state, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int):
         """Compiled shortcut of :func:`slam_bridge.problem.assemble` (numba only): the per-pair
@@ -79,7 +88,7 @@ class BaselineLengthFactor:
         overhead was ~0.2 ms per assembly for ~30 rows)."""
         from slam_bridge.problem import pair_normal_equations
 
-        if type(self).evaluate is not BaselineLengthFactor.evaluate:
+        if type(self).evaluate is not BaselineLengthFactor.evaluate or not self._trivial:
             return None
         r, J = self._rows(state)
         H = J[:, :, None] * J[:, None, :]
@@ -87,8 +96,8 @@ class BaselineLengthFactor:
         return pair_normal_equations(cost, 0, H, J * r[:, None], self.pairs, cmap, Cf, Pf)
 
     def cost(self, state) -> float:
-        """``sum r^2``."""
-        return float(np.sum(self._r(state)[0] ** 2))
+        """``sum rho(r^2)``."""
+        return float(np.sum(self.kernel.rho(self._r(state)[0] ** 2)))
 
     def cost_and_invalid(self, state) -> tuple[float, int]:
         """``(cost, 0)``."""

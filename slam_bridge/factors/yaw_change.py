@@ -27,9 +27,13 @@ class YawChangeFactor:
         pairs: ``(Q, 2)`` state camera indices ``(i, j)``.
         dpsi: ``(Q,)`` measured heading changes from ``i`` to ``j``, radians (counter-clockwise).
         sigma: radians, scalar or ``(Q,)``.
+        kernel: robust kernel of the rows (default least squares).
     """
 
-    def __init__(self, pairs: np.ndarray, dpsi: np.ndarray, sigma) -> None:
+    def __init__(self, pairs: np.ndarray, dpsi: np.ndarray, sigma, *, kernel=None) -> None:
+        from slam_bridge.solvers.robust import get_kernel
+
+        self.kernel = get_kernel(kernel)
         self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         self.dpsi = np.asarray(dpsi, dtype=np.float64).reshape(-1)
         if self.dpsi.shape != (self.pairs.shape[0],) or not np.isfinite(self.dpsi).all():
@@ -59,11 +63,11 @@ class YawChangeFactor:
         J = np.zeros((r.size, 2, 1, 6))
         J[:, 0, 0, :3] = -g
         J[:, 1, 0, :3] = g
-        return FactorBlock(r[:, None], self.pairs, J, name=self.name)
+        return FactorBlock(r[:, None], self.pairs, J, kernel=self.kernel, name=self.name)
 
     def cost(self, state) -> float:
-        """``sum r^2``."""
-        return float(np.sum(self._r(state)[0] ** 2))
+        """``sum rho(r^2)``."""
+        return float(np.sum(self.kernel.rho(self._r(state)[0] ** 2)))
 
     def cost_and_invalid(self, state) -> tuple[float, int]:
         """``(cost, 0)``."""

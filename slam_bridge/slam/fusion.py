@@ -198,20 +198,24 @@ class DemConstraints:
 
 
 class OdometryConstraints:
-    """Wheel odometry between successive keyframes, inside the k-BA (appendix B.3.2).
+    """Wheel odometry between successive keyframes (appendix B.3.2): in the k-BA and the fusion.
 
-    For each pair of successive keyframes of the window: the length of their baseline,
+    For each pair of successive keyframes: the length of their baseline,
     ``r = (||T_j - T_i|| - d) / sigma`` with ``d`` the distance driven between their times and
     ``sigma = max(sigma_rel d, sigma_min_m)``
     (:class:`slam_bridge.factors.baseline_length.BaselineLengthFactor`), and, when the log has
     yaw rates, the heading turned, ``sigma = sigma_yaw_rad + sigma_yaw_rel |dpsi|``
     (:class:`slam_bridge.factors.yaw_change.YawChangeFactor`): together the displacement
     between keyframes from speed and heading, the parts of it that do not depend on how the
-    camera is mounted. They join the k-BA's cost ``zeta`` (:meth:`window_factors`), not only the
-    barrier fusion: in the fusion they could raise ``zeta`` by ``t_ratio - 1`` at most, far too
-    little to undo a monocular scale drift of 20 % after a turn on few points (a 10-sigma miss
-    of the odometry), while in the k-BA a drift of a few sigma already costs more than the
-    vision rows gain.
+    camera is mounted.
+
+    Two places. In the k-BA's cost ``zeta`` (:meth:`window_factors`, every pair of the window)
+    with a dead zone of ``band`` sigmas (:class:`slam_bridge.solvers.robust.DeadZoneKernel`):
+    a wheel odometry's scale error of a percent or two costs nothing there and the vision keeps
+    its own scale, but a monocular scale drift of 20 % after a turn on few points (a 10-sigma
+    miss) costs far more than the vision rows gain, and cannot survive. In the barrier fusion
+    (:meth:`factors`, the newest pair) without a dead zone, as a gentle pull within the
+    barrier's slack (``t_ratio``), which alone could never undo such a drift.
 
     Args:
         distance: an :class:`slam_bridge.slam.initialization.OdometryDistance` (or any
@@ -220,6 +224,7 @@ class OdometryConstraints:
         sigma_min_m: its floor, metres.
         sigma_yaw_rad: standard deviation of a heading change, radians.
         sigma_yaw_rel: its part proportional to the turn.
+        band: the k-BA rows' dead zone, in sigmas (None: no k-BA rows, the fusion only).
     """
 
     name = "odometry"
@@ -233,56 +238,71 @@ class OdometryConstraints:
         sigma_min_m: float = 0.02,
         sigma_yaw_rad: float = 0.005,
         sigma_yaw_rel: float = 0.05,
+        band: float | None = 2.0,
     ) -> None:
         for name, v in (
             ("sigma_rel", sigma_rel), ("sigma_min_m", sigma_min_m),
             ("sigma_yaw_rad", sigma_yaw_rad), ("sigma_yaw_rel", sigma_yaw_rel),
         ):  # fmt: skip
             check_positive(name, v)
+        if band is not None:
+            check_positive("band", band)
         self.distance = distance
         self.sigma_rel, self.sigma_min_m = float(sigma_rel), float(sigma_min_m)
         self.sigma_yaw_rad, self.sigma_yaw_rel = float(sigma_yaw_rad), float(sigma_yaw_rel)
+        self.band = band
 
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
-        """None in the fusion: the odometry is in the k-BA (:meth:`window_factors`)."""
-        return []
+        """The newest pair's rows for the fusion (when both keyframes are in the window)."""
+        ids = list(problem.camera_ids)
+        if k - 1 not in ids or k not in ids or slam_map.segment[k - 1] != slam_map.segment[k]:
+            return []
+        return self._rows(slam_map, [(ids.index(k - 1), ids.index(k))], ids, kernel=None)
 
     def window_factors(self, slam_map: Map, problem) -> list[Factor]:
-        """Baseline-length (and heading-change) rows between the successive keyframes of the
-        window of ``problem`` that are not both fixed."""
-        from slam_bridge.factors.baseline_length import BaselineLengthFactor
-        from slam_bridge.factors.yaw_change import YawChangeFactor
+        """Rows between the successive keyframes of the window of ``problem`` that are not both
+        fixed, with the dead zone (none without ``band``)."""
+        if self.band is None:
+            return []
+        from slam_bridge.solvers.robust import DeadZoneKernel
 
         ids = np.asarray(problem.camera_ids)
         fixed = problem.state.camera_fixed
         order = np.argsort(ids)
-        pairs, lengths, yaws = [], [], []
+        pairs = [
+            (int(a), int(b))
+            for a, b in zip(order[:-1], order[1:])
+            if ids[b] == ids[a] + 1
+            and not (fixed[a] and fixed[b])
+            and slam_map.segment[ids[a]] == slam_map.segment[ids[b]]
+        ]
+        return self._rows(slam_map, pairs, list(ids), kernel=DeadZoneKernel(self.band))
+
+    def _rows(self, slam_map: Map, pairs, ids, kernel) -> list[Factor]:
+        """Baseline-length (and heading-change) families over state camera ``pairs``."""
+        from slam_bridge.factors.baseline_length import BaselineLengthFactor
+        from slam_bridge.factors.yaw_change import YawChangeFactor
+
         yaw_of = getattr(self.distance, "yaw_change", None)
-        for a, b in zip(order[:-1], order[1:]):
-            if ids[b] != ids[a] + 1 or (fixed[a] and fixed[b]):
-                continue
-            if slam_map.segment[ids[a]] != slam_map.segment[ids[b]]:
-                continue
+        kept, lengths, yaws = [], [], []
+        for a, b in pairs:
             t0, t1 = float(slam_map.timestamps[ids[a]]), float(slam_map.timestamps[ids[b]])
             d = float(self.distance(t0, t1))
             if not d > 0:
                 continue
-            pairs.append((a, b))
+            kept.append((a, b))
             lengths.append(d)
             yaws.append(None if yaw_of is None else yaw_of(t0, t1))
-        if not pairs:
+        if not kept:
             return []
-        pairs_a, lengths_a = np.array(pairs), np.array(lengths)
+        pairs_a, lengths_a = np.array(kept), np.array(lengths)
         sigma = np.maximum(self.sigma_rel * lengths_a, self.sigma_min_m)
-        out: list[Factor] = [BaselineLengthFactor(pairs_a, lengths_a, sigma)]
+        out: list[Factor] = [BaselineLengthFactor(pairs_a, lengths_a, sigma, kernel=kernel)]
         has = np.array([y is not None for y in yaws])
         if has.any():
             dpsi = np.array([y for y in yaws if y is not None])
-            out.append(
-                YawChangeFactor(
-                    pairs_a[has], dpsi, self.sigma_yaw_rad + self.sigma_yaw_rel * np.abs(dpsi)
-                )
-            )
+            sigma_yaw = self.sigma_yaw_rad + self.sigma_yaw_rel * np.abs(dpsi)
+            out.append(YawChangeFactor(pairs_a[has], dpsi, sigma_yaw, kernel=kernel))
         return out
 
 

@@ -10,6 +10,8 @@ Kernels (``delta``/``sigma`` in whitened units, i.e. pixels for a 1-px reproject
 * :class:`TrivialKernel`: ``rho(s) = s``.
 * :class:`HuberKernel`: ``rho(s) = s`` for ``s <= delta^2``, ``2 delta sqrt(s) - delta^2`` above.
 * :class:`GemanMcClureKernel`: ``rho(s) = sigma^2 s / (sigma^2 + s)`` (bounded by ``sigma^2``).
+* :class:`DeadZoneKernel`: ``rho(s) = (sqrt(s) - band)^2`` beyond ``band``, 0 within: a prior
+  that lets a measurement's small biases pass and pulls back only large misses.
 
 Use :func:`get_kernel` to build one by name (``"trivial"``, ``"huber"``, ``"geman_mcclure"``).
 Kernels are pluggable: any object with ``rho(s)`` and ``weight(s)`` (``= rho'(s)``) works.
@@ -33,6 +35,7 @@ __all__ = [
     "TrivialKernel",
     "HuberKernel",
     "GemanMcClureKernel",
+    "DeadZoneKernel",
     "get_kernel",
 ]
 
@@ -99,6 +102,24 @@ class GemanMcClureKernel:
         s = np.asarray(s, dtype=np.float64)
         c2 = self.sigma**2
         return (c2 / (c2 + s)) ** 2
+
+
+@dataclass(frozen=True)
+class DeadZoneKernel:
+    """No cost within ``|r| <= band``, ``(|r| - band)^2`` beyond (continuous slope at ``band``)."""
+
+    band: float = 1.0
+
+    def __post_init__(self) -> None:
+        check_positive("band", self.band)
+
+    def rho(self, s: np.ndarray) -> np.ndarray:
+        r = np.sqrt(np.maximum(np.asarray(s, dtype=np.float64), 0.0))
+        return np.maximum(r - self.band, 0.0) ** 2
+
+    def weight(self, s: np.ndarray) -> np.ndarray:
+        r = np.sqrt(np.maximum(np.asarray(s, dtype=np.float64), 0.0))
+        return np.where(r > self.band, 1.0 - self.band / np.maximum(r, 1e-300), 0.0)
 
 
 _KERNELS = {

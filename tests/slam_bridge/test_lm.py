@@ -168,3 +168,16 @@ def test_retract_updates_free_parameters_only(street, ba_problem):
     dp_big[0] = 1e308
     with np.errstate(over="ignore"), pytest.raises(GeosegError, match="X_w"):
         huge.retract(np.zeros((Cf, 6)), dp_big)
+
+
+def test_dead_zone_kernel_is_free_within_its_band_and_quadratic_beyond():
+    from slam_bridge.solvers.robust import DeadZoneKernel
+
+    k = DeadZoneKernel(2.0)
+    r = np.array([0.0, 1.0, 1.99, 2.5, 4.0, 10.0])
+    np.testing.assert_allclose(k.rho(r**2), [0, 0, 0, 0.25, 4.0, 64.0])
+    s = np.array([0.5, 3.0, 9.0, 30.0])
+    eps = 1e-6
+    np.testing.assert_allclose(k.weight(s), (k.rho(s + eps) - k.rho(s - eps)) / (2 * eps), atol=1e-6)
+    with pytest.raises(GeosegError):
+        DeadZoneKernel(0.0)
