@@ -178,6 +178,8 @@ def test_dead_zone_kernel_is_free_within_its_band_and_quadratic_beyond():
     np.testing.assert_allclose(k.rho(r**2), [0, 0, 0, 0.25, 4.0, 64.0])
     s = np.array([0.5, 3.0, 9.0, 30.0])
     eps = 1e-6
-    np.testing.assert_allclose(k.weight(s), (k.rho(s + eps) - k.rho(s - eps)) / (2 * eps), atol=1e-6)
+    np.testing.assert_allclose(
+        k.weight(s), (k.rho(s + eps) - k.rho(s - eps)) / (2 * eps), atol=1e-6
+    )
     with pytest.raises(GeosegError):
         DeadZoneKernel(0.0)

@@ -72,3 +72,38 @@ def test_bad_kitti_files_are_clear_errors(tmp_path):
     (seq_dir / "times.txt").write_text("0\n0.1\n0.2\n0.3\n")
     with pytest.raises(SlamError, match="000003.png: image is 10x10, expected 64x48"):
         KittiSequence(seq_dir).check_sizes()
+
+
+def test_a_kitti_folder_loads_with_simulated_logs_and_refuses_a_truth_in_another_frame(tmp_path):
+    from slam_bridge.experiments.simulated_logs import SimulatedLogsConfig, simulate_from_folder
+    from slam_bridge.image_slam import load_inputs
+    from slam_bridge.slam.initialization import VehicleRig
+
+    seq_dir = make_sequence(tmp_path / "seq", n=12)
+    utm = (652000.0, 6862000.0, 40.0)
+    logs = simulate_from_folder(seq_dir, tmp_path / "logs", SimulatedLogsConfig(offset_m=utm))
+    inputs = load_inputs(
+        seq_dir, gps=logs / "gps.csv", odometry=logs / "odometry.csv", truth=logs / "truth.csv"
+    )
+    assert inputs.frames.grayscale and inputs.rig == VehicleRig(camera_height_m=1.65)
+    assert inputs.truth[2][0, 0] == pytest.approx(utm[0])
+    assert inputs.odometry.yaw_change(0.0, 1.0) is not None
+    own = seq_dir / "poses.csv"  # KITTI's own poses, in the first camera's frame, renamed
+    own.write_text((logs / "truth.csv").read_text().replace("652000", "000000"))
+    with pytest.raises(SlamError, match="not a truth in the GPS's world frame"):
+        load_inputs(seq_dir, gps=logs / "gps.csv", truth=own)
+    assert load_inputs(seq_dir, gps=logs / "gps.csv").truth is None  # found, not asked: ignored
+
+
+def test_map_points_keep_world_sized_coordinates(tmp_path):
+    import types
+
+    from slam_bridge.slam_outputs import write_map_points
+
+    X = np.array([[652000.123, 6862000.456, 40.789], [652001.0, 6862001.5, 41.0]])
+    fake = types.SimpleNamespace(triangulated_points=lambda: (np.arange(2), X))
+    path = write_map_points(tmp_path / "points.ply", fake)
+    data = path.read_bytes()
+    header, _, body = data.partition(b"end_header\n")
+    assert b"element vertex 2" in header and b"property double y" in header
+    np.testing.assert_array_equal(np.frombuffer(body, "<f8").reshape(-1, 3), X)
