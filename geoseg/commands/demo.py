@@ -273,11 +273,14 @@ def step_buildings(ctx: DemoContext) -> None:
 
 def _run_line(method: str, r: dict) -> str:
     """One SLAM run of the buildings step, as the demo prints it."""
+    from slam_bridge.experiments.buildings_ch4_plots import METHOD_NAMES
+
+    name = f"{METHOD_NAMES.get(method, method)} ({method})"
     if "error" in r:
-        return f"{method:8s}: failed ({r['error']})"
+        return f"{name:38s}: failed ({r['error']})"
     gps = f" (GPS fixes {r['gps_error_m']:.2f} m)" if "gps_error_m" in r else ""
     line = (
-        f"{method:8s}: {r['translation_error_m']:.3f} m, {r['rotation_error_deg']:.2f} deg "
+        f"{name:38s}: {r['translation_error_m']:.3f} m, {r['rotation_error_deg']:.2f} deg "
         f"mean error{gps}"
     )
     if r.get("association_precision") is not None:

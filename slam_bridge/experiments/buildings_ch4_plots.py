@@ -15,6 +15,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+#: each method in the README's words, for what a person reads (prints, legends, the report)
+METHOD_NAMES = {
+    "nobuild": "no buildings",
+    "raycast": "geometric rule (ray cast)",
+    "dirichlet": "2015 CNN + Dirichlet",
+    "bayes": "network (eq. 4.14)",
+    "oracle": "oracle (true facades)",
+}
+
 __all__ = ["write_pictures"]
 
 COLOURS = {
@@ -95,7 +104,7 @@ def _trajectories(out: Path, model: str, runs: dict, truth_xy: np.ndarray, facad
     for method, r in runs.items():
         xy = np.where(r["in_world"][:, None], r["t_wc"][:, :2], np.nan)
         err = np.nanmean(r["error_m"]) if np.isfinite(r["error_m"]).any() else np.nan
-        label = f"{method} (mean error {err:.3f} m)"
+        label = f"{METHOD_NAMES.get(method, method)} (mean error {err:.3f} m)"
         ax.plot(xy[:, 0], xy[:, 1], "-", lw=1.0, color=COLOURS.get(method), label=label)
         ax_err.plot(r["error_m"], "-", lw=1.0, color=COLOURS.get(method), label=label)
     _zoom(ax, truth_xy, 40.0)

@@ -111,8 +111,12 @@ def test_demo_runs_the_chapter_4_chain(tmp_path, tiny_config, capsys) -> None:
     exact, gis = printed.index("slam on images, exact"), printed.index("slam on images, gis")
     assert exact < gis
     for block in (printed[exact:gis], printed[gis:]):
-        for method in ("nobuild", "raycast", "bayes"):
-            assert f"  {method:8s}: " in block
+        for method, name in (
+            ("nobuild", "no buildings"),
+            ("raycast", "geometric rule"),
+            ("bayes", "network"),
+        ):  # the README's words, with the experiment's names
+            assert f"  {name}" in block and f"({method})" in block
         assert "% on the right one" in block
     assert "GPS fixes" in printed[gis:] and "GPS fixes" not in printed[exact:gis]
     report = (out / "buildings" / "buildings_ch4.md").read_text()
