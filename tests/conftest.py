@@ -173,6 +173,15 @@ def joint_files(tmp_path_factory) -> tuple[Path, Path]:
     return root / "joint.pt", root / "joint.onnx"
 
 
+def pytest_collection_modifyitems(config, items) -> None:
+    """On pytest-xdist's workers, the files that hold ``slow`` tests go first (in their order):
+    whole files are handed out in collection order, and the longest ones started last would
+    leave one worker running them alone at the end."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        slow_files = {item.path for item in items if item.get_closest_marker("slow")}
+        items.sort(key=lambda item: item.path not in slow_files)  # a stable sort
+
+
 # ---------------------------------------------------------------- the bad-input suite's table
 
 _WORKER_BAD_INPUTS: list[dict] = []  # the counts pytest-xdist's workers sent back

@@ -43,6 +43,7 @@ def test_registry_lists_every_model_and_rejects_unknown() -> None:
         get_model("enet", width=3)
 
 
+@pytest.mark.slow  # the ENet and joint exports (shared, tests/conftest.py)
 @pytest.mark.parametrize("name", ["enet", "joint", "naive_cnn"])
 def test_image_models_parity_on_a_second_size(name: str, exported_model, joint_files) -> None:
     model, onnx_model = _export(name, exported_model, joint_files)
