@@ -2,8 +2,10 @@
 
 The export rewrites themselves (torch against torch) are tested in test_export_rewrites.py.
 
-Export is slowish (~10 s per ENet-sized model on 2 CPU cores): every model is exported once,
-at 64x48, and compared at 37x50 (sides not multiples of 8) with batch 2.
+Export is slow (20-40 s per ENet-sized model on 2 CPU cores): every model is exported once per
+session, at 64x48, and compared at 37x50 (sides not multiples of 8) with batch 2. The exports are
+shared (``exported_model`` and ``joint_files`` in tests/conftest.py): the joint model is the one
+`geoseg export --checkpoint` wrote, with non-default batch-norm statistics.
 """
 
 import numpy as np
@@ -12,16 +14,18 @@ import torch
 
 from geoseg.errors import GeosegError
 from geoseg.export import OnnxModel, default_example_inputs, export_onnx, prepare_for_export
+from geoseg.infer import load_model_checkpoint
 from geoseg.models import get_model, list_models
 
 H2, W2 = 37, 50  # the second size
 
 
-def _export(name: str, tmp_path_factory, **cfg):
-    torch.manual_seed(0)
-    model = get_model(name, **cfg).eval()
-    path = tmp_path_factory.mktemp("onnx") / f"{name}.onnx"
-    export_onnx(model, path, metadata={"model_name": name, "model_config": cfg})
+def _export(name: str, exported_model, joint_files):
+    """``(reference, onnx_model)``: the torch model to compare with and its ONNX session."""
+    if name == "joint":
+        model, path = load_model_checkpoint(joint_files[0])[0], joint_files[1]
+    else:
+        model, path = exported_model(name)
     # the reference is the model itself (its PReLUs included); the naive CNN runs densely
     reference = prepare_for_export(model).eval() if name == "naive_cnn" else model
     return reference, OnnxModel(path, providers=["CPUExecutionProvider"])
@@ -39,9 +43,10 @@ def test_registry_lists_every_model_and_rejects_unknown() -> None:
         get_model("enet", width=3)
 
 
+@pytest.mark.slow  # the ENet and joint exports (shared, tests/conftest.py)
 @pytest.mark.parametrize("name", ["enet", "joint", "naive_cnn"])
-def test_image_models_parity_on_a_second_size(name: str, tmp_path_factory) -> None:
-    model, onnx_model = _export(name, tmp_path_factory)
+def test_image_models_parity_on_a_second_size(name: str, exported_model, joint_files) -> None:
+    model, onnx_model = _export(name, exported_model, joint_files)
     assert onnx_model.metadata["model_name"] == name
     assert onnx_model.metadata["dynamic_spatial"] is True
     x = torch.randn(2, 3, H2, W2, generator=torch.Generator().manual_seed(1))
@@ -64,8 +69,8 @@ def test_image_models_parity_on_a_second_size(name: str, tmp_path_factory) -> No
     assert isinstance(tensors[scores], torch.Tensor)
 
 
-def test_reloc_head_parity(tmp_path_factory) -> None:
-    model, onnx_model = _export("reloc", tmp_path_factory)
+def test_reloc_head_parity(exported_model) -> None:
+    model, onnx_model = _export("reloc", exported_model, None)
     feat = torch.randn(3, 128, 5, 7, generator=torch.Generator().manual_seed(2))
     with torch.no_grad():
         ref = model(feat)["embedding"].numpy()
@@ -74,8 +79,8 @@ def test_reloc_head_parity(tmp_path_factory) -> None:
     assert got.shape == ref.shape and cos.min() >= 0.9999
 
 
-def test_relpose_head_parity(tmp_path_factory) -> None:
-    model, onnx_model = _export("relpose", tmp_path_factory)
+def test_relpose_head_parity(exported_model) -> None:
+    model, onnx_model = _export("relpose", exported_model, None)
     gen = torch.Generator().manual_seed(3)
     a, b = (torch.randn(3, 128, 5, 7, generator=gen) for _ in range(2))
     with torch.no_grad():
@@ -86,19 +91,16 @@ def test_relpose_head_parity(tmp_path_factory) -> None:
         np.testing.assert_allclose(got[key], ref[key], atol=1e-4, rtol=1e-3)
 
 
-def test_enet_is_exported_in_its_rewritten_form(tmp_path) -> None:
+def test_enet_is_exported_in_its_rewritten_form(exported_model, tmp_path) -> None:
     import onnx
 
-    torch.manual_seed(0)
-    model = get_model("enet").eval()
+    model, rewritten_path = exported_model("enet")  # export_onnx's default: rewrite=True
     prepared = prepare_for_export(model)
     assert prepared is not model  # a copy: the user's model keeps its modules
     assert any(isinstance(m, torch.nn.PReLU) for m in model.modules())
     assert not any(isinstance(m, torch.nn.PReLU) for m in prepared.modules())
     assert prepare_for_export(model, rewrite=False) is model
-    rewritten = {
-        n.op_type for n in onnx.load(str(export_onnx(model, tmp_path / "a.onnx"))).graph.node
-    }
+    rewritten = {n.op_type for n in onnx.load(str(rewritten_path)).graph.node}
     plain = {
         n.op_type
         for n in onnx.load(str(export_onnx(model, tmp_path / "b.onnx", rewrite=False))).graph.node
@@ -107,7 +109,7 @@ def test_enet_is_exported_in_its_rewritten_form(tmp_path) -> None:
     assert not rewritten & {"PRelu", "ScatterND", "MaxUnpool"}
     # pixel shuffles run as Col2Im (DepthToSpace is slow in onnxruntime)
     assert "DepthToSpace" not in rewritten
-    shuffles = [n for n in onnx.load(str(tmp_path / "a.onnx")).graph.node if n.op_type == "Col2Im"]
+    shuffles = [n for n in onnx.load(str(rewritten_path)).graph.node if n.op_type == "Col2Im"]
     assert len(shuffles) == 4  # two switch masks, two sub-pixel transposed convolutions
 
 
@@ -148,11 +150,10 @@ def test_corrupt_and_missing_onnx_files_name_the_file(tmp_path) -> None:
         OnnxModel(tmp_path / "nothere.onnx")
 
 
-def test_onnx_input_validation(tmp_path) -> None:
-    torch.manual_seed(0)
-    path = export_onnx(get_model("naive_cnn"), tmp_path / "naive.onnx")
+def test_onnx_input_validation(exported_model) -> None:
+    _, path = exported_model("naive_cnn")
     m = OnnxModel(path)
-    with pytest.raises(GeosegError, match="naive.onnx.*size 3"):
+    with pytest.raises(GeosegError, match="naive_cnn.onnx.*size 3"):
         m(np.zeros((1, 4, 8, 8), np.float32))
     with pytest.raises(GeosegError, match="4-D"):
         m(np.zeros((8, 8), np.float32))
@@ -164,9 +165,8 @@ def test_onnx_input_validation(tmp_path) -> None:
         m(np.zeros((1, 3, 8, 8), np.float32), np.zeros((1, 3, 8, 8), np.float32))
 
 
-def test_onnx_session_fixed_dims(tmp_path) -> None:
-    torch.manual_seed(0)
-    path = export_onnx(get_model("naive_cnn"), tmp_path / "naive.onnx")
+def test_onnx_session_fixed_dims(exported_model) -> None:
+    _, path = exported_model("naive_cnn")
     x = np.random.default_rng(0).standard_normal((2, 3, 9, 11)).astype(np.float32)
     fixed = OnnxModel(path, fixed_dims={"batch": 2, "height": 9, "width": 11})
     assert fixed.session.get_inputs()[0].shape == [2, 3, 9, 11]
@@ -182,9 +182,8 @@ def test_onnx_session_fixed_dims(tmp_path) -> None:
         OnnxModel(path, fixed_dims="fixed")
 
 
-def test_onnx_auto_fixed_sessions_per_shape(tmp_path) -> None:
-    torch.manual_seed(0)
-    path = export_onnx(get_model("naive_cnn"), tmp_path / "naive.onnx")
+def test_onnx_auto_fixed_sessions_per_shape(exported_model) -> None:
+    _, path = exported_model("naive_cnn")
     dynamic, auto = OnnxModel(path), OnnxModel(path, fixed_dims="auto")
     rng = np.random.default_rng(1)
     shapes = [

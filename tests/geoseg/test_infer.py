@@ -16,27 +16,11 @@ from geoseg.infer import (
 from geoseg.integrity import seal
 from geoseg.models import get_model
 
-NORM = {"mean": [0.5, 0.4, 0.3], "std": [0.2, 0.25, 0.3]}
+NORM = {"mean": [0.5, 0.4, 0.3], "std": [0.2, 0.25, 0.3]}  # conftest.JOINT_NORM
 
 
-@pytest.fixture(scope="module")
-def joint_files(tmp_path_factory):
-    """A joint checkpoint and its ONNX export (through `geoseg export --checkpoint`)."""
-    root = tmp_path_factory.mktemp("joint")
-    torch.manual_seed(0)
-    model = get_model("joint", num_classes=8)
-    model.train()
-    model(torch.randn(2, 3, 32, 32))  # non-default BN statistics
-    ckpt = save_model_checkpoint(
-        model,
-        root / "joint.pt",
-        model_name="joint",
-        model_config={"num_classes": 8},
-        normalization=NORM,
-    )
-    onnx_path = root / "joint.onnx"
-    assert main(["export", "--checkpoint", str(ckpt), "--out", str(onnx_path)]) == 0
-    return ckpt, onnx_path
+# joint_files (tests/conftest.py): a joint checkpoint stored with NORM and its export through
+# `geoseg export --checkpoint`, shared with test_export.py.
 
 
 def _images(n: int, h: int = 37, w: int = 50) -> np.ndarray:

@@ -1,24 +1,25 @@
 """Shipped weights: copying a run into the package (training.ship) and opening it back."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
 
 from geoseg import pretrained
 from geoseg.errors import GeosegError
-from geoseg.export import export_onnx
 from geoseg.infer import save_model_checkpoint
-from geoseg.models import get_model
 from training.ship import ship
 
 
 @pytest.fixture
-def finished_run(tmp_path):
+def finished_run(tmp_path, exported_model):
+    """A run folder with an ENet's checkpoint and its export (shared: see tests/conftest.py)."""
     run = tmp_path / "run"
-    model = get_model("enet", num_classes=8).eval()
+    model, onnx_path = exported_model("enet")
+    assert model.num_classes == 8
     save_model_checkpoint(model, run / "model.pt", model_name="enet", model_config={})
-    export_onnx(model, run / "model.onnx", metadata={"model_name": "enet"})
+    shutil.copyfile(onnx_path, run / "model.onnx")
     (run / "model_card.json").write_text(json.dumps({"command": "geoseg train seg", "metrics": {}}))
     (run / "last.pt").write_bytes(b"optimizer state: not shipped")
     return run

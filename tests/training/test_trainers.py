@@ -119,6 +119,7 @@ def test_naive_frame_augment_changes_the_frames_not_the_labels(cache_dir, tmp_pa
 
 
 # ----------------------------------------------------------------------------- end to end
+@pytest.mark.slow  # a whole run with its ONNX export
 def test_seg_main_writes_a_complete_run(seg_run, run_files):
     card = _check_run(seg_run, run_files)
     assert "val_miou" in card["metrics"] and len(card["class_weights"]) == 8
@@ -166,6 +167,7 @@ def test_seg_encoder_first_schedule(cache_dir, tmp_path):
     assert load_checkpoint(run / "last.pt")["model_name"] == "enet"
 
 
+@pytest.mark.slow  # a whole run with its ONNX export
 def test_normals_main_keeps_trunk_and_label_head(seg_run, cache_dir, tmp_path, run_files):
     cfg = load_config(
         normals_trainer.NormalsConfig,
