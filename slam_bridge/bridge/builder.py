@@ -34,6 +34,7 @@ __all__ = [
     "check_covers_window",
     "load_dirichlet_filter",
     "load_network",
+    "resolve_weights",
     "network_outputs",
     "check_network",
     "build_bridge",
@@ -43,6 +44,9 @@ ASSOCIATIONS = ("bayes", "dirichlet", "raycast")
 WORKERS = ("process", "thread")
 #: the shipped weights of each association's network (``geoseg.pretrained``)
 SHIPPED_WEIGHTS = {"bayes": "normals", "dirichlet": "naive"}
+#: ``network: real`` (photographs): the association's network for real photographs
+#: (``street`` when installed, else ``normals_real``: :func:`geoseg.pretrained.real_photo_network`)
+REAL_PHOTO = "real"
 #: the shipped Dirichlet filter calibrated on each shipped naive CNN
 SHIPPED_FILTERS = {"naive": "dirichlet", "naive_real": "dirichlet_real"}
 
@@ -74,6 +78,12 @@ class BridgeConfig:
         recent_keyframes: the online associations cover the points seen in this many latest
             keyframes (None: all points, a snapshot that grows with the map); at least the
             k-BA window's ``l + history_keyframes`` (checked by the SLAM's config).
+        network: the association's network when the caller names none (``slam run``'s
+            ``--network``): a ``.onnx``/``.pt`` file, a folder or a shipped name; ``real``: the
+            network for real photographs (bayes: ``street`` when installed, else
+            ``normals_real``; dirichlet: ``naive_real``), as ``configs/slam_images.yaml`` sets;
+            None: :data:`SHIPPED_WEIGHTS` (the synthetic city's, as the chapter-4 experiment
+            on rendered drives uses).
     """
 
     association: str = "bayes"
@@ -87,6 +97,7 @@ class BridgeConfig:
     asynchronous: bool = True
     worker: str = "process"
     recent_keyframes: int | None = 150
+    network: str | None = None
 
     def __post_init__(self) -> None:
         if self.association not in ASSOCIATIONS:
@@ -115,16 +126,28 @@ def check_covers_window(cfg: BridgeConfig, window) -> None:
         )
 
 
+def resolve_weights(association: str, weights: str | Path | None) -> str | Path | None:
+    """``weights``, with ``real`` (:data:`REAL_PHOTO`) replaced by the association's network for
+    real photographs (:func:`geoseg.pretrained.real_photo_network` for ``bayes``,
+    ``naive_real`` for ``dirichlet``)."""
+    if weights is None or str(weights) != REAL_PHOTO:
+        return weights
+    from geoseg.pretrained import real_photo_network
+
+    return real_photo_network() if association == "bayes" else "naive_real"
+
+
 def load_network(association: str, weights: str | Path | None = None, threads: int | None = 1):
     """The Segmenter of an association's network: ``weights`` (a ``.onnx`` or ``.pt`` file, a
     folder holding ``model.onnx``, or the name of shipped weights, e.g. ``normals_real`` for
-    real photographs), else the association's shipped one; ``threads``: onnxruntime's. None
-    for ``raycast``."""
+    real photographs, or ``real``: :func:`resolve_weights`), else the association's shipped one;
+    ``threads``: onnxruntime's. None for ``raycast``."""
     from geoseg.infer import Segmenter
     from geoseg.pretrained import path_or_shipped, pretrained_file
 
     if association == "raycast":
         return None
+    weights = resolve_weights(association, weights)
     if weights is None:
         path = pretrained_file(SHIPPED_WEIGHTS[association], "model.onnx")
     else:
@@ -233,7 +256,8 @@ def build_bridge(
         mesh: the model's mesh (``raycast``; :class:`trimesh.Trimesh`).
         segmenter: the network as an object (a :class:`geoseg.infer.Segmenter`, say); it runs
             in a thread or inline.
-        weights: else the network's weights (:func:`load_network`; default: the shipped ones).
+        weights: else the network's weights (:func:`load_network`; ``real``: the network for
+            real photographs; default: ``cfg.network``, else the shipped ones).
         dirichlet_filter: the ``dirichlet`` rule's filter, or where to read it
             (:func:`load_dirichlet_filter`; default: the one shipped for ``weights``); its 5x5
             smoothing is applied to every network's maps before sampling.
@@ -243,6 +267,9 @@ def build_bridge(
             (:func:`check_network`).
     """
     method = cfg.association
+    if weights is None and cfg.network is not None and segmenter is None:
+        weights = cfg.network
+    weights = resolve_weights(method, weights)
     network, make_network = None, None
     size = tuple(cfg.network_size)
     uses_network = method != "raycast"
