@@ -178,6 +178,17 @@ def quantize_int8(src: Path, dst: Path, calibration: list[np.ndarray], input_nam
         weight_type=QuantType.QInt8,
         per_channel=True,
     )
+    # the quantiser copies the fp32 file's metadata, its content digest included: record the
+    # int8 file's own (geoseg.export.verify_onnx_file checks it on opening)
+    import onnx
+
+    from geoseg.export import DIGEST_PROP, META_PREFIX, onnx_content_sha256
+
+    proto = onnx.load(str(dst))
+    for prop in proto.metadata_props:
+        if prop.key == META_PREFIX + DIGEST_PROP:
+            prop.value = onnx_content_sha256(proto)
+    onnx.save(proto, str(dst))
 
 
 def time_interleaved(
