@@ -37,6 +37,10 @@ Usage::
     python bench/inference_speed.py --full     # more repetitions
     python bench/inference_speed.py --gpu-only --compile   # on a CUDA machine
 
+Per-operator kernel times of ``joint_ort`` and ``lraspp_ort`` from onnxruntime's profiler
+(``ops_<model>_ort_<Op>_ms``, :mod:`bench/ort_operators.py`) and the convolutions' multiply-accumulates
+(``<model>_gmac_640x480``) say where the time goes (docs/onnx_operators.md).
+
 Prints a Markdown table and writes ``bench/results/inference_speed.json`` (medians as
 ``<contender>_ms_640x480``, minima as ``<contender>_min_ms_640x480``; the 1-minute load average
 is recorded). Each timed call follows an untimed call of the same contender: onnxruntime's and
@@ -74,6 +78,8 @@ import numpy as np
 import torch
 
 RESULTS = Path(__file__).resolve().parent / "results" / "inference_speed.json"
+if str(Path(__file__).resolve().parent) not in sys.path:  # bench/ort_operators.py
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
 H, W = 480, 640
 
 
@@ -172,6 +178,17 @@ def quantize_int8(src: Path, dst: Path, calibration: list[np.ndarray], input_nam
         weight_type=QuantType.QInt8,
         per_channel=True,
     )
+    # the quantiser copies the fp32 file's metadata, its content digest included: record the
+    # int8 file's own (geoseg.export.verify_onnx_file checks it on opening)
+    import onnx
+
+    from geoseg.export import DIGEST_PROP, META_PREFIX, onnx_content_sha256
+
+    proto = onnx.load(str(dst))
+    for prop in proto.metadata_props:
+        if prop.key == META_PREFIX + DIGEST_PROP:
+            prop.value = onnx_content_sha256(proto)
+    onnx.save(proto, str(dst))
 
 
 def time_interleaved(
@@ -312,6 +329,21 @@ def gpu_only(args: argparse.Namespace) -> int:
     return 0
 
 
+def _git_commit() -> str:
+    import subprocess
+
+    try:
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="more repetitions")
@@ -407,6 +439,16 @@ def main(argv: list[str] | None = None) -> int:
         ms = {k: statistics.median(v) for k, v in samples.items()}
         ms_min = {k: min(v) for k, v in samples.items()}
 
+        # where the time goes: onnxruntime's per-operator kernel times (docs/onnx_operators.md)
+        from ort_operators import count_macs, operator_breakdown
+
+        breakdown = {
+            name: operator_breakdown(
+                tmp / f"{name}.onnx", threads=args.threads, fixed_dims=frame, calls=repeats
+            )
+            for name in ("joint", "lraspp")
+        }
+
         agreement, angles, majority = [], [], []
         for img in smooth_images(3, seed=3):
             ref, q = joint_dynamic(img), joint_int8(img)
@@ -451,6 +493,14 @@ def main(argv: list[str] | None = None) -> int:
         "int8_normal_angle_deg": float(np.mean(angles)),
         "fp32_majority_label_fraction": float(np.mean(majority)),
         **accuracy,
+        "joint_gmac_640x480": count_macs(joint, torch.zeros(1, 3, H, W)) / 1e9,
+        "enet_gmac_640x480": count_macs(enet, torch.zeros(1, 3, H, W)) / 1e9,
+        "lraspp_gmac_640x480": count_macs(lraspp, torch.zeros(1, 3, H, W)) / 1e9,
+        **{
+            f"ops_{name}_ort_{op}_ms": ms_op
+            for name, table in breakdown.items()
+            for op, ms_op in table.items()
+        },
         "trained_weights": trained,
         "threads": args.threads,
         "repeats": repeats,
@@ -467,6 +517,9 @@ def main(argv: list[str] | None = None) -> int:
         f"torch {torch.__version__}, onnxruntime {ort.__version__}, python {platform.python_version()}"
     )
     results["command"] = " ".join(["python", "bench/inference_speed.py", *(argv or sys.argv[1:])])
+    results["git_commit"] = _git_commit()
+    results["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    results["split"] = "timing on a smooth random 640x480 image; int8 accuracy: held-out city"
 
     print(
         f"\n## Inference speed, {W}x{H}, batch 1, CPU ({args.threads} threads, {repeats} timed calls each)\n"

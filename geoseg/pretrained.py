@@ -22,20 +22,44 @@ head with a normals head trained on the randomised city, ``configs/normals_real.
 frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose``
 (the relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
 one place, :class:`geoseg.localizer.GatedRelPoseHead`).
+
+``street`` (the joint labels + normals network for real street photographs, trained on real
+labelled frames: ``configs/street_seg.yaml`` then ``configs/street.yaml``) is *not* inside the
+package: its labels come from CamVid, whose terms allow research use and reproduction by
+benchmarks but not weights shipped in the package. ``python -m training.ship runs/street street
+--user`` installs a run of it into the user weights folder (:data:`USER_WEIGHTS_DIR`), where
+every function here finds it by name, as it finds the package's. :func:`real_photo_network`
+names the network for real photographs that commands use by default: ``street`` when installed,
+else ``normals_real``.
 """
 
 from __future__ import annotations
 
 import json
+import logging
+import os
 from pathlib import Path
 from typing import Any
 
 from geoseg.errors import GeosegError
 
+logger = logging.getLogger(__name__)
+
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
+USER_WEIGHTS_DIR = Path(
+    os.environ.get("GEOSEG_WEIGHTS_DIR") or Path.home() / ".local" / "share" / "geoseg" / "weights"
+)
+"""Weights installed by the user (``python -m training.ship RUN NAME --user``), for networks whose
+training data's terms keep them out of the package; ``$GEOSEG_WEIGHTS_DIR`` moves it."""
+USER_ONLY: frozenset[str] = frozenset({"street"})
+"""Names never shipped inside the package (their training data's terms), only user-installed."""
+REAL_PHOTO_NETWORKS: tuple[str, ...] = ("street", "normals_real")
+"""Joint networks for real photographs, best first (:func:`real_photo_network`)."""
 PRETRAINED: dict[str, str] = {
     "seg": "ENet labels (8 classes)",
     "seg_real": "ENet labels (8 classes) for real street photographs, trained on the randomised city",
+    "street": "joint labels + surface normals network for real street photographs, trained on "
+    "real labelled frames (CamVid) and the randomised city's normals; user-installed",
     "normals": "joint labels + surface normals network (ENet trunk + normals head)",
     "normals_real": "joint labels + surface normals network for real street photographs "
     "(the seg_real trunk + a normals head trained on the randomised city)",
@@ -69,15 +93,44 @@ def pretrained_dir(name: str) -> Path:
     """
     if name not in PRETRAINED:
         raise GeosegError(f"pretrained: unknown name {name!r}; known {sorted(PRETRAINED)}")
+    for root in (WEIGHTS_DIR, USER_WEIGHTS_DIR):
+        if (root / name / "model_card.json").is_file():
+            return root / name
     folder = WEIGHTS_DIR / name
-    if not (folder / "model_card.json").is_file():
-        trainer = name.split("_")[0]  # the trainer's name, e.g. relpose for relpose_near
+    if name == "street":
         raise GeosegError(
-            f"pretrained {name!r} ({PRETRAINED[name]}): not shipped in {folder}; train it with "
-            f"`geoseg train {trainer} --config configs/{name}.yaml`, then "
-            f"`python -m training.ship runs/{name} {name}`"
+            f"pretrained 'street' ({PRETRAINED[name]}): not installed in {USER_WEIGHTS_DIR / name} "
+            "(CamVid's terms keep it out of the package); train it with `python -m "
+            "training.camvid_holdout CAMVID runs/camvid_holdout`, `geoseg train seg --config "
+            "configs/street_seg.yaml`, `geoseg train normals --config configs/street.yaml`, "
+            "then `python -m training.ship runs/street street --user`"
         )
-    return folder
+    trainer = name.split("_")[0]  # the trainer's name, e.g. relpose for relpose_near
+    raise GeosegError(
+        f"pretrained {name!r} ({PRETRAINED[name]}): not shipped in {folder}; train it with "
+        f"`geoseg train {trainer} --config configs/{name}.yaml`, then "
+        f"`python -m training.ship runs/{name} {name}`"
+    )
+
+
+def is_installed(name: str) -> bool:
+    """Whether weights ``name`` are in the package or the user weights folder."""
+    try:
+        pretrained_dir(name)
+    except GeosegError:
+        return False
+    return True
+
+
+def real_photo_network() -> str:
+    """The name of the best installed joint network for real photographs (the default of
+    ``geoseg infer`` and of ``geoseg slam run --buildings``): ``street`` when installed, else
+    ``normals_real`` (always shipped), with a log line saying how to install ``street``."""
+    for name in REAL_PHOTO_NETWORKS:
+        if is_installed(name):
+            return name
+        logger.info("real photographs: %s is not installed, trying the next network", name)
+    return REAL_PHOTO_NETWORKS[-1]  # pretrained_dir names what is missing
 
 
 def pretrained_file(name: str, file: str = "model.pt") -> Path:
@@ -110,7 +163,8 @@ def pretrained_segmenter(name: str = "normals", *, backend: str = "onnx", device
     """A :class:`geoseg.infer.Segmenter` over shipped weights.
 
     Args:
-        name: ``normals`` (labels + normals, the default), ``normals_real``, ``seg``,
+        name: ``normals`` (labels + normals, the default), ``normals_real``, ``street``
+            (when installed; :func:`real_photo_network`), ``seg``,
             ``seg_real``, ``naive`` or ``naive_real``.
         backend: ``onnx`` (onnxruntime) or ``torch``.
         device: ``cpu`` or ``cuda``.

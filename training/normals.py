@@ -23,6 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from torch import nn
+
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
 from training import common
@@ -47,6 +49,11 @@ class NormalsConfig(TrainConfig):
         enet_checkpoint: the trained ENet: a ``model.pt``, a training checkpoint or a seg run
             directory (required).
         angular_weight: weight of the extra mean-angle loss term (0: the thesis's MSE only).
+        normals_init: a trained joint network (run directory, ``model.pt`` or shipped name,
+            e.g. ``normals_real``) whose normals head starts this one (None: a fresh head). A
+            head trained on a related trunk converges in a fraction of the steps when the trunk
+            is fine-tuned (``configs/street.yaml``: ``normals_real``'s head on the trunk
+            fine-tuned on real labels).
         export: export ``model.onnx`` at the end.
         train_crop: ``(h, w)`` random training crops of the ``data.size`` frames (None: whole
             frames); validation always uses whole frames.
@@ -58,6 +65,7 @@ class NormalsConfig(TrainConfig):
     best_mode: Literal["min", "max"] = "min"
     enet_checkpoint: Path | None = None
     angular_weight: float = 0.0
+    normals_init: Path | None = None
     export: bool = True
     train_crop: tuple[int, int] | None = None
 
@@ -68,6 +76,8 @@ class NormalsConfig(TrainConfig):
             raise ConfigError(f"angular_weight: expected >= 0, got {self.angular_weight}")
         if self.enet_checkpoint is not None:
             self.enet_checkpoint = Path(self.enet_checkpoint)
+        if self.normals_init is not None:
+            self.normals_init = Path(self.normals_init)
 
 
 CONFIG_CLASS = NormalsConfig
@@ -76,6 +86,26 @@ CONFIG_CLASS = NormalsConfig
 def normals_meter(num_classes: int) -> MeterCollection:
     """Angular errors on all valid pixels and on building pixels, plus the label confusion."""
     return MeterCollection(NormalsMeter(), building_normals_meter(), SegmentationMeter(num_classes))
+
+
+def load_normal_head(model: nn.Module, path: str | Path) -> Path:
+    """Copy the normals head of the joint network at ``path`` (run directory, ``model.pt`` or a
+    shipped name) into ``model``'s; returns the file read.
+
+    Raises:
+        GeosegError: not a joint network, or a head of other shapes.
+    """
+    from geoseg.pretrained import path_or_shipped
+
+    source = path_or_shipped(path)
+    state, _ = common.load_state(source, expected_model="joint", option="normals_init")
+    head = {k[len("normal_head.") :]: v for k, v in state.items() if k.startswith("normal_head.")}
+    try:
+        model.normal_head.load_state_dict(head, strict=True)
+    except RuntimeError as err:
+        raise GeosegError(f"normals_init {path}: does not match the normals head: {err}") from None
+    logger.info("normals head initialised from %s", source)
+    return source
 
 
 def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
@@ -101,6 +131,8 @@ def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
     common.seed_model_init(cfg.seed)
     model = get_model("joint", **cfg.model_config)
     model.load_enet_weights(state)
+    if cfg.normals_init is not None:
+        load_normal_head(model, cfg.normals_init)
     model.freeze_trunk_and_labels(True)
     logger.info(
         "joint network from %s: %d trainable of %d parameters (normals head)",

@@ -5,6 +5,11 @@ Usage::
     python -m training.ship runs/seg seg
     python -m training.ship runs/dirichlet dirichlet
     python -m training.ship --record-digests seg     # refresh the card's SHA-256 of shipped seg
+    python -m training.ship runs/street street --user   # into the user weights folder
+
+``--user`` installs into :data:`geoseg.pretrained.USER_WEIGHTS_DIR` instead of the package, for
+weights whose training data's terms keep them out of the package (:data:`USER_ONLY`: ``street``,
+trained on CamVid, is only ever installed there).
 
 Only :data:`geoseg.pretrained.SHIPPED_FILES` are copied (no optimizer checkpoints); each file is
 written to a temporary name and renamed, and the target folder is replaced only once every file
@@ -25,7 +30,7 @@ from pathlib import Path
 from geoseg.atomic import atomic_write
 from geoseg.errors import GeosegError
 from geoseg.integrity import CARD_FILE, DIGEST_KEY, file_sha256
-from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, WEIGHTS_DIR
+from geoseg.pretrained import PRETRAINED, SHIPPED_FILES, USER_ONLY, USER_WEIGHTS_DIR, WEIGHTS_DIR
 
 # What a run must hold to be shipped, per name (networks: the model and its card).
 FILTER_REQUIRED = ("dirichlet.json", "max_probability.json", "metrics.json")
@@ -104,6 +109,11 @@ def main(argv: list[str] | None = None) -> int:
         choices=sorted(PRETRAINED),
         help="only refresh the SHA-256 digests in the card of shipped weights NAME",
     )
+    parser.add_argument(
+        "--user",
+        action="store_true",
+        help=f"install into the user weights folder ({USER_WEIGHTS_DIR}), not the package",
+    )
     parser.add_argument("run_dir", type=Path, nargs="?", help="a finished run directory")
     parser.add_argument("name", nargs="?", choices=sorted(PRETRAINED), help="shipped weights name")
     args = parser.parse_args(argv)
@@ -114,7 +124,14 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.run_dir is None or args.name is None:
             parser.error("run_dir and name are required")
-        target = ship(args.run_dir, args.name)
+        if args.name in USER_ONLY and not args.user:
+            raise GeosegError(
+                f"{args.name}: its training data's terms keep it out of the package; install it "
+                "with --user"
+            )
+        target = ship(
+            args.run_dir, args.name, weights_dir=USER_WEIGHTS_DIR if args.user else WEIGHTS_DIR
+        )
     except GeosegError as err:
         sys.stderr.write(f"error: {err}\n")
         return 2

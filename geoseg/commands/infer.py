@@ -1,6 +1,9 @@
 """``geoseg infer``: segment images (and predict normals) with a checkpoint or an ONNX file.
 
-Without ``--model`` it uses the shipped joint labels + normals network (:mod:`geoseg.pretrained`).
+Without ``--model`` it uses the joint labels + normals network for real photographs
+(:func:`geoseg.pretrained.real_photo_network`: ``street``, trained on real labelled frames, when
+installed, else the shipped ``normals_real``); ``--model normals`` picks the synthetic city's,
+``--model PATH`` any other. Grey images (monochrome cameras) are read as three equal channels.
 
 For each input image ``NAME.ext`` it writes to ``--out``:
 
@@ -52,8 +55,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--model",
         type=Path,
         default=None,
-        help="model: .onnx file, torch checkpoint or the name of shipped weights (seg, normals, "
-        "naive, ...; default: the shipped labels + normals network, normals)",
+        help="model: .onnx file, torch checkpoint or the name of shipped weights (street, "
+        "normals_real, normals, seg, naive, ...; default: the labels + normals network for real "
+        "photographs, street when installed, else normals_real)",
     )
     parser.add_argument("--out", required=True, type=Path, help="output directory")
     parser.add_argument(
@@ -188,12 +192,12 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.export import available_providers
     from geoseg.infer import Segmenter, normals_to_rgb
     from geoseg.output_dir import prepare_output_dir, record_outputs
-    from geoseg.pretrained import path_or_shipped
+    from geoseg.pretrained import path_or_shipped, real_photo_network
 
     if not 0.0 <= args.alpha <= 1.0:
         raise GeosegError(f"--alpha: expected a value in [0, 1], got {args.alpha}")
     stems = output_stems(list(args.images))
-    args.model = path_or_shipped(args.model or "normals", "model.onnx")
+    args.model = path_or_shipped(args.model or real_photo_network(), "model.onnx")
     if str(args.model).lower().endswith(".onnx"):
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
     else:

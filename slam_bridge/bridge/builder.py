@@ -34,6 +34,7 @@ __all__ = [
     "check_covers_window",
     "load_dirichlet_filter",
     "load_network",
+    "resolve_weights",
     "network_outputs",
     "check_network",
     "build_bridge",
@@ -43,6 +44,9 @@ ASSOCIATIONS = ("bayes", "dirichlet", "raycast")
 WORKERS = ("process", "thread")
 #: the shipped weights of each association's network (``geoseg.pretrained``)
 SHIPPED_WEIGHTS = {"bayes": "normals", "dirichlet": "naive"}
+#: ``network: real`` (photographs): the association's network for real photographs
+#: (``street`` when installed, else ``normals_real``: :func:`geoseg.pretrained.real_photo_network`)
+REAL_PHOTO = "real"
 #: the shipped Dirichlet filter calibrated on each shipped naive CNN
 SHIPPED_FILTERS = {"naive": "dirichlet", "naive_real": "dirichlet_real"}
 
@@ -78,6 +82,12 @@ class BridgeConfig:
             ``k + lag_keyframes`` exactly, waited for when late (a repeatable run: its result
             does not depend on the machine's speed); None: as soon as they are ready, never
             waited for (the fastest run, but two runs may differ).
+        network: the association's network when the caller names none (``slam run``'s
+            ``--network``): a ``.onnx``/``.pt`` file, a folder or a shipped name; ``real``: the
+            network for real photographs (bayes: ``street`` when installed, else
+            ``normals_real``; dirichlet: ``naive_real``), as ``configs/slam_images.yaml`` sets;
+            None: :data:`SHIPPED_WEIGHTS` (the synthetic city's, as the chapter-4 experiment
+            on rendered drives uses).
     """
 
     association: str = "bayes"
@@ -92,6 +102,7 @@ class BridgeConfig:
     worker: str = "process"
     recent_keyframes: int | None = 150
     lag_keyframes: int | None = None
+    network: str | None = None
 
     def __post_init__(self) -> None:
         if self.lag_keyframes is not None and self.lag_keyframes < 1:
@@ -122,16 +133,28 @@ def check_covers_window(cfg: BridgeConfig, window) -> None:
         )
 
 
+def resolve_weights(association: str, weights: str | Path | None) -> str | Path | None:
+    """``weights``, with ``real`` (:data:`REAL_PHOTO`) replaced by the association's network for
+    real photographs (:func:`geoseg.pretrained.real_photo_network` for ``bayes``,
+    ``naive_real`` for ``dirichlet``)."""
+    if weights is None or str(weights) != REAL_PHOTO:
+        return weights
+    from geoseg.pretrained import real_photo_network
+
+    return real_photo_network() if association == "bayes" else "naive_real"
+
+
 def load_network(association: str, weights: str | Path | None = None, threads: int | None = 1):
     """The Segmenter of an association's network: ``weights`` (a ``.onnx`` or ``.pt`` file, a
     folder holding ``model.onnx``, or the name of shipped weights, e.g. ``normals_real`` for
-    real photographs), else the association's shipped one; ``threads``: onnxruntime's. None
-    for ``raycast``."""
+    real photographs, or ``real``: :func:`resolve_weights`), else the association's shipped one;
+    ``threads``: onnxruntime's. None for ``raycast``."""
     from geoseg.infer import Segmenter
     from geoseg.pretrained import path_or_shipped, pretrained_file
 
     if association == "raycast":
         return None
+    weights = resolve_weights(association, weights)
     if weights is None:
         path = pretrained_file(SHIPPED_WEIGHTS[association], "model.onnx")
     else:
@@ -240,7 +263,8 @@ def build_bridge(
         mesh: the model's mesh (``raycast``; :class:`trimesh.Trimesh`).
         segmenter: the network as an object (a :class:`geoseg.infer.Segmenter`, say); it runs
             in a thread or inline.
-        weights: else the network's weights (:func:`load_network`; default: the shipped ones).
+        weights: else the network's weights (:func:`load_network`; ``real``: the network for
+            real photographs; default: ``cfg.network``, else the shipped ones).
         dirichlet_filter: the ``dirichlet`` rule's filter, or where to read it
             (:func:`load_dirichlet_filter`; default: the one shipped for ``weights``); its 5x5
             smoothing is applied to every network's maps before sampling.
@@ -250,6 +274,9 @@ def build_bridge(
             (:func:`check_network`).
     """
     method = cfg.association
+    if weights is None and cfg.network is not None and segmenter is None:
+        weights = cfg.network
+    weights = resolve_weights(method, weights)
     network, make_network = None, None
     size = tuple(cfg.network_size)
     uses_network = method != "raycast"

@@ -3,6 +3,7 @@
 import pytest
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from geoseg.export_rewrites import (
     DepthwisePReLU,
@@ -100,3 +101,29 @@ def test_rewrite_leaves_other_models_alone_and_rejects_half_an_enet() -> None:
     assert rewrite_for_onnxruntime(naive) is naive
     with pytest.raises(ValueError, match="downsampling without upsampling"):
         rewrite_for_onnxruntime(torch.nn.Sequential(DownsamplingBottleneck(16, 64)))
+
+
+def test_first_of_four_keeps_the_first_one_of_each_group() -> None:
+    from geoseg.export_rewrites import first_of_four
+
+    groups = torch.tensor(
+        [[0, 0, 0, 0], [1, 1, 1, 1], [0, 1, 0, 1], [0, 0, 1, 0], [1, 0, 0, 1], [0, 0, 0, 1]],
+        dtype=torch.float32,
+    )  # (6 groups, 4)
+    want = torch.zeros_like(groups)
+    for g, row in enumerate(groups):
+        hits = row.nonzero()
+        if len(hits):
+            want[g, hits[0, 0]] = 1
+    got = first_of_four(groups.reshape(1, 24, 1, 1)).reshape(6, 4)
+    torch.testing.assert_close(got, want)
+
+
+def test_pixel_shuffle_conv_transpose_matches_the_2x2_transposed_conv() -> None:
+    from geoseg.export_rewrites import PixelShuffleConvTranspose
+
+    torch.manual_seed(0)
+    conv = nn.ConvTranspose2d(16, 5, 2, stride=2)
+    x = torch.randn(2, 16, 7, 9)
+    torch.testing.assert_close(PixelShuffleConvTranspose(conv)(x), conv(x), atol=1e-5, rtol=1e-5)
+    assert not PixelShuffleConvTranspose.applies(nn.ConvTranspose2d(4, 4, 3, stride=2))

@@ -63,3 +63,27 @@ def test_missing_or_unknown_pretrained_weights_say_how_to_get_them(tmp_path, mon
     with pytest.raises(GeosegError, match="backend"):
         monkeypatch.setattr(pretrained, "pretrained_file", lambda *a: tmp_path)
         pretrained.pretrained_segmenter("seg", backend="tensorrt")
+
+
+def test_user_installed_weights_are_found_by_name(finished_run, tmp_path, monkeypatch):
+    """``street`` (CamVid-trained) lives in the user weights folder, never in the package; the
+    real-photo default falls back to the shipped normals_real until it is installed."""
+    user = tmp_path / "user"
+    monkeypatch.setattr(pretrained, "USER_WEIGHTS_DIR", user)
+    assert "street" in pretrained.USER_ONLY and not (pretrained.WEIGHTS_DIR / "street").exists()
+    assert pretrained.real_photo_network() == "normals_real"
+    with pytest.raises(GeosegError, match="--user"):
+        pretrained.pretrained_dir("street")
+    ship(finished_run, "street", weights_dir=user)
+    assert pretrained.pretrained_dir("street") == user / "street"
+    assert pretrained.real_photo_network() == "street"
+    assert pretrained.path_or_shipped("street", "model.onnx") == user / "street" / "model.onnx"
+
+
+def test_ship_keeps_user_only_weights_out_of_the_package(finished_run, tmp_path, monkeypatch):
+    from training import ship as ship_module
+
+    monkeypatch.setattr(ship_module, "USER_WEIGHTS_DIR", tmp_path / "user")
+    assert ship_module.main([str(finished_run), "street"]) == 2
+    assert ship_module.main(["--user", str(finished_run), "street"]) == 0
+    assert (tmp_path / "user" / "street" / "model.onnx").is_file()

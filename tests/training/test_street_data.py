@@ -60,3 +60,20 @@ def test_holdout_moves_whole_sequences_to_select(tmp_path) -> None:
         make_holdout(src, tmp_path / "other", held_out=["Seq05VD"])
     with pytest.raises(GeosegError, match="no training sequence"):
         make_holdout(src, tmp_path / "other", held_out=["0001TP", "0006R0"])
+
+
+def test_normals_head_starts_from_another_joint_network(tmp_path) -> None:
+    from geoseg.infer import save_model_checkpoint
+    from geoseg.models import get_model
+    from training.normals import load_normal_head
+
+    torch.manual_seed(0)
+    source = get_model("joint", num_classes=8)
+    path = save_model_checkpoint(source, tmp_path / "j.pt", model_name="joint")
+    target = get_model("joint", num_classes=8)
+    load_normal_head(target, path)
+    for key, value in source.normal_head.state_dict().items():
+        torch.testing.assert_close(target.normal_head.state_dict()[key], value)
+    enet = save_model_checkpoint(get_model("enet"), tmp_path / "e.pt", model_name="enet")
+    with pytest.raises(GeosegError, match="normals_init"):
+        load_normal_head(target, enet)

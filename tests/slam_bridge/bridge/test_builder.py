@@ -18,6 +18,7 @@ from slam_bridge.bridge.builder import (
     check_network,
     load_dirichlet_filter,
     load_network,
+    resolve_weights,
 )
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import segmenter_outputs
@@ -80,6 +81,21 @@ def test_the_network_may_be_named_by_its_shipped_weights():
     assert named.normals is not None and np.array_equal(named.labels, by_folder.labels)
     with pytest.raises(GeosegError, match="no_such_weights"):
         load_network("bayes", "no_such_weights")
+
+
+def test_real_names_the_network_for_photographs(monkeypatch, tmp_path):
+    from geoseg import pretrained
+
+    monkeypatch.setattr(pretrained, "USER_WEIGHTS_DIR", tmp_path)  # street not installed
+    assert resolve_weights("bayes", "real") == "normals_real"
+    assert resolve_weights("dirichlet", "real") == "naive_real"
+    assert resolve_weights("bayes", "normals") == "normals"
+    assert resolve_weights("bayes", None) is None
+    grey = np.full((240, 320), 128, np.uint8)  # a monochrome camera's frame
+    real = load_network("bayes", "real")(grey)
+    assert real.normals is not None
+    assert np.array_equal(real.labels, load_network("bayes", "normals_real")(grey).labels)
+    assert BridgeConfig(network="real").network == "real"
 
 
 def test_the_dirichlet_filter_follows_the_naive_network(tmp_path, caplog):
