@@ -329,21 +329,6 @@ def gpu_only(args: argparse.Namespace) -> int:
     return 0
 
 
-def _git_commit() -> str:
-    import subprocess
-
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"],
-            cwd=Path(__file__).resolve().parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--full", action="store_true", help="more repetitions")
@@ -517,7 +502,9 @@ def main(argv: list[str] | None = None) -> int:
         f"torch {torch.__version__}, onnxruntime {ort.__version__}, python {platform.python_version()}"
     )
     results["command"] = " ".join(["python", "bench/inference_speed.py", *(argv or sys.argv[1:])])
-    results["git_commit"] = _git_commit()
+    from provenance import git_commit
+
+    results["git_commit"] = git_commit()
     results["date"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     results["split"] = "timing on a smooth random 640x480 image; int8 accuracy: held-out city"
 

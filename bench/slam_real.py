@@ -60,10 +60,11 @@ def rigid_fit_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     Returns:
         ``(R (2, 2), T (2,))``.
     """
+    from slam_bridge.slam.initialization import rotation_and_scale
+
     ms, md = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((dst - md).T @ (src - ms))
-    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    R = U @ D @ Vt
+    a, b = src - ms, dst - md
+    _, R = rotation_and_scale(a, b, b.T @ a, fix_scale=True, name="rigid_fit_2d")
     return R, md - R @ ms
 
 

@@ -59,6 +59,7 @@ __all__ = [
     "TwoViewStart",
     "fit_similarity",
     "fit_level_similarity",
+    "rotation_and_scale",
 ]
 
 
@@ -200,6 +201,39 @@ class OdometryDistance:
         return self._at(t1, self.yaw_rate, self.psi) - self._at(t0, self.yaw_rate, self.psi)
 
 
+def rotation_and_scale(
+    a: np.ndarray, b: np.ndarray, H: np.ndarray, *, fix_scale: bool, name: str
+) -> tuple[float, np.ndarray]:
+    """Umeyama's rotation and scale of centred point sets, ``b ~ s R a``.
+
+    Args:
+        a: ``(N, D)`` centred source points.
+        b: ``(N, D)`` centred targets.
+        H: ``(D, D)`` the cross-covariance ``b^T a`` (plus any extra pair a caller weighs in).
+        fix_scale: keep ``s = 1``.
+        name: the caller, named in the errors.
+
+    Returns:
+        ``(s, R (D, D))``, ``R`` a proper rotation.
+
+    Raises:
+        SlamError: coincident source points, a non-positive scale.
+    """
+    U, _, Vt = np.linalg.svd(H)
+    D = np.eye(H.shape[0])
+    D[-1, -1] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    R = U @ D @ Vt
+    if fix_scale:
+        return 1.0, R
+    var = float(np.sum(a * a))
+    if var < 1e-12:
+        raise SlamError(f"{name}: the source points coincide")
+    s = float(np.sum(b * (a @ R.T)) / var)
+    if not s > 0:
+        raise SlamError(f"{name}: non-positive scale {s}")
+    return s, R
+
+
 def fit_level_similarity(
     src: np.ndarray, dst: np.ndarray, *, up_src: np.ndarray, fix_scale: bool = False
 ) -> tuple[float, np.ndarray, np.ndarray]:
@@ -235,18 +269,7 @@ def fit_level_similarity(
     level = src @ R_level.T
     a = level[:, :2] - level[:, :2].mean(axis=0)
     b = dst[:, :2] - dst[:, :2].mean(axis=0)
-    U, _, Vt = np.linalg.svd(b.T @ a)
-    D = np.diag([1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    R2 = U @ D @ Vt
-    var = float(np.sum(a * a))
-    if fix_scale:
-        s = 1.0
-    else:
-        if var < 1e-12:
-            raise SlamError("fit_level_similarity: the source points coincide")
-        s = float(np.sum(b * (a @ R2.T)) / var)
-        if not s > 0:
-            raise SlamError(f"fit_level_similarity: non-positive scale {s}")
+    s, R2 = rotation_and_scale(a, b, b.T @ a, fix_scale=fix_scale, name="fit_level_similarity")
     R_yaw = np.eye(3)
     R_yaw[:2, :2] = R2
     R = R_yaw @ R_level
@@ -294,18 +317,7 @@ def fit_similarity(
         u = u / np.linalg.norm(u)
         spread = float(np.sum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1)))
         H = H + up_weight * max(spread, 1e-12) * np.outer([0.0, 0.0, 1.0], u)
-    U, S, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
-    R = U @ D @ Vt
-    var = float(np.sum(a * a))
-    if fix_scale:
-        s = 1.0
-    else:
-        if var < 1e-12:
-            raise SlamError("fit_similarity: the source points coincide")
-        s = float(np.sum(b * (a @ R.T)) / var)
-        if not s > 0:
-            raise SlamError(f"fit_similarity: non-positive scale {s}")
+    s, R = rotation_and_scale(a, b, H, fix_scale=fix_scale, name="fit_similarity")
     T = mu_d - s * R @ mu_s
     return s, R, T
 
