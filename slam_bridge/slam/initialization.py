@@ -115,8 +115,9 @@ class InitConfig:
             make the segment be georeferenced again, to all its fixes (a recovery, reported in
             :attr:`TwoViewStart.recoveries`); 0: never.
         scale_tolerance: with odometry the fit keeps the odometry's scale, unless the fixes
-            call for a scale further than this from 1 (a wheel calibration off, a map whose
-            scale drifted): the fit then takes the GPS's scale, and says so.
+            call for a scale further than this from 1 over at least ``4 min_distance_m`` (a
+            wheel calibration off, a map whose scale drifted): the fit then takes the GPS's
+            scale, and says so.
     """
 
     min_matches: int = 40
@@ -432,7 +433,9 @@ class TwoViewStart:
                 s, R, T = fit_similarity(
                     m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
                 )
-        if fix_scale and spread >= 2 * cfg.min_distance_m:  # does the GPS agree on the scale?
+        # does the GPS agree on the scale? Over 100 m at least: over 50 m a GPS bias changing
+        # by a metre or two on the way (a render's default GPS) called for a 6 % scale
+        if fix_scale and spread >= 4 * cfg.min_distance_m:
             fit = fit_level_similarity if self.dem is None else fit_similarity
             kw = {} if self.dem is None else {"up_weight": up_weight}
             s_free, R_free, T_free = fit(m.t_wc[kf], target, up_src=up_local, **kw)
