@@ -293,14 +293,7 @@ def run_image_slam(
         a = bridge.constraints.association
         summary.update(
             association=cfg.bridge.association,
-            bridge_mode=(
-                "inline"
-                if not cfg.bridge.asynchronous
-                else f"repeatable: each keyframe's results applied {cfg.bridge.lag_keyframes} "
-                "keyframes later, waited for when late"
-                if cfg.bridge.lag_keyframes is not None
-                else "as ready: results applied when done, never waited for (runs may differ)"
-            ),
+            bridge_mode=_bridge_mode(cfg.bridge),
             building_keyframes=sum("building" in r.constraints for r in result.records),
             associated_points=0 if a is None else int(a.associated.sum()),
         )
@@ -470,6 +463,18 @@ def run_on_images(
 
 
 # --------------------------------------------------------------------------------- internals
+def _bridge_mode(cfg: BridgeConfig) -> str:
+    """How the bridge's results joined the run, for ``summary.json``."""
+    if not cfg.asynchronous:
+        return "inline"
+    if cfg.lag_keyframes is not None:
+        return (
+            f"repeatable: each keyframe's results applied {cfg.lag_keyframes} keyframes later, "
+            "waited for when late"
+        )
+    return "as ready: results applied when done, never waited for (runs may differ)"
+
+
 def _gps_constraints(inputs: SlamInputs, cfg: ImageSlamConfig) -> GpsConstraints | None:
     if inputs.gps_xy is None:
         return None

@@ -52,13 +52,13 @@ class YawChangeFactor:
     def _r(self, state) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         Ri = state.R_wc[self.pairs[:, 0]]
         rel = np.einsum("qji,qjk->qik", Ri, state.R_wc[self.pairs[:, 1]])  # R_i^T R_j
-        w = np.array([so3_log(R) for R in rel]).reshape(-1, 3)
+        w = so3_log(rel).reshape(-1, 3)  # batched: this runs at every LM iteration
         return (w[:, 1] + self.dpsi) / self.sigma, Ri, w
 
     def evaluate(self, state) -> FactorBlock:
         """Rows ``(Q, 1)`` over the pairs, ``J (Q, 2, 1, 6)``."""
         r, Ri, w = self._r(state)
-        rows = np.array([so3_left_jacobian_inv(wq)[1] for wq in w]).reshape(-1, 3)
+        rows = so3_left_jacobian_inv(w)[:, 1, :]
         g = np.einsum("qa,qba->qb", rows, Ri) / self.sigma[:, None]  # e_y^T J_l^-1 R_i^T
         J = np.zeros((r.size, 2, 1, 6))
         J[:, 0, 0, :3] = -g

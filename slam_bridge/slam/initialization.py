@@ -420,25 +420,24 @@ class TwoViewStart:
         antenna = np.asarray(self.rig.antenna_c, dtype=np.float64)
         fix_scale = self.odometry is not None
         s, R, T = 1.0, np.eye(3), np.zeros(3)
-        for _ in range(2):  # the antenna offset depends on the rotation being fitted
-            offset = np.einsum("ij,kjl,l->ki", R, m.R_wc[kf], antenna)[:, :2]
-            target = np.column_stack([xy - offset, z])
+
+        def fit(target: np.ndarray, fixed: bool):
             if self.dem is None:
                 # nothing measures the altitudes: a level road (z = camera height) would tilt
                 # a map that climbs by its slope, so the tilt comes from the up direction alone
-                s, R, T = fit_level_similarity(
-                    m.t_wc[kf], target, up_src=up_local, fix_scale=fix_scale
-                )
-            else:
-                s, R, T = fit_similarity(
-                    m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fix_scale
-                )
+                return fit_level_similarity(m.t_wc[kf], target, up_src=up_local, fix_scale=fixed)
+            return fit_similarity(
+                m.t_wc[kf], target, up_src=up_local, up_weight=up_weight, fix_scale=fixed
+            )
+
+        for _ in range(2):  # the antenna offset depends on the rotation being fitted
+            offset = np.einsum("ij,kjl,l->ki", R, m.R_wc[kf], antenna)[:, :2]
+            target = np.column_stack([xy - offset, z])
+            s, R, T = fit(target, fix_scale)
         # does the GPS agree on the scale? Over 100 m at least: over 50 m a GPS bias changing
         # by a metre or two on the way (a render's default GPS) called for a 6 % scale
         if fix_scale and spread >= 4 * cfg.min_distance_m:
-            fit = fit_level_similarity if self.dem is None else fit_similarity
-            kw = {} if self.dem is None else {"up_weight": up_weight}
-            s_free, R_free, T_free = fit(m.t_wc[kf], target, up_src=up_local, **kw)
+            s_free, R_free, T_free = fit(target, False)
             if abs(s_free - 1.0) > cfg.scale_tolerance:
                 logger.warning(
                     "keyframe %d: the GPS fixes call for a scale of %.3f against the odometry's "
