@@ -11,10 +11,13 @@ Evaluation reads each run's ``trajectory_tum.txt`` with ``evo`` (a pose for ever
 the truth in the logs' world frame:
 
 * ``translation_error_m``: mean horizontal error over the frames, no alignment (the run is
-  georeferenced by the GPS); ``rotation_error_deg`` mean, ``..._max`` per run;
+  georeferenced by the GPS); ``rotation_error_deg`` mean, ``..._max`` per run, and the same
+  error split in the world frame into ``heading_error_deg`` (about z) and ``tilt_error_deg``
+  (about x and y: the fixes are 2-D, and the truth's up is the first camera's ``-y`` axis);
 * ``gps_error_m``: the fixes' own mean error, each against the truth at its own time;
 * ``oracle_error_m``: the true trajectory's shape fitted rigidly (x, y, heading) to the same
   fixes: the best any method can do from those fixes alone (the clips hold only six fixes);
+  ``oracle_heading_error_deg`` its heading error;
 * ``odo_only``: no GPS, so the map stays in the first camera's frame: a similarity fit to the
   truth (evo's Umeyama alignment) gives its scale error ``|s - 1|`` and the aligned error;
 * the run's ``status`` (``ok`` / ``degraded`` / ``failed``) and tracking failures, and its
@@ -95,6 +98,9 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
     }
     R_est = np.stack([p[:3, :3] for p in est.poses_se3])
     rot = Rotation.from_matrix(np.einsum("kji,kjl->kil", R_true[idx], R_est)).magnitude()
+    # the same error in the world frame: its z part is the heading's, its x-y part the tilt's
+    # (which 2-D fixes do not measure: the up of a truth made from KITTI poses is cam0's -y)
+    world = Rotation.from_matrix(np.einsum("kij,klj->kil", R_est, R_true[idx])).as_rotvec()
     if variant == "odo_only":
         ref = PoseTrajectory3D(
             positions_xyz=T_true[idx],
@@ -122,6 +128,9 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
         translation_error_max_m=float(e.max()),
         rotation_error_deg=float(np.degrees(rot.mean())),
         rotation_error_max_deg=float(np.degrees(rot.max())),
+        heading_error_deg=float(np.degrees(np.abs(world[:, 2]).mean())),
+        tilt_error_deg=float(np.degrees(np.linalg.norm(world[:, :2], axis=1).mean())),
+        oracle_heading_error_deg=float(np.degrees(abs(np.arctan2(R2[1, 0], R2[0, 0])))),
         gps_error_m=float(gps_err.mean()),
         oracle_error_m=float(np.linalg.norm(oracle - T_true[:, :2], axis=1).mean()),
     )
@@ -201,6 +210,11 @@ def main(argv: list[str] | None = None) -> dict:
         "real_rotation_error_deg_mean": float(np.mean([r["rotation_error_deg"] for r in with_gps])),
         "real_rotation_error_deg_max": float(
             np.max([r["rotation_error_max_deg"] for r in with_gps])
+        ),
+        "real_heading_error_deg_mean": float(np.mean([r["heading_error_deg"] for r in with_gps])),
+        "real_tilt_error_deg_mean": float(np.mean([r["tilt_error_deg"] for r in with_gps])),
+        "real_oracle_heading_error_deg_mean": float(
+            np.mean([r["oracle_heading_error_deg"] for r in with_gps])
         ),
         "real_scale_error_max": float(np.max([r["scale_error"] for r in odo])),
         "real_tracking_failures": int(sum(r["tracking_failures"] for r in runs.values())),
