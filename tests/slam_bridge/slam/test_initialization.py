@@ -298,3 +298,30 @@ def test_fixes_that_leave_the_trajectory_make_the_segment_georeferenced_again(no
         mapping=cfg.slam.mapping,
     )
     assert not run_slam(seq.source(), "ba", quiet, [quiet.gps], cfg.slam).recoveries
+
+
+def test_a_turn_is_georeferenced_on_the_fixes_own_times():
+    """A 90 degree turn of radius 15 m at 10 m/s, keyframes every 0.1 s, noise-free 1 Hz fixes:
+    a fix interpolated to a keyframe's time lies up to 0.8 m inside the turn, but each fix is
+    paired with the map at its own time, so the true shape lands on the truth."""
+    t = 0.1 * np.arange(25)
+    ang = 10.0 * t / 15.0  # along the arc, radians
+    world = np.column_stack([15.0 * np.sin(ang), 15.0 * (1 - np.cos(ang)), np.full(t.size, 1.5)])
+    heading = so3_exp(np.array([0.0, 0.0, 0.3]))
+    local = (world - world[0]) @ heading  # the map's frame: turned and shifted
+    R_wc = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # camera -y = the map's up (+z)
+    m = Map(np.diag([500.0, 500.0, 1.0]), (640, 480))
+    for k, tk in enumerate(t):
+        m.add_keyframe(float(tk), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        m.set_pose(k, R_wc, local[k])
+    fixes = t[::10]
+    gps = GpsConstraints(fixes, world[::10, :2], tolerance_s=0.02, interpolate_gap_s=1.5)
+    start = TwoViewStart(
+        InitConfig(min_fixes=8, min_distance_m=10.0),
+        VehicleRig(camera_height_m=1.5, antenna_c=(0.0, 0.0, 0.0)),
+        gps=gps,
+        odometry=OdometryDistance(t, np.full(t.size, 10.0)),
+    )
+    assert start.georeference(m, t.size - 1)
+    err = np.linalg.norm(m.t_wc[:, :2] - world[:, :2], axis=1)
+    assert err.max() < 0.05  # fixes interpolated to the keyframes: 0.49 m
