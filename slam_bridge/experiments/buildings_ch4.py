@@ -439,6 +439,7 @@ def run_one(
     evaluation.observe_all(m)
     rows = evaluation.model_rows(assets.facades[model], m.num_points)
     facade = np.full(m.num_points, -1, np.int64)
+    right = np.zeros(m.num_points, dtype=bool)
     if worker is not None and worker.constraints.association is not None:
         a = worker.constraints.association.facade
         facade[: a.size] = a[: m.num_points]
@@ -451,7 +452,7 @@ def run_one(
     arrays = dict(
         timestamps=m.timestamps, t_wc=m.t_wc, R_wc=m.R_wc, K=m.K, in_world=result.in_world,
         error_m=e_h, points=np.where(m.triangulated[:, None], m.X_w, np.nan), facade=facade,
-        true_facade=rows, true_points=evaluation.true_positions(m.num_points),
+        right=right, true_facade=rows, true_points=evaluation.true_positions(m.num_points),
     )  # fmt: skip
     if record:
         arrays["recorded"] = worker.constraints
