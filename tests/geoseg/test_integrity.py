@@ -164,3 +164,15 @@ def test_segmenter_checks_onnx_too(files, tmp_path) -> None:
     flip_bytes(bad, seed=5)
     with pytest.raises(GeosegError, match=rf"{bad.name}.*corrupt"):
         Segmenter.from_onnx(bad)
+
+
+@pytest.mark.parametrize("name", sorted({n for n in set(PRETRAINED) - USER_ONLY
+                                         if (WEIGHTS_DIR / n / "model.onnx").is_file()}))  # fmt: skip
+def test_a_shipped_onnx_copy_verifies_on_its_own(name, tmp_path):
+    """Copied away from its model card, a shipped ONNX file still verifies: its digest is in
+    its own metadata, so flipped weights are refused, not loaded with a warning."""
+    copy = _copy(WEIGHTS_DIR / name / "model.onnx", tmp_path)
+    verify_onnx_file(copy)
+    flip_bytes(copy, n=4)
+    with pytest.raises(GeosegError, match="corrupt.*metadata"):
+        verify_onnx_file(copy)
