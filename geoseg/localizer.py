@@ -83,6 +83,13 @@ class LocalizerConfig:
             (:func:`geoseg.localize.rerank_by_distance`); 0.5 suits the learned embedding.
         rerank: re-rank by predicted distance when the relative poses carry distances.
         position_k: matches used for the absolute position, best first (None: all ``k``).
+        min_agreeing_rays: the ranged rays of at least this many matches must agree (the
+            robust fit's inliers) for the position to come from them; otherwise the heads are
+            taken to be out of their depth and the position is the best match's camera
+            (``method`` "best match"). Measured: on real KITTI frames the rays of the top 3
+            agreed for no query, and their position was worse than the best match's
+            (``bench/reloc_real.py``); on a synthetic tram drive all agreed. A single ray
+            (``k`` or ``position_k`` 1) is used as it is.
         sequence: ``"filter"`` (causal) or ``"smooth"`` (whole drive): the queries are one
             drive in order along the base's route; None: each query on its own.
         step_m: with ``sequence``, metres driven between consecutive queries (None: the base's
@@ -98,12 +105,13 @@ class LocalizerConfig:
     appearance_weight: float = 0.0
     rerank: bool = True
     position_k: int | None = None
+    min_agreeing_rays: int = 2
     sequence: Literal["filter", "smooth"] | None = None
     step_m: float | None = None
     appearance_scale: float | None = None
 
     def __post_init__(self) -> None:
-        for name in ("k", "position_k"):
+        for name in ("k", "position_k", "min_agreeing_rays"):
             v = getattr(self, name)
             if v is not None and (isinstance(v, bool) or int(v) != v or v < 1):
                 raise GeosegError(f"{name}: expected an int >= 1, got {v!r}")
@@ -506,6 +514,15 @@ class Localizer:
             residuals_m=ray.residuals,
             reason="near-parallel or inconsistent rays" if ray.degenerate else "",
         )
+        agreeing = min(self.config.min_agreeing_rays, len(ok))
+        if ranged and position["n_inliers"] < agreeing:
+            position.update(
+                method="best match",
+                xyz=np.asarray(matches[0]["base_t_wc"], dtype=np.float64),
+                degenerate=False,
+                reason=f"the relative poses do not agree ({position['n_inliers']} of {len(ok)} "
+                "ranged rays consistent): the best match's position",
+            )
         return position
 
 

@@ -24,6 +24,7 @@ import csv
 import json
 import logging
 import math
+import textwrap
 from pathlib import Path
 from typing import Any
 
@@ -241,9 +242,17 @@ def _print_table(result: dict[str, Any]) -> None:
         f"{result['embedding']}, relative pose {result['relative_pose_method']}"
         + (f", GPS window {result['gps_window_m']} m" if result["gps_window_m"] else "")
     )
-    header = f"{'query':<24} {'rank':>4}  {'base image':<24} {'distance':>9}  relative pose"
+    header = f"{'query':<24} {'rank':>4}  {'base image':<24} {'appearance':>14}  relative pose"
     print(header)
     print("-" * len(header))
+    legend = (
+        "rank: the order used (by the predicted distance, nearest first, when the head predicts "
+        "one); appearance: embedding distance (lower = more alike) and its own rank; 'm away': "
+        "the predicted distance to that base camera. position: 'ranged rays' = each match's "
+        "predicted direction and distance, fitted robustly (n/k: the matches that agree); "
+        "'best match' = they did not agree, the best match's camera position"
+    )
+    print(textwrap.fill(legend, width=len(header) + 20))
     for q in result["queries"]:
         name = Path(q["image"]).name
         if not q["matches"]:
@@ -258,9 +267,10 @@ def _print_table(result: dict[str, Any]) -> None:
                 pose = f"failed: {rp['reason']}"
             if m.get("sequence_probability") is not None:
                 pose = f"p {m['sequence_probability']:.3f}, {pose}"
+            seen = f"{m['distance']:.4g} (#{m.get('appearance_rank', m['rank'])})"
             print(
                 f"{name[:24]:<24} {m['rank']:>4}  {Path(m['image']).name[:24]:<24} "
-                f"{m['distance']:>9.4g}  {pose}"
+                f"{seen:>14}  {pose}"
             )
             name = ""
         pos = q["position"]

@@ -167,6 +167,44 @@ def test_localizer_retrieves_reranks_and_places_the_query() -> None:
     assert all(0 < r.matches[0]["sequence_probability"] <= 1 for r in results)
 
 
+def test_rays_that_do_not_agree_give_the_best_match_position() -> None:
+    """Heads out of their depth (a camera unlike their training one): when no two matches'
+    ranged rays agree, the position is the best match's camera, not one stray ray."""
+    images = _images(5)
+    embed = ThumbnailEmbedder()
+    R = level_camera_rotations(np.zeros(5))  # all look east (camera z)
+    t = np.c_[np.arange(5) * 10.0, np.zeros(5), np.full(5, 1.5)]
+    truth = np.array([23.0, 0.0, 1.5])
+
+    def agreeing(idx, query):  # each base camera sees the query where it is
+        return [{"ok": True, "reason": "", "R_ab": np.eye(3), "n_inliers": None,
+                 "t_dir_ab": np.array([0.0, 0.0, np.sign(truth[0] - t[i, 0])]),
+                 "distance_m": abs(truth[0] - t[i, 0])} for i in idx]  # fmt: skip
+
+    def scattered(idx, query):  # sideways, at ranges that contradict each other
+        return [{"ok": True, "reason": "", "R_ab": np.eye(3), "n_inliers": None,
+                 "t_dir_ab": np.array([(-1.0) ** j, 0.0, 0.0]), "distance_m": 2.0 + 5 * j}
+                for j, _ in enumerate(idx)]  # fmt: skip
+
+    for relative_pose, method, expected in (
+        (agreeing, "ranged rays", truth),
+        (scattered, "best match", t[2]),
+    ):
+        loc = Localizer(
+            index=RetrievalIndex(embed(images), R_wc=R, t_wc=t),
+            embed=embed,
+            relative_pose=relative_pose,
+            base_names=[f"b{i}" for i in range(5)],
+            config=LocalizerConfig(k=3),
+        )
+        (res,) = loc.localize([images[2]])
+        assert res.matches[0]["image"] == "b2" and res.position["method"] == method
+        np.testing.assert_allclose(res.xyz, expected, atol=1e-6)
+    assert "do not agree" in res.position["reason"]
+    with pytest.raises(GeosegError, match="min_agreeing_rays"):
+        LocalizerConfig(min_agreeing_rays=0)
+
+
 def test_localizer_config_refuses_bad_values() -> None:
     with pytest.raises(GeosegError, match="k"):
         LocalizerConfig(k=0)
