@@ -18,8 +18,8 @@ its images, an optional wheel odometry, an optional GPS and an optional DEM:
    over tens of metres (one baseline of ~2 m between two noisy fixes would not do).
 3. **Georeferencing** (:meth:`TwoViewStart.georeference`, after each keyframe until it holds):
    once the segment has GPS fixes at ``min_fixes`` keyframes spread over ``min_distance_m``,
-   a similarity ``X_w = s R X_local + T`` maps the keyframes' optical centres onto the fixes
-   (x, y from the GPS; z from the DEM under the fix plus the camera height, or the camera
+   a similarity ``X_w = s R X_local + T`` maps the optical centres at the fixes' own times
+   (interpolated between the keyframes around each fix) onto the fixes (x, y from the GPS; z from the DEM under the fix plus the camera height, or the camera
    height alone without a DEM) and the cameras' up axis (their ``-y``, level with the road for a
    vehicle camera) onto the world's ``+z`` (:func:`fit_similarity`: this pins the roll about a
    straight start, which positions alone leave free). The GPS antenna's offset from the camera
