@@ -61,10 +61,14 @@ def machine() -> str:
     )
 
 
-def provenance(split: str) -> dict[str, str]:
-    """The provenance keys of a results file (module docstring)."""
+def provenance(split: str, command: str | None = None) -> dict[str, str]:
+    """The provenance keys of a results file (module docstring); call it when the run starts.
+
+    ``command`` defaults to ``python`` and this process's ``sys.argv``; a bench whose ``main``
+    takes its arguments as a list passes the command line those arguments make.
+    """
     return {
-        "command": " ".join(["python", *sys.argv]),
+        "command": command or " ".join(["python", *sys.argv]),
         "git_commit": git_commit(),
         "machine": machine(),
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
