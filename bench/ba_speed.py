@@ -306,6 +306,10 @@ def main(argv: list[str] | None = None) -> dict:
     out["ours_kernels"] = f"numba {_version('numba')}" if numba_enabled() else "numpy"
     out.update(meta)
     out["machine"] += ", solvers on 1 thread"
+    peers = (("gtsam", "gtsam"), ("ceres", "pycolmap"))
+    out["peers"] = ", ".join(
+        f"{dist} {_version(dist)}" for name, dist in peers if f"{name}_unavailable" not in out
+    )
     print(
         "| C | points | obs | solver | final cost (0.5 sum r^2) | iterations | ms/iter | ours/it ratio | note |"
     )
