@@ -53,7 +53,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import shlex
 import sys
 import time
@@ -72,6 +71,8 @@ MEANS = "_colour_transfer_means"  # the colour transfer shifting the means only
 
 if str(ROOT) not in sys.path:  # `python bench/accuracy_real.py` from a checkout
     sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -363,15 +364,11 @@ def _fmt(value: Any) -> str:
     return f"{value:.3f}" if isinstance(value, float) else str(value)
 
 
-def _machine(load_start: float) -> str:
+def _machine() -> str:
+    """What :func:`provenance.machine` does not say: torch's version, the load at the end."""
     import torch
 
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return (
-        f"{platform.machine()} {os.cpu_count()} cores, {gpu}, {platform.system()} "
-        f"{platform.release()}, Python {platform.python_version()}, torch {torch.__version__}, "
-        f"1-min load average {load_start:.1f} -> {os.getloadavg()[0]:.1f}"
-    )
+    return f"torch {torch.__version__}, load {os.getloadavg()[0]:.1f} at the end"
 
 
 def _json_safe(value: Any) -> Any:
@@ -393,7 +390,9 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.split != "val" and args.model is None:
         parser.error("--split train: only with --model (the fine-tuning runs train on it)")
-    load_start = os.getloadavg()[0]
+    # split: CamVid's split measured ("val": the published one; "train": for choosing among
+    # synthetic-only models, never trained on)
+    meta = provenance(args.split, command=shlex.join(["python", "bench/accuracy_real.py", *argv]))
 
     from geoseg.infer import Segmenter, colour_transfer_for
     from geoseg.pretrained import pretrained_file
@@ -402,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     figures: dict[str, Any] = {"frames": len(images), "classes": len(classes)}
     seg_onnx = pretrained_file("seg", "model.onnx")
     if args.model is not None:
-        return evaluate_model(args, argv, images, labels, classes, load_start)
+        return evaluate_model(args, meta, images, labels, classes)
     shipped = Segmenter.from_onnx(seg_onnx)
     transfer = colour_transfer_for(seg_onnx)
     transfer_means = colour_transfer_for(seg_onnx, match_std=False)
@@ -441,15 +440,15 @@ def main(argv: list[str] | None = None) -> int:
         args.out / f"{NAME}_panel.png", images, labels, panel_segmenters, normals_net, args.normals
     )
 
-    figures["machine"] = _machine(load_start)
-    figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
+    figures.update(meta)
+    figures["machine"] += f", {_machine()}"
     print(markdown_table(figures))
     _write_json(args.out / f"{NAME}.json", figures)
     print(f"wrote {args.out / f'{NAME}.json'} and {args.out / f'{NAME}_panel.png'}")
     return 0
 
 
-def evaluate_model(args, argv, images, labels, classes, load_start: float) -> int:
+def evaluate_model(args, meta: dict[str, str], images, labels, classes) -> int:
     """``--model``: the zero-shot figures (with and without colour transfer, both sizes) of
     another synthetic-only model, and a panel beside the shipped weights."""
     from geoseg.errors import GeosegError
@@ -491,8 +490,8 @@ def evaluate_model(args, argv, images, labels, classes, load_start: float) -> in
     panel = args.out / f"{name}_panel.png"
     segmenters = {"shipped seg": shipped, str(args.model): model}
     write_panel(panel, images, labels, segmenters, normals_net, args.normals)
-    figures["machine"] = _machine(load_start)
-    figures["command"] = shlex.join(["python", "bench/accuracy_real.py", *argv])
+    figures.update(meta)
+    figures["machine"] += f", {_machine()}"
     print(markdown_table(figures))
     _write_json(args.out / f"{name}.json", figures)
     print(f"wrote {args.out / f'{name}.json'} and {panel}")

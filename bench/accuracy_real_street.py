@@ -35,12 +35,9 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
 import os
-import platform
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 from typing import Any
@@ -63,6 +60,7 @@ if str(ROOT) not in sys.path:  # `python bench/accuracy_real_street.py` from a c
     sys.path.insert(0, str(ROOT))
 if str(ROOT / "bench") not in sys.path:
     sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -209,30 +207,25 @@ def kitti_figures(path: Path, model: Path, clips: Path) -> dict[str, float]:
     return out
 
 
-def _git_commit() -> str:
-    try:
-        return subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
-
-
-def _machine(load_start: float) -> str:
+def _machine() -> str:
+    """What :func:`provenance.machine` does not say: library versions, the load at the end."""
     import onnxruntime
     import torch
 
     return (
-        f"{platform.machine()} {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
-        f"Python {platform.python_version()}, torch {torch.__version__}, onnxruntime "
-        f"{onnxruntime.__version__}, 1-min load average {load_start:.1f} -> "
-        f"{os.getloadavg()[0]:.1f} (a shared machine)"
+        f"torch {torch.__version__}, onnxruntime {onnxruntime.__version__}, load "
+        f"{os.getloadavg()[0]:.1f} at the end (a shared machine)"
     )
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    load_start = os.getloadavg()[0]
+    meta = provenance(
+        "CamVid val (reported only; selection on CamVid train's held-out 0001TP: select_*); "
+        "normals: the held-out synthetic city (training.evaluate_seg test split)",
+        command="python bench/accuracy_real_street.py"
+        + "".join(f" {shlex.quote(a)}" for a in (argv or sys.argv[1:])),
+    )
     import torch
     from accuracy_real import load_segmenter
 
@@ -260,15 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     for key, (op, target) in TARGETS.items():
         value = figures[key]
         figures[f"{key}_met"] = bool(value >= target if op == ">=" else value <= target)
-    figures.update(
-        split="CamVid val (reported only; selection on CamVid train's held-out 0001TP: select_*); "
-        "normals: the held-out synthetic city (training.evaluate_seg test split)",
-        command="python bench/accuracy_real_street.py"
-        + "".join(f" {shlex.quote(a)}" for a in (argv or sys.argv[1:])),
-        git_commit=_git_commit(),
-        machine=_machine(load_start),
-        date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-    )
+    figures.update(meta)
+    figures["machine"] += f", {_machine()}"
     lines = ["| figure | value | target |", "|---|---|---|"]
     for key in (*TARGETS, "grayscale_miou", "val_miou_320x240", "select_miou"):
         if key in figures:

@@ -72,7 +72,6 @@ import dataclasses
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -84,6 +83,16 @@ from tqdm.auto import tqdm
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "accuracy_reloc"
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
+
+
+def _split(city: int) -> str:
+    if city == 1000:
+        return "report: the held-out city 1000 (the settings were chosen on validation city 13)"
+    if city == 13:
+        return "tuning: validation city 13, on which the settings were chosen"
+    return f"city {city} (neither the held-out city 1000 nor the validation city 13)"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -750,7 +759,10 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
     spec = eval_route(args.quick, args.city)
     n_pairs = args.pairs if args.pairs is not None else (8 if args.quick else 200)
     n_triplets = args.triplets if args.triplets is not None else (32 if args.quick else 2000)
-    load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    meta = provenance(
+        _split(args.city),
+        command=" ".join(["python bench/accuracy_reloc.py", *(argv or sys.argv[1:])]).strip(),
+    )
     res: dict[str, Any] = {}
 
     t0 = time.perf_counter()
@@ -823,12 +835,8 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
     res["city"] = args.city
     res["relpose_near_gate"] = args.near_gate_used
     res["quick"] = bool(args.quick)
-    res["machine"] = (
-        f"{platform.machine()} {os.cpu_count()} cores, {platform.system()} {platform.release()}, "
-        f"Python {platform.python_version()}, torch {torch.__version__}, 1-min load average "
-        f"{load_start:.1f} -> {load:.1f}"
-    )
-    res["command"] = " ".join(["python bench/accuracy_reloc.py", *(argv or sys.argv[1:])]).strip()
+    res.update(meta)
+    res["machine"] += f", torch {torch.__version__}, load {load:.1f} at the end"
     if untrained:
         res["warning"] = f"random weights for {', '.join(untrained)}: a smoke run, not figures"
 

@@ -13,7 +13,8 @@ one never trained on (:mod:`training.evaluate_seg`):
 Prints a Markdown table (each figure beside its target), writes ``accuracy_seg.json`` (flat:
 figure → number, the training minutes of each model from its run's records and, for a
 fine-tuned one, the weights it started from (``init_checkpoint_<kind>``; the 45-min budget
-judges from-scratch runs only), ``machine``, ``command``) and two PNG panels
+judges from-scratch runs only), and the provenance keys of ``bench/provenance.py``) and two PNG
+panels
 (``accuracy_seg_fig4_20.png``: RGB | labels | normals | ground truth; ``accuracy_seg_fig4_8.png``:
 argmax building | after the filter | ground truth) into ``--out``.
 
@@ -36,7 +37,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import shlex
 import sys
 import time
@@ -52,6 +52,13 @@ TRAIN_BUDGET_MIN = 45  # CPU minutes per model trained from scratch (not for fin
 
 if str(ROOT) not in sys.path:  # `python bench/accuracy_seg.py` from a checkout
     sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
+
+SPLIT = (
+    "report: the held-out synthetic city (world seed 1000, every condition; `sun_low` never "
+    "trained on), on which no network was trained"
+)
 
 
 def parse_size(text: str) -> tuple[int, int]:
@@ -156,15 +163,11 @@ def markdown_table(figures: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _machine(load_start: float) -> str:
+def _machine() -> str:
+    """What :func:`provenance.machine` does not say: torch's version, the load at the end."""
     import torch
 
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
-    return (
-        f"{platform.machine()} {os.cpu_count()} cores, {gpu}, {platform.system()} "
-        f"{platform.release()}, Python {platform.python_version()}, torch {torch.__version__}, "
-        f"1-min load average {load_start:.1f} -> {os.getloadavg()[0]:.1f}"
-    )
+    return f"torch {torch.__version__}, load {os.getloadavg()[0]:.1f} at the end"
 
 
 def _is_results_dir(out: Path) -> bool:
@@ -228,7 +231,9 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 3
 
-    load_start = os.getloadavg()[0]
+    meta = provenance(
+        SPLIT, command=" ".join(["python", "bench/accuracy_seg.py", *map(shlex.quote, argv)])
+    )
     t0 = time.perf_counter()
     try:
         models: dict[str, Any] = {}
@@ -261,9 +266,8 @@ def main(argv: list[str] | None = None) -> int:
         figures[f"model_{kind}"] = str(p)
     if reasons:
         figures["untrained"] = "; ".join(reasons)
-    figures["machine"] = _machine(load_start)
-    figures["command"] = "python bench/accuracy_seg.py " + " ".join(shlex.quote(a) for a in argv)
-    figures["command"] = figures["command"].strip()
+    figures.update(meta)
+    figures["machine"] += f", {_machine()}"
 
     args.out.mkdir(parents=True, exist_ok=True)
     written = []

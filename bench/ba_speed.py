@@ -38,7 +38,6 @@ import argparse  # noqa: E402
 import cProfile  # noqa: E402
 import io  # noqa: E402
 import json  # noqa: E402
-import platform  # noqa: E402
 import pstats  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -50,6 +49,9 @@ from slam_bridge.factors.reprojection import ReprojectionFactor  # noqa: E402
 from slam_bridge.problem import BAState  # noqa: E402
 from slam_bridge.scenes import perturb, street_scene  # noqa: E402
 from slam_bridge.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from provenance import provenance  # noqa: E402
 
 N_FIXED = 2
 
@@ -247,6 +249,11 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "ba_speed.json")
     args = ap.parse_args(argv)
     sizes = list(args.sizes) + ([200] if args.full else [])
+    meta = provenance(
+        f"synthetic street scenes (slam_bridge.scenes.street_scene, seed {args.seed}, "
+        f"C = {', '.join(map(str, sizes))}): a speed comparison, no tuning or reporting data",
+        command="python " + " ".join([sys.argv[0]] + (argv if argv is not None else sys.argv[1:])),
+    )
     if args.profile:
         print(profile_ours(40, args.points_per_camera, args.seed))
     runners = {"ours": run_ours, "gtsam": run_gtsam, "ceres": run_ceres}
@@ -297,11 +304,11 @@ def main(argv: list[str] | None = None) -> dict:
     from slam_bridge.problem import numba_enabled
 
     out["ours_kernels"] = f"numba {_version('numba')}" if numba_enabled() else "numpy"
-    out["machine"] = (
-        f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpus, {platform.python_version()}, 1 thread".strip()
-    )
-    out["command"] = "python " + " ".join(
-        [sys.argv[0]] + (argv if argv is not None else sys.argv[1:])
+    out.update(meta)
+    out["machine"] += ", solvers on 1 thread"
+    peers = (("gtsam", "gtsam"), ("ceres", "pycolmap"))
+    out["peers"] = ", ".join(
+        f"{dist} {_version(dist)}" for name, dist in peers if f"{name}_unavailable" not in out
     )
     print(
         "| C | points | obs | solver | final cost (0.5 sum r^2) | iterations | ms/iter | ours/it ratio | note |"

@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -48,6 +47,13 @@ from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.geometry import two_view_init
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
+
+SPLIT = (
+    "tuning: drives rendered from world_default / world_dense_occlusion (route seed 3), the "
+    "drives the front end's settings were chosen on"
+)
 
 # name: (rig, condition, world config, image size)
 CASES = {
@@ -175,7 +181,10 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
     cases = dict(CASES, **(FULL_CASES if args.full else {}))
     if args.cases:
         cases = {k: cases[k] for k in args.cases.split(",")}
-    load0 = os.getloadavg()[0]
+    meta = provenance(
+        SPLIT,
+        command=" ".join(["python", "bench/frontend_tracks.py", *(argv or sys.argv[1:])]),
+    )
     results: dict[str, float | str] = {}
     rows = []
     for name, (rig, condition, world, size) in cases.items():
@@ -190,13 +199,11 @@ def main(argv: list[str] | None = None) -> dict[str, float]:
             f"{name}: bad {fig['bad_share']:.3f}, {fig['ms_per_frame']:.1f} ms/frame",
             file=sys.stderr,
         )
-    results["machine"] = (
-        f"{platform.machine()} {os.cpu_count()} cores, OpenCV {cv2.__version__} on 1 thread, "
-        f"1-min load {load0:.1f} -> {os.getloadavg()[0]:.1f} (shared machine: CPU times)"
+    results.update(meta)
+    results["machine"] += (
+        f", OpenCV {cv2.__version__} on 1 thread, load {os.getloadavg()[0]:.1f} at the end "
+        "(shared machine: CPU times)"
     )
-    results["command"] = (
-        "python bench/frontend_tracks.py " + " ".join(argv or sys.argv[1:])
-    ).strip()
     print(
         "| case | rig | condition | world | size | bad share | consistency | err p50/p90 px | "
         "tracks/kf | continued/kf | track len mean/p90 | re-obs (bad) | two-view rot/dir deg | "

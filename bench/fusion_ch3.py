@@ -22,8 +22,6 @@ import argparse
 import dataclasses
 import json
 import logging
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -35,6 +33,8 @@ from slam_bridge.errors import SlamError
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, run_experiment
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
 
 
 def other_drives(cfg: ExperimentConfig, seeds: list[int], out_dir: Path) -> dict:
@@ -94,6 +94,14 @@ def main(argv: list[str] | None = None) -> int:
     out_dir = args.out or ROOT / "bench" / "results" / (
         "fusion_ch3_full" if args.full else "fusion_ch3_quick"
     )
+    meta = provenance(
+        f"the chapter-3 simulated drive of {args.config.name} (sequence seed {cfg.sequence.seed})"
+        + (f" and drives {', '.join(map(str, args.drives))}" if args.drives else "")
+        + ": the thesis's experiment, not a held-out split",
+        command=" ".join(
+            ["python", "bench/fusion_ch3.py", *(argv if argv is not None else sys.argv[1:])]
+        ),
+    )
     t0 = time.perf_counter()
     out = run_experiment(cfg, out_dir, force=True)
     wall = time.perf_counter() - t0
@@ -101,12 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     flat = {k: v for k, v in summary.items() if not isinstance(v, list | dict)}
     flat["wall_seconds"] = wall
     flat["full"] = bool(args.full)
-    flat["machine"] = (
-        f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cpus".strip()
-    )
-    flat["command"] = " ".join(
-        ["python", "bench/fusion_ch3.py", *(argv if argv is not None else sys.argv[1:])]
-    )
+    flat.update(meta)
     if args.drives:
         flat["drives"] = other_drives(cfg, args.drives, out_dir)
     name = "fusion_ch3.json" if args.full else "fusion_ch3_quick.json"

@@ -494,7 +494,14 @@ def main(argv: list[str] | None = None) -> int:
         results.update(cuda_figures(joint, repeats, compile_model=args.compile))
     elif args.out.is_file():  # keep the figures a GPU machine measured (--gpu-only)
         previous = json.loads(args.out.read_text())
-        results.update({k: v for k, v in previous.items() if k.startswith("gpu_")})
+        gpu = {k: v for k, v in previous.items() if k.startswith("gpu_")}
+        results.update(gpu)
+        if gpu:  # a pass that reuses an earlier run's figures says which
+            results["gpu_figures_from"] = previous.get(
+                "gpu_figures_from",
+                f"kept from the file this run replaced ({previous.get('date', 'undated')}, "
+                f"{previous.get('git_commit', 'unknown commit')})",
+            )
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     results["load_average_1min"] = load
     results["machine"] = (

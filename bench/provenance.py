@@ -1,7 +1,7 @@
 """Where a bench's figures come from: the keys every ``bench/results/*.json`` carries.
 
 ``provenance(split)`` gives ``command`` (the command line that ran), ``git_commit`` (the
-checkout's commit, ``+dirty`` when it had uncommitted changes), ``machine`` (CPU, cores, GPU,
+checkout's commit, ``+dirty`` when it had uncommitted changes outside ``bench/results``), ``machine`` (CPU, cores, GPU,
 the load when the run started), ``date`` (UTC, ISO 8601) and ``split`` (which data the figures
 were measured on; see each bench's docstring).
 """
@@ -21,13 +21,15 @@ __all__ = ["provenance", "git_commit", "machine"]
 
 
 def git_commit() -> str:
-    """The checkout's commit (``+dirty`` with uncommitted changes), or ``unknown``."""
+    """The checkout's commit (``+dirty`` with uncommitted changes outside ``bench/results``), or
+    ``unknown``."""
     try:
         head = subprocess.run(
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout.strip()
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            # results files are the benches' outputs: a run after another bench's is not dirty
+            ["git", "status", "--porcelain", "--untracked-files=no", "--", ".", ":!bench/results"],
             cwd=ROOT,
             capture_output=True,
             text=True,
@@ -61,10 +63,14 @@ def machine() -> str:
     )
 
 
-def provenance(split: str) -> dict[str, str]:
-    """The provenance keys of a results file (module docstring)."""
+def provenance(split: str, command: str | None = None) -> dict[str, str]:
+    """The provenance keys of a results file (module docstring); call it when the run starts.
+
+    ``command`` defaults to ``python`` and this process's ``sys.argv``; a bench whose ``main``
+    takes its arguments as a list passes the command line those arguments make.
+    """
     return {
-        "command": " ".join(["python", *sys.argv]),
+        "command": command or " ".join(["python", *sys.argv]),
         "git_commit": git_commit(),
         "machine": machine(),
         "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

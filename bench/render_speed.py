@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -32,6 +31,9 @@ from geoseg.synth.trajectory import drive
 from geoseg.synth.world import WorldConfig, build_world
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "bench"))
+from provenance import provenance  # noqa: E402
+
 OCCLUDERS = ("vegetation", "vehicle", "object")
 
 
@@ -95,6 +97,11 @@ def main(argv: list[str] | None = None) -> dict:
     n_large = max(args.frames // 3, 5) * scale
 
     load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    meta = provenance(
+        "world_default (car route, seed 0) and world_dense_occlusion: a speed measurement, "
+        "no tuning or reporting data",
+        command=" ".join(["python", "bench/render_speed.py", *(argv or sys.argv[1:])]),
+    )
     t0 = time.perf_counter()
     world = build_world(load_config(WorldConfig, ROOT / "configs" / "world_default.yaml"))
     build_s = time.perf_counter() - t0
@@ -115,14 +122,11 @@ def main(argv: list[str] | None = None) -> dict:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     results["load_average_1min_start"] = load_start
     results["load_average_1min_end"] = load
-    results["machine"] = (
-        f"{platform.machine()} {platform.processor() or ''} {os.cpu_count()} cores, "
-        f"{platform.system()} {platform.release()}, Python {platform.python_version()}, "
-        f"1-min load average {load_start:.1f} -> {load:.1f} during the run (a shared machine: "
-        "the *_cpu figures, from time.process_time, are the less disturbed ones)"
-    ).replace("  ", " ")
-    results["command"] = "python bench/render_speed.py" + (" " + " ".join(argv or sys.argv[1:]))
-    results["command"] = results["command"].strip()
+    results.update(meta)
+    results["machine"] += (
+        f", load {load:.1f} at the end (a shared machine: the *_cpu figures, from "
+        "time.process_time, are the less disturbed ones)"
+    )
 
     print("| figure | value |")
     print("|---|---|")

@@ -48,12 +48,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from provenance import provenance  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "train_speed.json"
 H, W, BATCH = 240, 320, 8
@@ -145,6 +147,11 @@ def main(argv: list[str] | None = None) -> dict:
     import torch
 
     load_before = os.getloadavg()[0]
+    meta = provenance(
+        "random inputs and targets (torch seed 0): a speed measurement, no tuning or reporting "
+        "data",
+        command=" ".join(["python", "bench/train_speed.py", *(argv or sys.argv[1:])]),
+    )
     times: dict[str, dict[str, list[float]]] = {c: {m: [] for m in args.models} for c in CONTENDERS}
     threads: dict[str, int] = {}
     contenders = list(args.contenders)
@@ -188,11 +195,8 @@ def main(argv: list[str] | None = None) -> dict:
         f"\nTraining step (fwd + bwd + Adam), {W}x{H}, batch {BATCH}; load {load_before:.1f} → "
         f"{load_after:.1f}\n\n{table}"
     )
-    results["machine"] = (
-        f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
-        f"torch {torch.__version__}, python {platform.python_version()}"
-    )
-    results["command"] = " ".join(["python", "bench/train_speed.py", *(argv or sys.argv[1:])])
+    results.update(meta)
+    results["machine"] += f", torch {torch.__version__}"
     if not args.no_write:
         RESULTS.parent.mkdir(parents=True, exist_ok=True)
         RESULTS.write_text(json.dumps(results, indent=2) + "\n")
