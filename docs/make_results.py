@@ -226,6 +226,18 @@ HEADLINE: tuple[Figure, ...] = (
         "0 / 0 / >= 10 (idle)",
     ),
     Figure(
+        "reloc_real",
+        (
+            "real_reloc_position_error_m_mean",
+            "real_reloc_best_match_error_m_mean",
+            "real_reloc_gated_share",
+        ),
+        "relocalising real KITTI frames (base: every other frame): position error / the best "
+        "match's / share where the heads' rays disagreed",
+        "<= best match's",
+        fmt=_num,
+    ),
+    Figure(
         "accuracy_real_street",
         ("real_labels_miou", "real_labels_building_iou", "grayscale_miou_ratio"),
         "real images (CamVid val, native), `street` (real labels, user-installed): mIoU / "
@@ -379,6 +391,9 @@ ABOUT: dict[str, str] = {
     "slam_real": "The SLAM on two real KITTI clips (the tuning split) with GPS, odometry and "
     "DEM logs simulated from their true poses, three seeds, four sensor sets; see "
     "bench/slam_real.py.",
+    "reloc_real": "Relocalisation of real photographs: the KITTI clips, every other frame a "
+    "georeferenced base image and the rest queries, through `geoseg base build` and `geoseg "
+    "localize`; see bench/reloc_real.py.",
     "frontend_tracks": "The visual front end's tracks against rendered depth and poses.",
     "train_speed": "Training step time under thread settings.",
 }
