@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from geoseg.base_build import build_image_base, level_camera_rotations, read_source
-from geoseg.cli import main
 from geoseg.errors import GeosegError
 from geoseg.image_base import ThumbnailEmbedder, load_image_base
 from geoseg.localize import RetrievalIndex
 from geoseg.localizer import Localizer, LocalizerConfig
+from geoseg_cli.cli import main
 
 
 def _images(n: int, seed: int = 0, size=(48, 64)) -> list[np.ndarray]:

@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from geoseg.classes import BUILDING
-from geoseg.cli import main as cli_main
 from geoseg.config import load_config
 from geoseg.data.synthetic import synthetic_config
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
+from geoseg_cli.cli import main as cli_main
 from training import common
 from training import dirichlet_fit as dirichlet_trainer
 from training import naive as naive_trainer
