@@ -34,9 +34,9 @@ import torch
 
 from geoseg.dirichlet import DirichletFilter
 from geoseg.export import export_onnx
-from geoseg.image_base import write_poses_csv
 from geoseg.infer import save_model_checkpoint
 from geoseg.models import get_model
+from geoseg.reloc.image_base import write_poses_csv
 from geoseg_cli.cli import main
 
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from geoseg.image_base import load_image_base, write_poses_csv
+from geoseg.reloc.image_base import load_image_base, write_poses_csv
 from geoseg_cli.cli import main
 
 # the networks-free placeholders (the shipped networks are the default)
