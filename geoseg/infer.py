@@ -228,7 +228,7 @@ def as_rgb(images: Any) -> np.ndarray:
 
     A monochrome camera's frame (KITTI ``image_0``, say) is the grey image whose three channels
     are equal: the networks see exactly what they see for an RGB image of that grey (and
-    ``training.common.RandomGrayscale`` trains them on such images).
+    ``training.frame_data.RandomGrayscale`` trains them on such images).
 
     Args:
         images: `(B, H, W, 3)`, `(H, W, 3)` (RGB), `(B, H, W, 1)`, `(H, W, 1)`, `(B, H, W)` or
