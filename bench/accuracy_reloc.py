@@ -246,7 +246,7 @@ def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, Any, li
         near_path = _default(None, "relpose_near")
     args.near_gate_used = None
     if near_path is not None and str(near_path) != "none":
-        from geoseg.localizer import NEAR_GATE_M, GatedRelPoseHead
+        from geoseg.reloc.localizer import NEAR_GATE_M, GatedRelPoseHead
 
         gate = NEAR_GATE_M if args.near_gate_m is None else args.near_gate_m
         relpose = GatedRelPoseHead(relpose, _load_head(near_path, "relpose").eval(), near_m=gate)
@@ -296,7 +296,7 @@ def relpose_predictions(head: torch.nn.Module, fa: torch.Tensor, fb: torch.Tenso
 def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
     """Recall@1/3 (whole base), Recall@1 (GPS window), for each embedding; returns indices."""
     from geoseg.data.pairs import truth_sets
-    from geoseg.localize import RetrievalIndex, evaluate_retrieval
+    from geoseg.reloc.retrieval import RetrievalIndex, evaluate_retrieval
 
     truth = truth_sets(db.poses, qr.poses, max_distance_m=5.0, max_angle_deg=30.0)
     keep = np.array([len(t) > 0 for t in truth])
@@ -323,7 +323,7 @@ def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
 def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
     """Head vs essential-matrix baseline on same- and cross-condition held-out pairs."""
     from geoseg.data.pairs import sample_relpose_pairs
-    from geoseg.essential_baseline import (
+    from geoseg.reloc.essential_baseline import (
         direction_error_deg,
         estimate_relative_pose,
         rotation_error_deg,
@@ -382,8 +382,8 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
 def measure_sequence(res: dict, db, qr, retrieval: dict, args) -> None:
     """Recall of the route filter (:mod:`geoseg.route_filter`) over the query drive: causal
     filter (whole base, GPS window), smoother, no odometry, irregular drives."""
-    from geoseg.localize import recall_at_k
-    from geoseg.route_filter import RouteFilter
+    from geoseg.reloc.retrieval import recall_at_k
+    from geoseg.reloc.route_filter import RouteFilter
 
     rng = np.random.default_rng(args.seed + 11)
     dist = retrieval["index"]["learned"].distances(retrieval["q_learned"])
@@ -467,13 +467,13 @@ def measure_abs_position(res: dict, db, qr, f_db, f_q, head, retrieval: dict, ar
     rays (:func:`locate_from_ranged_rays`) over the candidates re-ranked by predicted distance
     (``--rerank-k``). The headline keys hold the ranged method when available.
     """
-    from geoseg.localize import (
+    from geoseg.models.relpose import relative_pose_labels
+    from geoseg.reloc.retrieval import (
         absolute_position,
         fuse_gps_distance,
         recall_at_k,
         rerank_by_distance,
     )
-    from geoseg.models.relpose import relative_pose_labels
 
     keep = np.flatnonzero(retrieval["keep"])
     sets = [retrieval["truth"][q] for q in keep]
@@ -580,8 +580,8 @@ def bench_localizer(db, f_db, emb_db, f_q, emb_q, head, args) -> Any:
     """The library's :class:`geoseg.localizer.Localizer` over the bench's features: queries are
     row indices into ``f_q``/``emb_q``; GPS window, top ``--rerank-k`` re-ranked by predicted
     distance, position from the best ``--top-k`` (the settings of ``geoseg localize``)."""
-    from geoseg.localize import RetrievalIndex
-    from geoseg.localizer import Localizer, LocalizerConfig, head_relative_poses
+    from geoseg.reloc.localizer import Localizer, LocalizerConfig, head_relative_poses
+    from geoseg.reloc.retrieval import RetrievalIndex
 
     def relative_pose(idx: np.ndarray, q: int) -> list:
         fa = f_db[torch.from_numpy(idx)].float()
@@ -752,8 +752,8 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
     """Render the routes, extract features and write the figures (gradients off)."""
     from geoseg.data.pairs import sample_triplets
     from geoseg.data.traversals import render_route, traversal_features
-    from geoseg.localize import triplet_accuracy
     from geoseg.models.reloc import RawFeatureEmbedder
+    from geoseg.reloc.retrieval import triplet_accuracy
     from training.reloc import embed_features
 
     spec = eval_route(args.quick, args.city)

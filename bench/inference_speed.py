@@ -123,8 +123,8 @@ def synthetic_frames(split: str, n: int) -> tuple[list[np.ndarray], list[np.ndar
     ``split="test"``: the held-out evaluation city (every condition, as bench/accuracy_seg.py);
     ``"val"``: the validation city (calibration data that the evaluation never sees).
     """
-    from training.common import NormalizeImage
     from training.evaluate_seg import EvalConfig, heldout_dataset, heldout_indices
+    from training.frame_data import NormalizeImage
 
     if split == "test":
         ds = heldout_dataset(EvalConfig(frames=n, size=ACCURACY_HW, progress=False))

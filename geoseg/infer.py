@@ -28,6 +28,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from geoseg.checkpoint_format import BEST, LAST, validate_checkpoint
 from geoseg.errors import GeosegError, check_shape
 from geoseg.integrity import read_torch_file, save_torch_file, seal
 
@@ -96,9 +97,9 @@ def save_model_checkpoint(
 
 
 MODEL_FILE = "model.pt"
-# A run directory's weight files, in the order they are preferred (training/checkpoint.py
-# writes best.pt and last.pt).
-RUN_WEIGHT_FILES = (MODEL_FILE, "best.pt", "last.pt")
+# A run directory's weight files, in the order they are preferred (the trainers write best.pt
+# and last.pt, geoseg.checkpoint_format).
+RUN_WEIGHT_FILES = (MODEL_FILE, BEST, LAST)
 
 
 def resolve_weights_file(path: str | os.PathLike) -> Path:
@@ -147,8 +148,6 @@ def read_model_state(
     if "state_dict" in ckpt:
         state = ckpt["state_dict"]
     elif "model" in ckpt and ckpt.get("format") is not None:
-        from training.checkpoint import validate_checkpoint
-
         ckpt = validate_checkpoint(ckpt, file)
         state = ckpt["model"]
     else:
@@ -229,7 +228,7 @@ def as_rgb(images: Any) -> np.ndarray:
 
     A monochrome camera's frame (KITTI ``image_0``, say) is the grey image whose three channels
     are equal: the networks see exactly what they see for an RGB image of that grey (and
-    ``training.common.RandomGrayscale`` trains them on such images).
+    ``training.frame_data.RandomGrayscale`` trains them on such images).
 
     Args:
         images: `(B, H, W, 3)`, `(H, W, 3)` (RGB), `(B, H, W, 1)`, `(H, W, 1)`, `(B, H, W)` or

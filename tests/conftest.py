@@ -148,9 +148,9 @@ JOINT_NORM = {"mean": [0.5, 0.4, 0.3], "std": [0.2, 0.25, 0.3]}
 def _build_joint_files(root: Path) -> None:
     import torch
 
-    from geoseg.cli import main
     from geoseg.infer import save_model_checkpoint
     from geoseg.models import get_model
+    from geoseg_cli.cli import main
 
     torch.manual_seed(0)
     model = get_model("joint", num_classes=8)

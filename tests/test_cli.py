@@ -3,7 +3,7 @@
 import subprocess
 import sys
 
-from geoseg.cli import COMMANDS, main
+from geoseg_cli.cli import COMMANDS, main
 
 
 def test_help_lists_every_subcommand(capsys) -> None:
@@ -15,6 +15,6 @@ def test_help_lists_every_subcommand(capsys) -> None:
 
 def test_console_script_runs() -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "geoseg.cli", "--help"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", "geoseg_cli", "--help"], capture_output=True, text=True, check=True
     )
     assert "render" in proc.stdout and "demo" in proc.stdout

@@ -100,7 +100,7 @@ def test_non_finite_and_out_of_range_values_name_their_full_key(override, key) -
 
 def test_train_finds_the_repository_preset_from_any_folder(tmp_path, monkeypatch, capsys) -> None:
     import geoseg.config
-    from geoseg.cli import main
+    from geoseg_cli.cli import main
 
     monkeypatch.chdir(tmp_path)
     assert geoseg.config.default_config_file("seg.yaml") == geoseg.config.REPO_CONFIGS / "seg.yaml"

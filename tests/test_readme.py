@@ -2,7 +2,7 @@
 
 Every ``bash`` and ``python`` block of README.md is run in document order in one temporary
 folder (the inputs the "own data" walkthroughs name are made first, from a small render). The
-commands run in this process through ``geoseg.cli.main`` (what the ``geoseg`` entry point
+commands run in this process through ``geoseg_cli.cli.main`` (what the ``geoseg`` entry point
 calls), with their frame counts and image sizes capped (:data:`TINY`) to keep the suite short
 (the demo's segmentation excepted: its score is checked against the README's). The walkthroughs'
 localisations and SLAM run are checked in metres against the poses their renders wrote.
@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geoseg.cli import main
+from geoseg_cli.cli import main
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"

@@ -19,14 +19,14 @@ import pytest
 
 import geoseg
 from geoseg.atomic import TEMP_PATTERN
-from geoseg.cli import main
+from geoseg_cli.cli import main
 
 ROOT = Path(geoseg.__file__).resolve().parent.parent
 # ``geoseg ARGV`` (or, with ``--script FILE``, that Python file) under a file size limit
 CHILD = """
 import resource, signal, sys
 limit = int(sys.argv[1])
-from geoseg.cli import main
+from geoseg_cli.cli import main
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 resource.setrlimit(resource.RLIMIT_FSIZE, (limit, resource.RLIM_INFINITY))
 if sys.argv[2] == "--script":

@@ -43,7 +43,7 @@ from geoseg.config import load_config
 from geoseg.errors import GeosegError
 from geoseg.integrity import file_sha256
 from geoseg.models.registry import get_model
-from training import common
+from training import common, frame_data
 from training import distributed as dd
 from training.loop import evaluate
 from training.metrics import SegmentationMeter
@@ -183,9 +183,9 @@ def average_runs(
     torch.set_num_threads(dd.cpu_threads_per_process(cfg.cpu_threads, cfg.data.num_workers))
     model = get_model(MODEL_NAME, **configs[0])
     model.load_state_dict(state)
-    val_set = common.build_frame_dataset(cfg.data, "val")
+    val_set = frame_data.build_frame_dataset(cfg.data, "val")
     common.prerender_frames(cfg.data, val_set)
-    meter = SegmentationMeter(model.num_classes, classes=common.dataset_classes(val_set))
+    meter = SegmentationMeter(model.num_classes, classes=frame_data.dataset_classes(val_set))
     scores = evaluate(model, common.make_val_loader(cfg, val_set), meter, device="cpu")
     metrics = {f"val_{k}": v for k, v in scores.items()}
     logger.info("averaged %d networks: val_miou %.4f", len(sources), metrics.get("val_miou", 0))

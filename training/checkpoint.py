@@ -1,30 +1,7 @@
 """Checkpoints: atomic writes, safe loads, and clear errors for files that do not fit.
 
-A checkpoint is one ``torch.save``-d mapping of plain data (tensors, numbers, strings, lists,
-dicts) so that it loads with ``torch.load(path, weights_only=True)`` and nothing else:
-
-================== ==============================================================
-key                content
-================== ==============================================================
-``format``         ``"geoseg-checkpoint"`` (marks the file as ours)
-``version``        format version, :data:`FORMAT_VERSION`
-``model_name``     registry name of the architecture (``str`` or None)
-``model_config``   the builder's keyword arguments (plain dict)
-``model``          the model's ``state_dict`` (unwrapped from DDP)
-``optimizer``      the optimizer's ``state_dict`` or None
-``scheduler``      the LR scheduler's ``state_dict`` or None
-``scaler``         the AMP grad scaler's ``state_dict`` or None
-``epoch``          number of completed epochs
-``global_step``    number of completed optimizer steps
-``rng``            :func:`training.reproducibility.capture_rng_state` output
-``generators``     states of the data loader's ``torch.Generator`` objects
-``config``         the run's configuration (plain dict)
-``history``        per-epoch metric rows (list of dicts)
-``best``           best validation value so far (float or None)
-``best_epoch``     the epoch that value comes from (int or None)
-``extra``          anything else the caller wants to keep (plain data)
-``sha256``         SHA-256 of everything above (:mod:`geoseg.integrity`), checked on load
-================== ==============================================================
+A checkpoint is the mapping :mod:`geoseg.checkpoint_format` describes (that module holds the
+format, so that :mod:`geoseg.infer` reads these files without importing the trainers).
 
 Writes go to a temporary file in the destination's directory, are flushed and fsync-ed, then
 ``os.replace``-d over the destination: a crash or a full disk never leaves a truncated
@@ -49,17 +26,19 @@ import torch
 from torch import nn
 
 from geoseg.atomic import atomic_write, clean_temp_files
+from geoseg.checkpoint_format import (
+    BEST,
+    FORMAT,
+    FORMAT_VERSION,
+    LAST,
+    REQUIRED_KEYS,
+    validate_checkpoint,
+)
 from geoseg.errors import GeosegError, OutputError
 from geoseg.integrity import read_torch_file, save_torch_file, seal
 from training.reproducibility import capture_rng_state, restore_rng_state
 
 logger = logging.getLogger(__name__)
-
-FORMAT = "geoseg-checkpoint"
-FORMAT_VERSION = 1
-LAST = "last.pt"
-BEST = "best.pt"
-_REQUIRED = ("format", "version", "model", "epoch", "global_step")
 
 
 def unwrap_model(model: nn.Module) -> nn.Module:
@@ -169,7 +148,7 @@ def atomic_save(obj: Any, path: str | Path) -> Path:
 
 def save_checkpoint(checkpoint: Mapping[str, Any], path: str | Path) -> Path:
     """Validate a mapping from :func:`build_checkpoint` and write it atomically to ``path``."""
-    missing = [k for k in _REQUIRED if k not in checkpoint]
+    missing = [k for k in REQUIRED_KEYS if k not in checkpoint]
     if missing or checkpoint.get("format") != FORMAT:
         raise GeosegError(f"checkpoint {path}: not built by build_checkpoint (missing {missing})")
     out = atomic_save(seal(checkpoint), path)
@@ -204,30 +183,6 @@ def load_checkpoint(path: str | Path, *, map_location: Any = "cpu") -> dict[str,
     if not path.is_file():
         raise GeosegError(f"checkpoint {path} does not exist")
     return validate_checkpoint(read_torch_file(path, map_location=map_location), path)
-
-
-def validate_checkpoint(data: Mapping[str, Any], path: str | Path) -> dict[str, Any]:
-    """Check that a loaded mapping is a geoseg training checkpoint this version reads.
-
-    Raises:
-        GeosegError: another format, missing keys, a newer format version (names the file).
-    """
-    if not isinstance(data, Mapping) or data.get("format") != FORMAT:
-        what = (
-            f"keys {sorted(map(str, data))[:8]}"
-            if isinstance(data, Mapping)
-            else type(data).__name__
-        )
-        raise GeosegError(f"checkpoint {path} is not a geoseg checkpoint (found {what})")
-    missing = [k for k in _REQUIRED if k not in data]
-    if missing:
-        raise GeosegError(f"checkpoint {path} is incomplete: missing {', '.join(missing)}")
-    if int(data["version"]) > FORMAT_VERSION:
-        raise GeosegError(
-            f"checkpoint {path} has format version {data['version']}, newer than this geoseg "
-            f"({FORMAT_VERSION})"
-        )
-    return dict(data)
 
 
 def reconcile_run_checkpoints(run_dir: str | Path) -> dict[str, Any] | None:

@@ -24,6 +24,7 @@ from geoseg.colour_transfer import CARD_KEY, ColourStatistics, typical_statistic
 from geoseg.config import from_dict
 from geoseg.errors import GeosegError
 from training.config import DataConfig
+from training.frame_data import build_frame_dataset
 
 logger = logging.getLogger(__name__)
 
@@ -43,8 +44,6 @@ def training_colour_statistics(
     Returns:
         The :class:`~geoseg.colour_transfer.ColourStatistics` of a typical frame.
     """
-    from training.common import build_frame_dataset
-
     if frames < 1:
         raise GeosegError(f"frames: expected >= 1, got {frames}")
     dataset = build_frame_dataset(data, "train", augment=False, normalize=False)

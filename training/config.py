@@ -93,7 +93,7 @@ class DataConfig:
     prerender_workers: int = 0
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     # probability that a training image becomes grey (BT.601 luma on all three channels,
-    # training.common.RandomGrayscale): trains the network for monochrome cameras
+    # training.frame_data.RandomGrayscale): trains the network for monochrome cameras
     grayscale: float = 0.0
     synth: dict[str, Any] = field(default_factory=dict)  # options for the synthetic dataset
 

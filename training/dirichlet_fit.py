@@ -53,7 +53,7 @@ from geoseg.dirichlet import DirichletFilter, MaxProbabilityFilter
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
 from geoseg.output_dir import prepare_output_dir, record_outputs
-from training import common
+from training import common, frame_data
 from training import distributed as dd
 from training.config import DataConfig
 from training.metrics import building_filter_scores
@@ -227,8 +227,8 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     model = get_model("naive_cnn", **model_config)
     model.load_state_dict(state)
     device = dd.resolve_device(cfg.device)
-    fit_set = common.build_frame_dataset(cfg.data, cfg.fit_split, augment=False)
-    val_set = common.build_frame_dataset(cfg.data, "val", augment=False)
+    fit_set = frame_data.build_frame_dataset(cfg.data, cfg.fit_split, augment=False)
+    val_set = frame_data.build_frame_dataset(cfg.data, "val", augment=False)
     need = cfg.calib_frames + cfg.eval_frames
     if len(val_set) < need:
         raise GeosegError(

@@ -236,7 +236,7 @@ def _segmenter_from_state(
 ) -> Segmenter:
     """A Segmenter over a training checkpoint's weights (best.pt / last.pt)."""
     from geoseg.models.registry import get_model
-    from training.common import NORMALIZATION
+    from training.frame_data import NORMALIZATION
 
     name = ckpt.get("model_name")
     if name not in ("enet", "joint", "naive_cnn"):

@@ -28,7 +28,7 @@ from torch.utils.data import Subset
 from geoseg.errors import ConfigError
 from geoseg.models.naive_cnn import NaiveCNN
 from geoseg.models.registry import get_model
-from training import common
+from training import common, frame_data
 from training import distributed as dd
 from training.config import TrainConfig
 from training.loop import evaluate, fit
@@ -104,22 +104,22 @@ def patch_datasets(cfg: NaiveConfig) -> tuple[Any, Any]:
     from geoseg.data.synthetic import PatchDataset
 
     # frames in [0, 1]; patches are normalised (and flipped) themselves
-    train_frames = common.build_frame_dataset(
+    train_frames = frame_data.build_frame_dataset(
         cfg.data, "train", augment=cfg.frame_augment, normalize=False
     )
-    val_frames = common.build_frame_dataset(cfg.data, "val", augment=False, normalize=False)
+    val_frames = frame_data.build_frame_dataset(cfg.data, "val", augment=False, normalize=False)
     common.prerender_frames(cfg.data, train_frames, val_frames)
     train = PatchDataset(
         train_frames,
         patches_per_frame=cfg.patches_per_frame,
-        normalize=common.NORMALIZATION,
+        normalize=frame_data.NORMALIZATION,
         seed=cfg.seed,
         hflip=cfg.data.augment.hflip,
     )
     val = PatchDataset(
         val_frames,
         patches_per_frame=cfg.val_patches_per_frame,
-        normalize=common.NORMALIZATION,
+        normalize=frame_data.NORMALIZATION,
         seed=cfg.seed + 1,
     )
     return train, val
@@ -130,7 +130,7 @@ def dense_evaluate(model: NaiveCNN, cfg: NaiveConfig) -> dict[str, float]:
     ``cfg.dense_eval_frames`` validation frames."""
     if cfg.dense_eval_frames == 0:
         return {}
-    frames = common.build_frame_dataset(cfg.data, "val", augment=False)
+    frames = frame_data.build_frame_dataset(cfg.data, "val", augment=False)
     frames = Subset(frames, range(min(cfg.dense_eval_frames, len(frames))))
     loader = dd.make_loader(
         frames,

@@ -27,7 +27,7 @@ from torch import nn
 
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
-from training import common
+from training import common, frame_data
 from training.config import TrainConfig
 from training.loop import fit
 from training.losses import NormalsLoss
@@ -140,8 +140,8 @@ def main(cfg: NormalsConfig, *, command: str | None = None) -> Path:
         sum(p.numel() for p in model.parameters() if p.requires_grad),
         sum(p.numel() for p in model.parameters()),
     )
-    train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
-    val_set = common.build_frame_dataset(cfg.data, "val")
+    train_set = frame_data.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
+    val_set = frame_data.build_frame_dataset(cfg.data, "val")
     common.prerender_frames(cfg.data, train_set, val_set)
     train_loader, val_loader = common.make_loaders(cfg, train_set, val_set)
     loss_fn = NormalsLoss(angular_weight=cfg.angular_weight)

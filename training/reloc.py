@@ -48,9 +48,9 @@ from geoseg.config import check_range
 from geoseg.data.pairs import sample_triplets
 from geoseg.data.traversals import RouteFeatures
 from geoseg.errors import ConfigError, GeosegError
-from geoseg.localize import triplet_accuracy
 from geoseg.models.registry import get_model
 from geoseg.models.reloc import triplet_loss
+from geoseg.reloc.retrieval import triplet_accuracy
 from training import common
 from training.heads import (
     HeadTrainConfig,

@@ -39,7 +39,7 @@ from geoseg.config import check_range
 from geoseg.errors import ConfigError
 from geoseg.models.enet import pad_to_multiple
 from geoseg.models.registry import get_model
-from training import common
+from training import common, frame_data
 from training.checkpoint import LAST, load_checkpoint
 from training.config import TrainConfig
 from training.loop import fit
@@ -132,8 +132,8 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
         GeosegError: bad data, an existing run without ``resume``/``overwrite``, a checkpoint
             (``init_checkpoint``, ``resume``) from another architecture.
     """
-    train_set = common.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
-    val_set = common.build_frame_dataset(cfg.data, "val")
+    train_set = frame_data.build_frame_dataset(cfg.data, "train", crop=cfg.train_crop)
+    val_set = frame_data.build_frame_dataset(cfg.data, "val")
     common.prerender_frames(cfg.data, train_set, val_set)
     weights, counts = class_weights_from_dataset(
         train_set,
@@ -186,7 +186,7 @@ def main(cfg: SegConfig, *, command: str | None = None) -> Path:
         val_loader,
         loss_fn,
         # mean IoU over the classes the dataset labels (CamVid has no terrain, for one)
-        SegmentationMeter(model.num_classes, classes=common.dataset_classes(val_set)),
+        SegmentationMeter(model.num_classes, classes=frame_data.dataset_classes(val_set)),
         model_name="enet",
         model_config=cfg.model_config,
         extra=extra,

@@ -9,7 +9,7 @@ Two images show *the same place* when their camera centres are within ``max_dist
 
 * :func:`positive_mask` / :func:`truth_sets`: the ``(Q, M)`` same-place relation between a query
   traversal and a database traversal, and the per-query sets that
-  :func:`geoseg.localize.recall_at_k` expects.
+  :func:`geoseg.reloc.retrieval.recall_at_k` expects.
 * :func:`sample_triplets`: ``(ref, match, other)`` index triplets for eq. 5.1: ``ref`` from the
   query traversal, ``match`` a database positive, ``other`` a database image at least
   ``min_negative_distance_m`` away (uniformly, or among the closest in embedding space: hard
@@ -171,7 +171,7 @@ def truth_sets(
     Returns:
         ``Q`` int64 arrays of database indices, sorted by increasing camera distance. A query
         with no database image of the same place gets an empty array; drop such queries before
-        :func:`geoseg.localize.recall_at_k`, which rejects empty sets
+        :func:`geoseg.reloc.retrieval.recall_at_k`, which rejects empty sets
         (``keep = [len(t) > 0 for t in sets]``).
     """
     mask = positive_mask(db, query, max_distance_m=max_distance_m, max_angle_deg=max_angle_deg)

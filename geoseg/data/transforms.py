@@ -175,7 +175,7 @@ class AugmentConfig:
         brightness, contrast, saturation, hue: ``ColorJitter`` strengths (image only).
         camera: camera effects on the image only (noise, blur, vignetting, exposure, white
             balance, JPEG; :mod:`geoseg.data.camera_effects`), all off by default; applied to
-            training frames after the other augmentations (:func:`training.common.build_frame_dataset`).
+            training frames after the other augmentations (:func:`training.frame_data.build_frame_dataset`).
     """
 
     hflip: float = 0.5

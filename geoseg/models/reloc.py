@@ -20,7 +20,7 @@ thesis) for sharper losses on normalised embeddings.
 :class:`RawFeatureEmbedder` is the §5.1.1 baseline: the raw layer-21 features, optionally
 average-pooled, flattened; matched by Euclidean distance (7.2 % wrong top-1 on the thesis's
 spring/winter tram sequences, 0.4 % with a GPS window). Both modules return
-``{"embedding": (B, D)}`` and feed :class:`geoseg.localize.RetrievalIndex`.
+``{"embedding": (B, D)}`` and feed :class:`geoseg.reloc.retrieval.RetrievalIndex`.
 
 Export: the forward passes use only convolutions, batch norm, ``mean``/``amax`` over the
 spatial dimensions and ``F.normalize``; input checks are skipped while tracing/exporting, so

@@ -11,9 +11,9 @@ With ``predict_distance=True`` a seventh output regresses the natural log of the
 ``|t_ab|`` in metres (an extension: the thesis's head gives the direction only). In a world of
 known scale (buildings, lanes and the camera height have metric sizes) the image motion between
 two views tells the baseline; with it one base image places the query
-(:func:`geoseg.localize.locate_from_ranged_rays`) where direction rays alone are degenerate
+(:func:`geoseg.reloc.retrieval.locate_from_ranged_rays`) where direction rays alone are degenerate
 (bases collinear with the query along a straight street), and among retrieved candidates the
-nearest base can be picked (:func:`geoseg.localize.rerank_by_distance`). Its loss is the squared
+nearest base can be picked (:func:`geoseg.reloc.retrieval.rerank_by_distance`). Its loss is the squared
 log ratio, scale-free like the angular terms.
 
 With ``correlation_radius = r > 0`` a cost volume joins the fusion: the cosine similarity of
@@ -30,7 +30,7 @@ Conventions (all explicit, since the thesis leaves them open):
   poses ``X_w = R_wc X_c + t_wc``, thesis eq. 1.3). ``t_dir_ab = t_ab / |t_ab|`` is the unit
   direction from camera ``a``'s centre towards camera ``b``'s centre **expressed in camera
   a's frame** (:func:`relative_pose_labels`). With ``a`` = a georeferenced base image and
-  ``b`` = the query this is exactly the ray that :func:`geoseg.localize.absolute_position`
+  ``b`` = the query this is exactly the ray that :func:`geoseg.reloc.retrieval.absolute_position`
   casts from the base camera.
 * Rotation coefficients: the head outputs the rotation vector ``w`` (axis times angle) with
   the usual hat ``[w]x = [[0, -w3, w2], [w3, 0, -w1], [-w2, w1, 0]]``, ``R = exp([w]x)``.

@@ -38,7 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.synth.conditions import Condition
-from geoseg.synth.textures import branch_mask, hash01
+from geoseg.synth.noise import hash01
+from geoseg.synth.textures import branch_mask
 from geoseg.synth.world_meshes import SurfaceKind
 from geoseg.synth.world_records import Tree
 

@@ -466,27 +466,3 @@ def cache_fields(variation: Variation) -> dict:
         for f in dataclasses.fields(variation)
         if not f.repr and getattr(variation, f.name) != f.default
     }
-
-
-def random_colours(key: np.ndarray, seed: int, saturated_share: float) -> np.ndarray:
-    """`(N, 3)` float32 colours from integer keys: neutral (white..black) or, for a share
-    ``saturated_share``, a random hue of medium saturation."""
-    from geoseg.synth.textures import hash01
-
-    hue = hash01(key, seed=seed * 7 + 1)
-    sat_pick = hash01(key, seed=seed * 7 + 2)
-    val = hash01(key, seed=seed * 7 + 3)
-    saturated = sat_pick < saturated_share
-    sat = np.where(saturated, 0.35 + 0.5 * hash01(key, seed=seed * 7 + 4), 0.04 * sat_pick)
-    val = np.where(saturated, 0.3 + 0.65 * val, 0.06 + 0.88 * val)
-    return hsv_to_rgb(hue, sat, val)
-
-
-def hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Vectorised HSV (each in [0, 1]) to `(N, 3)` float32 RGB."""
-    h6 = (np.asarray(h, np.float32) % 1.0) * 6.0
-    s = np.asarray(s, np.float32)
-    v = np.asarray(v, np.float32)
-    k = np.stack([(5.0 + h6) % 6.0, (3.0 + h6) % 6.0, (1.0 + h6) % 6.0], axis=1)
-    f = np.clip(np.minimum(k, 4.0 - k), 0.0, 1.0)
-    return (v[:, None] * (1.0 - s[:, None] * f)).astype(np.float32)

@@ -40,9 +40,10 @@ from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from geoseg.classes import OBJECT, ROAD, SIDEWALK, SKY, TERRAIN, VEGETATION, VEHICLE
 from geoseg.errors import GeosegError, check_finite, check_shape
-from geoseg.synth import bare_crowns, textures
+from geoseg.synth import bare_crowns, noise, textures
 from geoseg.synth.conditions import Condition, get_condition
-from geoseg.synth.realism import Variation, random_colours
+from geoseg.synth.noise import random_colours
+from geoseg.synth.realism import Variation
 from geoseg.synth.street_furniture import furniture_part, plate_albedo, pole_albedo
 from geoseg.synth.trajectory import Trajectory, check_image_size
 from geoseg.synth.world import World
@@ -577,7 +578,7 @@ class Renderer:
         # snow on up-facing surfaces
         if cond.snow > 0:
             up = np.clip((normal_w[:, 2] - 0.6) / 0.3, 0.0, 1.0).astype(np.float32)
-            cover = textures.value_noise(X[:, 0] / 1.3, X[:, 1] / 1.3, seed=71)
+            cover = noise.value_noise(X[:, 0] / 1.3, X[:, 1] / 1.3, seed=71)
             amount = np.where(lab == ROAD, np.clip(cover * 2.0 - 0.7, 0, 0.9), 0.8 + 0.2 * cover)
             amount = np.where(lab == VEGETATION, 0.0, amount)
             amount = (cond.snow * up * amount)[:, None]
@@ -655,11 +656,11 @@ class Renderer:
         if var.paint_share <= 0:
             return self._styles
         rows = np.arange(len(self._styles.length))
-        paint = textures.hash01(rows, seed=var.seed + 201) < var.paint_share
+        paint = noise.hash01(rows, seed=var.seed + 201) < var.paint_share
         colours = random_colours(rows, var.seed + 202, 0.6)
         colours = 0.12 + 0.85 * colours  # no black walls
         material = self._styles.material.copy()
-        new_material = (textures.hash_u32(rows, seed=var.seed + 203) % 4).astype(np.int64)
+        new_material = (noise.hash_u32(rows, seed=var.seed + 203) % 4).astype(np.int64)
         material[paint] = new_material[paint]
         tint = self._styles.tint.copy()
         tint[paint] = colours[paint]
@@ -677,16 +678,16 @@ class Renderer:
         for share, seed_offset, overlay_albedo in overlays:
             if share <= 0:
                 continue
-            s = np.nonzero(textures.hash01(row, seed=var.seed + seed_offset) < share)[0]
+            s = np.nonzero(noise.hash01(row, seed=var.seed + seed_offset) < share)[0]
             if len(s):
                 inside, over = overlay_albedo(u[s], v[s], row[s], styles, var.seed % 100003)
                 s = s[inside]
                 albedo[f[s]] = over[inside]
                 emissive[f[s]] = 0.0
         if var.paint_share > 0:  # drainpipes on some repainted facades
-            pipe = textures.hash01(row, seed=var.seed + 206) < 0.5 * var.paint_share
-            at = 0.25 + 0.5 * textures.hash01(row, seed=var.seed + 207)
-            near_end = textures.hash01(row, seed=var.seed + 208) < 0.5
+            pipe = noise.hash01(row, seed=var.seed + 206) < 0.5 * var.paint_share
+            at = 0.25 + 0.5 * noise.hash01(row, seed=var.seed + 207)
+            near_end = noise.hash01(row, seed=var.seed + 208) < 0.5
             at = np.where(near_end, styles.length[row] - at, at)
             p = np.nonzero(pipe & (np.abs(u - at) < 0.06))[0]
             albedo[f[p]] = np.float32([0.2, 0.2, 0.21])
@@ -711,7 +712,7 @@ class Renderer:
         colours = self._vehicle_color
         if var is not None and var.vehicle_colour_share > 0:
             ids = np.arange(len(colours))
-            new = textures.hash01(ids, seed=var.seed + 209) < var.vehicle_colour_share
+            new = noise.hash01(ids, seed=var.seed + 209) < var.vehicle_colour_share
             colours = np.where(new[:, None], random_colours(ids, var.seed + 210, 0.3), colours)
         vb = where(SurfaceKind.VEHICLE_BODY)
         albedo[vb] = colours[instance[vb]]

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from geoseg.synth.textures import hash01
+from geoseg.synth.noise import hash01
 from geoseg.synth.world import World
 from geoseg.synth.world_meshes import MeshPart, SurfaceKind, _boxes, concat_parts
 

@@ -7,8 +7,8 @@ corners, so that ORB/Harris find features on facades (window frames, storey band
 doors), roads (lane dashes, zebra crossings, repair patches, kerb line), sidewalks (paving
 tiles) and trees (leaf clusters).
 
-Randomness comes from an integer hash of cell coordinates (no state), so textures are
-deterministic and identical from any viewpoint.
+Randomness comes from an integer hash of cell coordinates (no state, :mod:`geoseg.synth.noise`),
+so textures are deterministic and identical from any viewpoint.
 """
 
 from __future__ import annotations
@@ -18,50 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.classes import ROAD, SIDEWALK
-
-_M1 = np.uint32(0xCC9E2D51)
-_M2 = np.uint32(0x1B873593)
-_M3 = np.uint32(0x85EBCA6B)
-_M4 = np.uint32(0xC2B2AE35)
+from geoseg.synth.noise import hash01, hash_u32, random_colours, value_noise
 
 MATERIAL_CODES = {"brick": 0, "plaster": 1, "stone": 2, "concrete": 3}
-
-
-def hash_u32(*keys: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Integer hash of integer-valued arrays (broadcast together) -> uint32 array."""
-    h = np.uint32((seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF)
-    for key in keys:
-        k = np.asarray(key)
-        k = k.astype(np.int32) if k.dtype != np.int32 else k
-        h = (h ^ k.view(np.uint32)) * _M1
-        h ^= h >> np.uint32(15)
-    h *= _M3
-    h ^= h >> np.uint32(13)
-    h *= _M4
-    h ^= h >> np.uint32(16)
-    return h
-
-
-def hash01(*keys: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Uniform float32 in [0, 1) from integer keys."""
-    return (hash_u32(*keys, seed=seed) >> np.uint32(8)).astype(np.float32) * np.float32(2.0**-24)
-
-
-def value_noise(x: np.ndarray, y: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Smooth 2D value noise in [0, 1), unit cell size: `(N,)` float32."""
-    ix = np.floor(x)
-    iy = np.floor(y)
-    fx = (x - ix).astype(np.float32)
-    fy = (y - iy).astype(np.float32)
-    fx = fx * fx * (3 - 2 * fx)
-    fy = fy * fy * (3 - 2 * fy)
-    ix = ix.astype(np.int64)
-    iy = iy.astype(np.int64)
-    a = hash01(ix, iy, seed=seed)
-    b = hash01(ix + 1, iy, seed=seed)
-    c = hash01(ix, iy + 1, seed=seed)
-    d = hash01(ix + 1, iy + 1, seed=seed)
-    return (a + (b - a) * fx) * (1 - fy) + (c + (d - c) * fx) * fy
 
 
 def _rgb(value: np.ndarray | float, color) -> np.ndarray:
@@ -263,8 +222,6 @@ def shopfront_albedo(
         changed), and `(N, 3)` float32 albedo of those hits (rows where ``inside`` is False are
         undefined).
     """
-    from geoseg.synth.realism import random_colours
-
     u = u.astype(np.float32)
     v = v.astype(np.float32)
     n = len(u)
@@ -340,8 +297,6 @@ def poster_albedo(
         ``(inside, albedo)`` as :func:`shopfront_albedo`: the hits on the hoarding and their
         `(N, 3)` float32 albedo.
     """
-    from geoseg.synth.realism import random_colours
-
     u = u.astype(np.float32)
     v = v.astype(np.float32)
     n = len(u)

@@ -1,7 +1,7 @@
 """The harness of the bad-input suite: an environment of good and bad files, the cases' argv
 builders, the stubs that stand for expensive work, and the classifier.
 
-A case runs ``geoseg.cli.main`` in-process and is classified:
+A case runs ``geoseg_cli.cli.main`` in-process and is classified:
 
 * **A** clear error: exit status 2 with ``error:`` and the expected words (the option or file) on
   stderr, or argparse's usage error;
@@ -32,12 +32,12 @@ import cv2
 import numpy as np
 import torch
 
-from geoseg.cli import main
 from geoseg.dirichlet import DirichletFilter
 from geoseg.export import export_onnx
-from geoseg.image_base import write_poses_csv
 from geoseg.infer import save_model_checkpoint
 from geoseg.models import get_model
+from geoseg.reloc.image_base import write_poses_csv
+from geoseg_cli.cli import main
 
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 OUTCOMES: dict[str, Counter] = defaultdict(Counter)  # table cases, per command
@@ -350,9 +350,9 @@ def snapshot(*folders: Path) -> dict[Path, str]:
 
 
 def stub_work(monkeypatch) -> None:
-    import geoseg.commands.demo as demo
     import geoseg.export
     import geoseg.synth.export
+    import geoseg_cli.commands.demo as demo
     import training.loop
 
     monkeypatch.setattr(geoseg.synth.export, "default_renderer", _accept)

@@ -18,19 +18,19 @@ def _api_cases():
     from geoseg.atomic import atomic_write
     from geoseg.config import load_config
     from geoseg.dirichlet import load_filter
-    from geoseg.essential_baseline import estimate_relative_pose
     from geoseg.export import OnnxModel
-    from geoseg.image_base import load_image_base, read_camera
     from geoseg.infer import Segmenter, load_model_checkpoint
-    from geoseg.localize import (
+    from geoseg.models.registry import get_model as build
+    from geoseg.output_dir import prepare_output_dir
+    from geoseg.reloc.essential_baseline import estimate_relative_pose
+    from geoseg.reloc.image_base import load_image_base, read_camera
+    from geoseg.reloc.retrieval import (
         RetrievalIndex,
         fuse_gps_distance,
         intersect_rays,
         locate_from_ranged_rays,
     )
-    from geoseg.models.registry import get_model as build
-    from geoseg.output_dir import prepare_output_dir
-    from geoseg.route_filter import RouteFilter
+    from geoseg.reloc.route_filter import RouteFilter
     from geoseg.synth.export import render_sequence
     from geoseg.synth.world import WorldConfig
     from slam_bridge.io import read_bal

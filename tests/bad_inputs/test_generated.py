@@ -32,7 +32,7 @@ from harness import (
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from geoseg.cli import COMMANDS, build_parser
+from geoseg_cli.cli import COMMANDS, build_parser
 
 # Each option of each command: (predicate of the legal values, example legal value). Values the
 # predicate rejects must be refused with exit 2; options missing here fail the coverage test.

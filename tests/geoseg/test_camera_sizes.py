@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
-from geoseg.cli import main
 from geoseg.errors import GeosegError
-from geoseg.image_base import check_image_size, load_image_base, read_camera, write_poses_csv
+from geoseg.reloc.image_base import check_image_size, load_image_base, read_camera, write_poses_csv
+from geoseg_cli.cli import main
 
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from geoseg.cli import main
-from geoseg.image_base import load_image_base, write_poses_csv
+from geoseg.reloc.image_base import load_image_base, write_poses_csv
+from geoseg_cli.cli import main
 
 # the networks-free placeholders (the shipped networks are the default)
 PLACEHOLDER = ["--embedding", "thumbnail", "--relative-pose", "essential"]

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from geoseg.cli import main
+from geoseg_cli.cli import main
 
 
 @pytest.fixture()

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from geoseg.essential_baseline import (
+from geoseg.models.relpose import relative_pose_labels
+from geoseg.reloc.essential_baseline import (
     detect_and_match,
     direction_error_deg,
     estimate_relative_pose,
     relative_pose_from_matches,
     rotation_error_deg,
 )
-from geoseg.models.relpose import relative_pose_labels
 
 W, H = 640, 480
 K = np.array([[500.0, 0.0, W / 2], [0.0, 500.0, H / 2], [0.0, 0.0, 1.0]])

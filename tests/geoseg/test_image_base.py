@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from geoseg.image_base import (
+from geoseg.reloc.image_base import (
     HeadEmbedder,
     ThumbnailEmbedder,
     layer21_features,

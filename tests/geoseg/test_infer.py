@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 import torch
 
-from geoseg.cli import main
 from geoseg.errors import GeosegError
 from geoseg.infer import (
     Segmenter,
@@ -15,6 +14,7 @@ from geoseg.infer import (
 )
 from geoseg.integrity import seal
 from geoseg.models import get_model
+from geoseg_cli.cli import main
 
 NORM = {"mean": [0.5, 0.4, 0.3], "std": [0.2, 0.25, 0.3]}  # conftest.JOINT_NORM
 

@@ -6,9 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from geoseg.cli import main
-from geoseg.commands.infer import output_stems
 from geoseg.errors import GeosegError
+from geoseg_cli.cli import main
+from geoseg_cli.commands.infer import output_stems
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_outputs_class_ids_colours_masked_normals_and_probabilities(tmp_path) ->
 
 def test_normals_are_masked_on_the_sky() -> None:
     from geoseg.classes import BUILDING, SKY
-    from geoseg.commands.infer import masked_normals
+    from geoseg_cli.commands.infer import masked_normals
 
     normals = np.zeros((3, 2, 2), np.float32)
     normals[2] = -1.0

@@ -8,9 +8,9 @@ import torch
 
 from geoseg.errors import GeosegError
 from geoseg.export import export_onnx
-from geoseg.image_base import Layer21Embedder, read_rgb
 from geoseg.infer import Segmenter, as_rgb, save_model_checkpoint
 from geoseg.models import get_model
+from geoseg.reloc.image_base import Layer21Embedder, read_rgb
 
 
 @pytest.fixture(scope="module")

@@ -16,13 +16,13 @@ import numpy as np
 import pytest
 import torch
 
-from geoseg.cli import main
 from geoseg.dirichlet import DirichletFilter, load_filter
 from geoseg.errors import GeosegError
 from geoseg.export import OnnxModel, verify_onnx_file
 from geoseg.infer import Segmenter, load_model_checkpoint
 from geoseg.integrity import content_sha256, read_torch_file, seal
 from geoseg.pretrained import PRETRAINED, USER_ONLY, WEIGHTS_DIR
+from geoseg_cli.cli import main
 from training.checkpoint import build_checkpoint, load_checkpoint, save_checkpoint
 
 

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from geoseg.errors import GeosegError
-from geoseg.localize import (
+from geoseg.reloc.retrieval import (
     RetrievalIndex,
     absolute_position,
     evaluate_retrieval,

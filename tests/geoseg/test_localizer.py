@@ -1,5 +1,5 @@
-"""The localisation library entry (geoseg.localizer) and image bases built from geotagged folders
-(geoseg.base_build, `geoseg base build`)."""
+"""The localisation library entry (geoseg.reloc.localizer) and image bases built from geotagged folders
+(geoseg.reloc.base_build, `geoseg base build`)."""
 
 from __future__ import annotations
 
@@ -10,12 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from geoseg.base_build import build_image_base, level_camera_rotations, read_source
-from geoseg.cli import main
 from geoseg.errors import GeosegError
-from geoseg.image_base import ThumbnailEmbedder, load_image_base
-from geoseg.localize import RetrievalIndex
-from geoseg.localizer import Localizer, LocalizerConfig
+from geoseg.reloc.base_build import build_image_base, level_camera_rotations, read_source
+from geoseg.reloc.image_base import ThumbnailEmbedder, load_image_base
+from geoseg.reloc.localizer import Localizer, LocalizerConfig
+from geoseg.reloc.retrieval import RetrievalIndex
+from geoseg_cli.cli import main
 
 
 def _images(n: int, seed: int = 0, size=(48, 64)) -> list[np.ndarray]:
@@ -269,7 +269,7 @@ class _ConstantHead:
 def test_gated_head_takes_the_near_heads_distance_below_the_gate_only() -> None:
     import torch
 
-    from geoseg.localizer import GatedRelPoseHead, head_relative_poses
+    from geoseg.reloc.localizer import GatedRelPoseHead, head_relative_poses
 
     far = _ConstantHead(0.0, [3.0, 4.0, 5.0])
     near = _ConstantHead(0.01, [0.1, 0.29, 0.31])
@@ -287,7 +287,7 @@ def test_gated_head_takes_the_near_heads_distance_below_the_gate_only() -> None:
 
 
 def test_gated_head_refuses_heads_without_distances_and_bad_gates() -> None:
-    from geoseg.localizer import GatedRelPoseHead
+    from geoseg.reloc.localizer import GatedRelPoseHead
 
     head = _ConstantHead(0.0, [1.0])
     with pytest.raises(GeosegError, match="near: .*distances"):
@@ -300,8 +300,8 @@ def test_gated_head_refuses_heads_without_distances_and_bad_gates() -> None:
 
 
 def test_shipped_localizer_gates_the_distance_with_the_near_head(tmp_path: Path) -> None:
-    from geoseg.localizer import NEAR_GATE_M, GatedRelPoseHead
     from geoseg.pretrained import pretrained_file
+    from geoseg.reloc.localizer import NEAR_GATE_M, GatedRelPoseHead
 
     images, _, _ = _render_like(tmp_path / "render")
     base = build_image_base(tmp_path / "render", tmp_path / "base")

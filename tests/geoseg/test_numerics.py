@@ -11,8 +11,8 @@ import pytest
 
 from geoseg.errors import GeosegError
 from geoseg.infer import Segmenter
-from geoseg.localize import fuse_gps_distance, intersect_rays, locate_from_ranged_rays
-from geoseg.route_filter import RouteFilter, RouteFilterConfig
+from geoseg.reloc.retrieval import fuse_gps_distance, intersect_rays, locate_from_ranged_rays
+from geoseg.reloc.route_filter import RouteFilter, RouteFilterConfig
 
 
 def _route(m: int = 12) -> tuple[RouteFilter, np.ndarray]:

@@ -1,4 +1,4 @@
-"""Tests for the sequence filter over a base route (geoseg.route_filter)."""
+"""Tests for the sequence filter over a base route (geoseg.reloc.route_filter)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from scipy.special import ndtr
 
 from geoseg.errors import GeosegError
-from geoseg.route_filter import RouteFilter, RouteFilterConfig
+from geoseg.reloc.route_filter import RouteFilter, RouteFilterConfig
 
 
 def _line(m: int, spacing: float = 10.0) -> np.ndarray:

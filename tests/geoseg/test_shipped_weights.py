@@ -9,7 +9,6 @@ import numpy as np
 import pytest
 
 from geoseg.classes import BUILDING
-from geoseg.cli import main
 from geoseg.data.synthetic import SyntheticDataset, synthetic_config
 from geoseg.dirichlet import DirichletFilter, load_filter
 from geoseg.pretrained import (
@@ -19,6 +18,7 @@ from geoseg.pretrained import (
     pretrained_file,
     pretrained_segmenter,
 )
+from geoseg_cli.cli import main
 
 
 @pytest.fixture(scope="module")

@@ -9,8 +9,8 @@ import shutil
 import numpy as np
 import pytest
 
-from geoseg.cli import main
 from geoseg.synth.export import render_sequence
+from geoseg_cli.cli import main
 from slam_bridge.errors import SlamError
 from slam_bridge.image_slam import load_inputs
 from slam_bridge.sensor_logs import read_columns

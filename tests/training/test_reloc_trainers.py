@@ -13,13 +13,13 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from geoseg.cli import main as cli_main
 from geoseg.config import load_config
 from geoseg.data.pairs import positive_mask
 from geoseg.errors import GeosegError
 from geoseg.infer import save_model_checkpoint
 from geoseg.models.registry import get_model
 from geoseg.models.relpose import relative_pose_labels, so3_exp
+from geoseg_cli.cli import main as cli_main
 from training import reloc as reloc_trainer
 from training import relpose as relpose_trainer
 

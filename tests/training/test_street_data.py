@@ -7,8 +7,8 @@ import torch
 
 from geoseg.errors import ConfigError, GeosegError
 from training.camvid_holdout import make_holdout, sequence_of
-from training.common import LUMA_WEIGHTS, RandomGrayscale, build_frame_dataset
 from training.config import DataConfig
+from training.frame_data import LUMA_WEIGHTS, RandomGrayscale, build_frame_dataset
 
 
 def test_random_grayscale_is_luma_on_three_channels() -> None:

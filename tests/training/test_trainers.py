@@ -9,12 +9,12 @@ import pytest
 import torch
 
 from geoseg.classes import BUILDING
-from geoseg.cli import main as cli_main
 from geoseg.config import load_config
 from geoseg.data.synthetic import synthetic_config
 from geoseg.errors import ConfigError, GeosegError
 from geoseg.models.registry import get_model
-from training import common
+from geoseg_cli.cli import main as cli_main
+from training import common, frame_data
 from training import dirichlet_fit as dirichlet_trainer
 from training import naive as naive_trainer
 from training import normals as normals_trainer
@@ -61,14 +61,14 @@ def test_prerender_frames_fills_the_cache_before_training(tmp_path):
         _base(tmp_path / "cache", tmp_path / "run") | {"model": "enet"},
         overrides=["data.prerender_workers=1", "data.synth.val.seeds=[2]"],
     )
-    train = common.build_frame_dataset(cfg.data, "train")
-    val = common.build_frame_dataset(cfg.data, "val")
+    train = frame_data.build_frame_dataset(cfg.data, "train")
+    val = frame_data.build_frame_dataset(cfg.data, "val")
     common.prerender_frames(cfg.data, train, val)
     assert len(list((tmp_path / "cache").rglob("*.npz"))) == len(train) + len(val)
     # without prerender_workers nothing is rendered up front
     cfg.data.prerender_workers = 0
     cfg.data.cache_dir = tmp_path / "cold"
-    common.prerender_frames(cfg.data, common.build_frame_dataset(cfg.data, "train"))
+    common.prerender_frames(cfg.data, frame_data.build_frame_dataset(cfg.data, "train"))
     assert not (tmp_path / "cold").exists()
 
 
@@ -280,7 +280,7 @@ def _one_step_lowers(model, loss_fn, batch, lr=1e-3) -> None:
 
 def _frames(cache: Path, n: int = 2) -> dict:
     cfg = load_config(seg_trainer.SegConfig, {"data": _data(cache)})
-    ds = common.build_frame_dataset(cfg.data, "train", augment=False)
+    ds = frame_data.build_frame_dataset(cfg.data, "train", augment=False)
     samples = [ds[i] for i in range(n)]
     return {k: torch.stack([s[k] for s in samples]) for k in ("image", "labels", "normals")}
 

@@ -69,8 +69,9 @@ def test_training_frames_get_the_effects_when_configured(tmp_path) -> None:
     import cv2
 
     from geoseg.config import load_config
-    from training.common import build_frame_dataset, describe_data
+    from training.common import describe_data
     from training.config import TrainConfig
+    from training.frame_data import build_frame_dataset
 
     for folder in ("train", "trainannot"):
         (tmp_path / folder).mkdir()

@@ -9,8 +9,8 @@ import pytest
 from geoseg.classes import BUILDING, IGNORE_INDEX, OBJECT, ROAD, SIDEWALK, SKY, TERRAIN, VEHICLE
 from geoseg.data.camvid import CamVidDataset
 from geoseg.errors import ConfigError, GeosegError
-from training.common import build_frame_dataset, dataset_classes
 from training.config import DataConfig
+from training.frame_data import build_frame_dataset, dataset_classes
 
 
 def _write_frames(root: Path, split: str = "train", n: int = 2, size=(12, 16)) -> np.ndarray:

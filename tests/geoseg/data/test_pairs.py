@@ -17,8 +17,8 @@ from geoseg.data.pairs import (
     truth_sets,
 )
 from geoseg.errors import GeosegError
-from geoseg.localize import recall_at_k
 from geoseg.models.relpose import relative_pose_labels
+from geoseg.reloc.retrieval import recall_at_k
 
 # camera looking north (+y) in a z-up world (OpenCV camera: x right, y down, z forward)
 R_NORTH = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

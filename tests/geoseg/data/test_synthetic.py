@@ -352,8 +352,8 @@ def test_clean_samples_keep_the_crown_labels_unless_told_not_to():
 
 
 def test_training_dataset_leaves_clean_samples_without_colour_or_camera_effects():
-    from training.common import build_frame_dataset
     from training.config import DataConfig
+    from training.frame_data import build_frame_dataset
 
     synth = {"seeds": [1], "frames": 8, "drives_per_city": 2, "clean_share": 0.5}
     data = from_dict(

@@ -9,8 +9,8 @@ import torch
 import torch.nn.functional as F
 
 from geoseg.errors import GeosegError
-from geoseg.localize import RetrievalIndex, triplet_accuracy
 from geoseg.models.reloc import RawFeatureEmbedder, raw_feature_embedder, reloc_head, triplet_loss
+from geoseg.reloc.retrieval import RetrievalIndex, triplet_accuracy
 
 
 @pytest.mark.parametrize("size", [(1, 4, 5), (3, 6, 8), (2, 1, 1)])

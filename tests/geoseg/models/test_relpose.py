@@ -10,7 +10,6 @@ import pytest
 import torch
 
 from geoseg.errors import GeosegError
-from geoseg.localize import absolute_position
 from geoseg.models.relpose import (
     correlation_volume,
     from_thesis_coefficients,
@@ -23,6 +22,7 @@ from geoseg.models.relpose import (
     so3_vee,
     to_thesis_coefficients,
 )
+from geoseg.reloc.retrieval import absolute_position
 
 F64 = torch.float64
 

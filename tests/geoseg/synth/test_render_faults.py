@@ -13,7 +13,7 @@ import pytest
 
 import geoseg
 from geoseg.atomic import TEMP_PATTERN
-from geoseg.cli import main
+from geoseg_cli.cli import main
 
 ROOT = Path(geoseg.__file__).resolve().parent.parent
 # geoseg ARGV, SIGKILLed before (or after) the N-th rename onto a file named TARGET
@@ -32,7 +32,7 @@ def replace(src, dst, *a, **k):
     if hit and seen[0] == n and when == "after":
         os.kill(os.getpid(), signal.SIGKILL)
 os.replace = replace
-from geoseg.cli import main
+from geoseg_cli.cli import main
 raise SystemExit(main(sys.argv[4:]))
 """
 COMPARED = ("rgb", "labels", "labels_color", "geometry", "gis", "poses.csv", "camera.json")

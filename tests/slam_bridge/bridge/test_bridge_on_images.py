@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from geoseg.classes import BUILDING, NUM_CLASSES
-from geoseg.cli import main
 from geoseg.infer import Segmenter
 from geoseg.pretrained import pretrained_file
 from geoseg.synth.export import render_sequence
+from geoseg_cli.cli import main
 from slam_bridge.bridge.association import associate_bayes
 from slam_bridge.bridge.builder import BridgeConfig, build_bridge
 from slam_bridge.bridge.constraints import BuildingConstraints

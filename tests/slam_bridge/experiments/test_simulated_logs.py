@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from geoseg.cli import main
+from geoseg_cli.cli import main
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.simulated_logs import (
     KITTI_TO_WORLD,

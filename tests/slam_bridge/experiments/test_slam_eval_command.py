@@ -7,8 +7,8 @@ import json
 import pytest
 import yaml
 
-from geoseg.cli import main
 from geoseg.config import load_config
+from geoseg_cli.cli import main
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig
 
 

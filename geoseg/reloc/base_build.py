@@ -1,7 +1,7 @@
 """Build a georeferenced image base from a folder of geotagged images (thesis §5.1).
 
 :func:`build_image_base` reads one of three sources and writes an image base (the layout of
-:mod:`geoseg.image_base`: the images, ``poses.csv``, optionally ``camera.json``):
+:mod:`geoseg.reloc.image_base`: the images, ``poses.csv``, optionally ``camera.json``):
 
 * a ``geoseg render`` output folder (``rgb/NNNNNN.png``, ``poses.csv`` with a ``frame``
   column, ``camera.json``): the rendered poses are the base poses;
@@ -16,7 +16,7 @@
   (rows in driving order). This suits a forward-looking vehicle camera.
 
 The images are copied into the base (hard links when the file system allows), so that a base
-is one self-contained folder. :func:`geoseg.localizer.Localizer.from_base` then computes and
+is one self-contained folder. :func:`geoseg.reloc.localizer.Localizer.from_base` then computes and
 caches the embeddings (``BASE/cache/``); ``geoseg base build`` does both.
 """
 
@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from geoseg.errors import GeosegError, check_positive
-from geoseg.image_base import (
+from geoseg.reloc.image_base import (
     CAMERA_FILE,
     POSES_FILE,
     load_image_base,
@@ -264,7 +264,7 @@ def build_image_base(
         overwrite: write into a folder holding files no base build wrote (they are kept).
 
     Returns:
-        ``out``, loadable by :func:`geoseg.image_base.load_image_base`.
+        ``out``, loadable by :func:`geoseg.reloc.image_base.load_image_base`.
     """
     from geoseg.output_dir import prepare_output_dir, record_outputs
 

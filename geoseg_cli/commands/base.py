@@ -8,7 +8,7 @@ Example (a rendered drive is one such folder)::
 
 ``SRC`` is a ``geoseg render`` output, an existing image base, or any folder of images with
 ``--positions CSV`` (``image, x, y[, z, heading_deg, timestamp]``; see
-:mod:`geoseg.base_build`). The base (images, ``poses.csv``, ``camera.json``) is written to
+:mod:`geoseg.reloc.base_build`). The base (images, ``poses.csv``, ``camera.json``) is written to
 ``--out`` and the base images' embeddings are computed with the shipped networks and cached
 there (``--embedding`` as in ``geoseg localize``; ``--no-embed`` skips them).
 """
@@ -52,9 +52,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import math
 
-    from geoseg.base_build import build_image_base
     from geoseg.errors import GeosegError
-    from geoseg.image_base import load_image_base
+    from geoseg.reloc.base_build import build_image_base
+    from geoseg.reloc.image_base import load_image_base
 
     if not math.isfinite(args.camera_height) or args.camera_height < 0:
         raise GeosegError(
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     base = load_image_base(out)
     print(f"image base {out}: {len(base)} images")
     if not args.no_embed:
-        from geoseg.localizer import load_trunk, make_embedder
+        from geoseg.reloc.localizer import load_trunk, make_embedder
 
         trunk = None if args.embedding == "thumbnail" else load_trunk(None, args.device)
         embedder, name, _ = make_embedder(args.embedding, trunk, device=args.device)

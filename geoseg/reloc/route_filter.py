@@ -1,6 +1,6 @@
 """Sequence localisation along a georeferenced image base: a discrete Bayes filter (HMM).
 
-Single-image retrieval (:class:`geoseg.localize.RetrievalIndex`) ranks each query on its own. A
+Single-image retrieval (:class:`geoseg.reloc.retrieval.RetrievalIndex`) ranks each query on its own. A
 vehicle does not teleport: its queries come in order, a known distance apart (odometry, or the
 SLAM's own trajectory), along a route the base was recorded on. Across seasons and in streets
 of repeated facades one image is often ambiguous while a run of them is not; this is the idea of
@@ -236,7 +236,7 @@ class RouteFilter:
 
         Args:
             distances: ``(T, M)`` embedding distances query -> base image (original indexing,
-                e.g. :meth:`geoseg.localize.RetrievalIndex.distances`).
+                e.g. :meth:`geoseg.reloc.retrieval.RetrievalIndex.distances`).
             gps: ``(T, 2)`` or ``(T, 3)`` query fixes in the world frame, metres.
             radius_m: hard GPS window (needs ``gps`` and base positions).
             gps_sigma_m: Gaussian GPS likelihood's standard deviation per axis (needs ``gps``).

@@ -138,7 +138,7 @@ class RetrievalIndex:
         return np.sqrt(np.maximum(d2, 0.0))
 
     def distances(self, embeddings: Any) -> np.ndarray:
-        """Every query's distance to every base image (for :mod:`geoseg.route_filter`).
+        """Every query's distance to every base image (for :mod:`geoseg.reloc.route_filter`).
 
         Args:
             embeddings: ``(Q, D)`` query embeddings.
@@ -778,12 +778,3 @@ def fuse_gps_distance(
         w_g, w_d = np.where(np.isfinite(v_head), w_g, 1.0), np.where(np.isfinite(v_head), w_d, 0.0)
         fused = w_d * d + w_g * g
     return np.where(np.isfinite(d) & np.isfinite(g) & np.isfinite(fused), fused, np.inf)
-
-
-def __getattr__(name: str) -> Any:
-    # the library entry lives in geoseg.localizer (it imports this module); reachable here too
-    if name in ("Localizer", "LocalizerConfig"):
-        from geoseg import localizer
-
-        return getattr(localizer, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

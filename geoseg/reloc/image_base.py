@@ -61,7 +61,7 @@ import numpy as np
 
 from geoseg.atomic import atomic_output
 from geoseg.errors import GeosegError, check_finite, check_shape
-from geoseg.localize import RetrievalIndex
+from geoseg.reloc.retrieval import RetrievalIndex
 
 logger = logging.getLogger(__name__)
 
@@ -442,7 +442,7 @@ class ImageBase:
     def build_index(
         self, embed_fn: EmbedFn, *, batch_size: int = 16, cache: bool = True
     ) -> RetrievalIndex:
-        """A :class:`~geoseg.localize.RetrievalIndex` over the base's embeddings and poses.
+        """A :class:`~geoseg.reloc.retrieval.RetrievalIndex` over the base's embeddings and poses.
 
         Args:
             embed_fn, batch_size, cache: see :meth:`embeddings`.

@@ -1,10 +1,10 @@
 """Relocalise query images against a georeferenced image base: the library entry (thesis §5.1).
 
-:class:`Localizer` chains the steps of :mod:`geoseg.localize` for a list of queries:
+:class:`Localizer` chains the steps of :mod:`geoseg.reloc.retrieval` for a list of queries:
 
 1. retrieval: the ``k`` base images nearest in embedding space (eq. 5.1), optionally only those
    within ``radius_m`` of each query's GPS fix; or, for queries that are one drive in order
-   (``sequence``), the most probable base images of the route filter (:mod:`geoseg.route_filter`);
+   (``sequence``), the most probable base images of the route filter (:mod:`geoseg.reloc.route_filter`);
 2. a relative pose per match: the relative-pose head (eq. 5.2; rotation, direction and, for the
    shipped head, the distance between the two cameras; by default gated with a second head for
    views of one place, :class:`GatedRelPoseHead`) or the essential-matrix baseline;
@@ -13,7 +13,7 @@
 4. the absolute position from the matches' rays (ranged rays when distances are predicted,
    fig. 5.6).
 
-:meth:`Localizer.from_base` builds one over an :class:`~geoseg.image_base.ImageBase` on disk with
+:meth:`Localizer.from_base` builds one over an :class:`~geoseg.reloc.image_base.ImageBase` on disk with
 the shipped networks (``geoseg/weights/{seg,reloc,relpose}``); ``geoseg localize`` and
 ``geoseg base build`` are thin commands over it. The constructor takes plain callables instead,
 so that a program (or ``bench/accuracy_reloc.py``) can run the same algorithm over embeddings and
@@ -36,7 +36,7 @@ from typing import Any, Literal
 import numpy as np
 
 from geoseg.errors import GeosegError, check_positive
-from geoseg.localize import (
+from geoseg.reloc.retrieval import (
     RetrievalIndex,
     absolute_position,
     fuse_gps_distance,
@@ -76,11 +76,11 @@ class LocalizerConfig:
         k: matches per query (>= 1).
         radius_m: GPS window radius in metres (needs ``gps`` at :meth:`Localizer.localize`).
         gps_sigma_m: GPS noise per axis in metres: re-rank by the predicted distance fused with
-            the fix's distance to each match (:func:`geoseg.localize.fuse_gps_distance`); with
+            the fix's distance to each match (:func:`geoseg.reloc.retrieval.fuse_gps_distance`); with
             ``sequence``, the route filter's Gaussian GPS likelihood.
         distance_rel_sigma: relative error of the predicted distances, for ``gps_sigma_m``.
         appearance_weight: re-rank by ``log(distance) + weight x embedding distance``
-            (:func:`geoseg.localize.rerank_by_distance`); 0.5 suits the learned embedding.
+            (:func:`geoseg.reloc.retrieval.rerank_by_distance`); 0.5 suits the learned embedding.
         rerank: re-rank by predicted distance when the relative poses carry distances.
         position_k: matches used for the absolute position, best first (None: all ``k``).
         min_agreeing_rays: the ranged rays of at least this many matches must agree (the
@@ -233,7 +233,7 @@ class Localizer:
         """A localizer over an image base directory with the shipped networks by default.
 
         Args:
-            base: an :class:`~geoseg.image_base.ImageBase` or its directory
+            base: an :class:`~geoseg.reloc.image_base.ImageBase` or its directory
                 (``geoseg base build`` makes one from a folder of geotagged images).
             embedding: ``learned`` (the embedding head of eq. 5.1 on the trunk's layer-21
                 features, the default), ``layer21`` (the raw features, §5.1.1) or
@@ -264,7 +264,7 @@ class Localizer:
         Raises:
             GeosegError: a bad base, option or weight file (naming it).
         """
-        from geoseg.image_base import ImageBase, load_image_base
+        from geoseg.reloc.image_base import ImageBase, load_image_base
 
         if not isinstance(base, ImageBase):
             base = load_image_base(base)
@@ -308,7 +308,7 @@ class Localizer:
                 )
             pose_fn: RelativePoseFn = _HeadRelativePose(base, feature_fn, head, device)
         else:
-            from geoseg.image_base import check_image_size
+            from geoseg.reloc.image_base import check_image_size
 
             K, k_source, size, size_source = _intrinsics(base, focal)
             pose_fn = _EssentialRelativePose(base, K, features, k_source)
@@ -428,7 +428,7 @@ class Localizer:
 
     def _route_matches(self, q_emb: np.ndarray, gps: Any, k: int, mode: str) -> tuple:
         """``(ranked (T, k), embedding distances (T, k), posterior (T, k))`` of the route HMM."""
-        from geoseg.route_filter import RouteFilter, RouteFilterConfig
+        from geoseg.reloc.route_filter import RouteFilter, RouteFilterConfig
 
         cfg = self.config
         route_cfg = RouteFilterConfig(
@@ -550,7 +550,7 @@ def make_embedder(
         ``(embed_fn (images -> (B, D)) with a cache ``name``, a description, the feature
         function or None)``.
     """
-    from geoseg.image_base import ThumbnailEmbedder
+    from geoseg.reloc.image_base import ThumbnailEmbedder
 
     if embedding not in ("learned", "layer21", "thumbnail"):
         raise GeosegError(f"embedding: expected learned, layer21 or thumbnail, got {embedding!r}")
@@ -660,7 +660,7 @@ class _FeatureCache:
     base images (keyed by index) are kept, as each may be matched by many queries."""
 
     def __init__(self, segmenter: Any, resize: Callable[[np.ndarray], np.ndarray]) -> None:
-        from geoseg.image_base import layer21_features
+        from geoseg.reloc.image_base import layer21_features
 
         self.features = layer21_features(segmenter)
         self.resize = resize
@@ -839,7 +839,7 @@ class _EssentialRelativePose:
         self.base, self.K, self.features, self.k_source = base, K, features, k_source
 
     def __call__(self, idx: np.ndarray, query: Any) -> list[dict[str, Any]]:
-        from geoseg.essential_baseline import estimate_relative_pose
+        from geoseg.reloc.essential_baseline import estimate_relative_pose
 
         out = []
         for i in idx:
@@ -861,7 +861,7 @@ class _EssentialRelativePose:
 
 def _intrinsics(base: Any, focal: float | None) -> tuple:
     """``(K, where K comes from, (W, H) it holds for, where that size comes from)``."""
-    from geoseg.image_base import CAMERA_FILE
+    from geoseg.reloc.image_base import CAMERA_FILE
 
     h, w = base.load_image(0).shape[:2]
     if base.K is not None:

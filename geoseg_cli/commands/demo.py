@@ -109,8 +109,8 @@ def step_contact_sheet(ctx: DemoContext) -> None:
     """One row per sequence: a few RGB frames and the label map of the middle one."""
     import numpy as np
 
-    from geoseg.image_base import read_rgb
     from geoseg.legends import class_legend
+    from geoseg.reloc.image_base import read_rgb
     from geoseg.synth.maps import contact_sheet
 
     rows, labels = [], []
@@ -178,10 +178,10 @@ def step_segment(ctx: DemoContext) -> None:
 
     from geoseg.classes import CLASS_NAMES, NUM_CLASSES, SKY, colorize
     from geoseg.errors import GeosegError
-    from geoseg.image_base import read_rgb
     from geoseg.infer import normals_to_rgb
     from geoseg.legends import class_legend, normal_key
     from geoseg.pretrained import pretrained_segmenter
+    from geoseg.reloc.image_base import read_rgb
     from geoseg.synth.maps import contact_sheet
     from training.metrics import confusion_matrix, segmentation_scores
 

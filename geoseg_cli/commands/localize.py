@@ -1,6 +1,6 @@
 """``geoseg localize``: relocalise query images against a georeferenced image base (§5.1).
 
-A thin command over :class:`geoseg.localizer.Localizer` (the algorithm, its options and its
+A thin command over :class:`geoseg.reloc.localizer.Localizer` (the algorithm, its options and its
 outputs are documented there). By default it uses the shipped networks: the learned embedding
 (``geoseg/weights/reloc`` on the ``seg`` trunk) for retrieval and the relative-pose head
 (``geoseg/weights/relpose``) for the relative poses, their distances and the position.
@@ -10,7 +10,7 @@ essential-matrix baseline (intrinsics from ``BASE/camera.json``, else ``--focal`
 assumed focal length of ``max(W, H)`` pixels; queries must have the intrinsics' image size).
 
 The base is a folder made by ``geoseg base build`` (or any folder with ``poses.csv``, see
-:mod:`geoseg.image_base`). Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame
+:mod:`geoseg.reloc.image_base`). Query GPS (``--gps``): a CSV with columns ``image, x, y`` (world frame
 of the base, metres; ``image`` is the query's file name or the path as given).
 
 Prints a table; ``--out FILE`` writes the same as JSON, atomically; an existing file is replaced
@@ -304,7 +304,7 @@ def _parse_size(text: str) -> tuple[int, int] | None:
 def _config(args: argparse.Namespace):
     """The :class:`LocalizerConfig` of the arguments, with the errors naming the flags."""
     from geoseg.errors import GeosegError, check_positive
-    from geoseg.localizer import LocalizerConfig
+    from geoseg.reloc.localizer import LocalizerConfig
 
     if isinstance(args.k, bool) or args.k < 1:
         raise GeosegError(f"--k: expected an int >= 1, got {args.k}")
@@ -373,8 +373,8 @@ def _config(args: argparse.Namespace):
 
 def run(args: argparse.Namespace) -> int:
     from geoseg.errors import GeosegError
-    from geoseg.image_base import load_image_base, read_rgb
-    from geoseg.localizer import Localizer
+    from geoseg.reloc.image_base import load_image_base, read_rgb
+    from geoseg.reloc.localizer import Localizer
 
     config = _config(args)
     network_size = _parse_size(args.network_size)

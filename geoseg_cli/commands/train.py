@@ -9,7 +9,7 @@ Examples::
     geoseg train reloc --config configs/reloc.yaml --set trunk_checkpoint=runs/seg
     geoseg train relpose --config configs/relpose.yaml --set trunk_checkpoint=runs/seg
     geoseg train seg --config configs/seg.yaml --resume        # continue after a crash
-    torchrun --nproc_per_node=2 -m geoseg.cli train seg ...    # data-parallel
+    torchrun --nproc_per_node=2 -m geoseg_cli train seg ...    # data-parallel
 
 The config YAML overrides the trainer's typed defaults (``training.<trainer>``); ``--set
 key.sub=value`` overrides it (values parsed as YAML). An unknown key is an error naming it.

@@ -14,7 +14,7 @@ Convention. OpenCV's ``recoverPose(E, pts1, pts2)`` returns ``(R, t)`` with
 ``pts2`` from image b this is ``X_b = R X_a + t``, hence ``X_a = R^T X_b - R^T t``, i.e.
 ``R_ab = R^T`` and ``t_dir_ab = -R^T t / |t|``: the unit direction from camera a's centre
 towards camera b's centre in camera a's frame, the same as ``relative_pose_labels`` (with
-``a`` = base image, ``b`` = query, it is the ray :func:`geoseg.localize.absolute_position`
+``a`` = base image, ``b`` = query, it is the ray :func:`geoseg.reloc.retrieval.absolute_position`
 casts). Scale is unobservable: only the direction is returned.
 
 Failures are explicit: too few keypoints, matches or inliers (or no essential matrix) give a

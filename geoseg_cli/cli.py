@@ -1,6 +1,6 @@
 """The ``geoseg`` command: one entry point, one subcommand per job.
 
-Each subcommand lives in :mod:`geoseg.commands` as a module exposing
+Each subcommand lives in :mod:`geoseg_cli.commands` as a module exposing
 ``configure(parser: argparse.ArgumentParser) -> None`` and ``run(args) -> int``. Only the module of
 the subcommand being run is imported, so ``geoseg --help`` stays fast (no torch import).
 """
@@ -18,25 +18,28 @@ from geoseg.errors import GeosegError
 
 # name -> (module, one-line help). Order is the order of `geoseg --help`.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "demo": ("geoseg.commands.demo", "run the end-to-end demonstration on the synthetic world"),
-    "render": ("geoseg.commands.render", "render a synthetic sequence and its GIS products"),
+    "demo": ("geoseg_cli.commands.demo", "run the end-to-end demonstration on the synthetic world"),
+    "render": ("geoseg_cli.commands.render", "render a synthetic sequence and its GIS products"),
     "train": (
-        "geoseg.commands.train",
+        "geoseg_cli.commands.train",
         "train a network (seg, normals, naive, dirichlet, reloc, relpose)",
     ),
-    "export": ("geoseg.commands.export", "export a trained network to ONNX"),
-    "infer": ("geoseg.commands.infer", "segment images and predict normals with a trained network"),
-    "base": ("geoseg.commands.base", "build an image base from geotagged images (base build)"),
+    "export": ("geoseg_cli.commands.export", "export a trained network to ONNX"),
+    "infer": (
+        "geoseg_cli.commands.infer",
+        "segment images and predict normals with a trained network",
+    ),
+    "base": ("geoseg_cli.commands.base", "build an image base from geotagged images (base build)"),
     "localize": (
-        "geoseg.commands.localize",
+        "geoseg_cli.commands.localize",
         "relocalise query images against a georeferenced image base",
     ),
-    "slam": ("geoseg.commands.slam", "run the SLAM on a folder of images (slam run)"),
+    "slam": ("geoseg_cli.commands.slam", "run the SLAM on a folder of images (slam run)"),
     "slam-eval": (
-        "geoseg.commands.slam_eval",
+        "geoseg_cli.commands.slam_eval",
         "run a localisation experiment (fusion: the chapter-3 experiment)",
     ),
-    "bench": ("geoseg.commands.bench", "run a benchmark script from bench/"),
+    "bench": ("geoseg_cli.commands.bench", "run a benchmark script from bench/"),
 }
 
 logger = logging.getLogger("geoseg")
