@@ -18,13 +18,13 @@ database image. Measured:
   returns a pose; its failure share is reported);
 * re-ranking (heads with the distance output): Recall@1 in the GPS window after ordering its
   top ``--rerank-k`` candidates by the head's predicted baseline (nearest first; its log plus
-  ``--appearance-weight`` times the embedding distance, :func:`geoseg.localize.
+  ``--appearance-weight`` times the embedding distance, :func:`geoseg.reloc.retrieval.
   rerank_by_distance`: the ``..._distance_only`` keys hold weight 0), and again
   by that baseline fused with the GPS fix's distance to each candidate
-  (:func:`geoseg.localize.fuse_gps_distance`, ``--distance-rel-sigma``; the fix's noise is
+  (:func:`geoseg.reloc.retrieval.fuse_gps_distance`, ``--distance-rel-sigma``; the fix's noise is
   ``--gps-sigma``), and Recall@1 and @3 over the whole base after ordering its top
   ``--rerank-k-whole`` by the predicted baseline;
-* sequence localisation (:mod:`geoseg.route_filter`, not in the thesis: the single-image
+* sequence localisation (:mod:`geoseg.reloc.route_filter`, not in the thesis: the single-image
   figures above stay the thesis's protocol): the queries taken as one drive in order, the
   learned embedding's distances through the route HMM, with odometry steps (the distance driven
   between consecutive queries with a constant scale error drawn in +-2 % and 5 % noise per
@@ -34,14 +34,14 @@ database image. Measured:
   mean over 5 draws);
 * absolute position of each query from its top-``k`` GPS-window base images (learned
   embedding; ``k = 2`` by default, every k in 1-5 recorded): with a distance head by ranged rays
-  (predicted direction + distance, :func:`geoseg.localize.locate_from_ranged_rays`) over the
+  (predicted direction + distance, :func:`geoseg.reloc.retrieval.locate_from_ranged_rays`) over the
   re-ranked candidates, else by robust intersection of the head's direction rays; median and
   p90 horizontal error over the non-degenerate queries and the degenerate share. Direction rays
   alone are reported beside (``..._rays_only``), and with the true directions (the geometric
   limit of a tram line, where base cameras are nearly collinear with the query);
 * queries at the base poses (``position_error_at_base_poses_m``, median and ``_p90_m``): a
   winter drive along the base's very poses (no offset, no jitter), each query localised by the
-  library's :class:`geoseg.localizer.Localizer` (GPS window, the top ``--rerank-k`` re-ranked,
+  library's :class:`geoseg.reloc.localizer.Localizer` (GPS window, the top ``--rerank-k`` re-ranked,
   the best ``--top-k`` ranged rays: ``geoseg localize``'s settings), and as one drive through
   the route filter without GPS (``..._sequence``); ``predicted_distance_at_base_poses_median_m``
   is the head's distance for a query and the base image at its pose (truth: 0). The offset
@@ -53,7 +53,7 @@ database image. Measured:
 Weights: ``--trunk``, ``--reloc``, ``--relpose`` (defaults: the shipped ``geoseg/weights/seg``,
 ``.../reloc``, ``.../relpose``, else ``runs/seg`` etc.); the word ``random`` asks for random
 weights. With the default ``--relpose``, its distances are gated with the shipped near head
-``relpose_near`` (:class:`geoseg.localizer.GatedRelPoseHead`, ``--near-gate-m``), as in
+``relpose_near`` (:class:`geoseg.reloc.localizer.GatedRelPoseHead`, ``--near-gate-m``), as in
 ``geoseg localize``; ``--relpose-near none`` measures the relative-pose head alone. A missing one is replaced by random weights, and then the results JSON is
 **refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
 
@@ -380,7 +380,7 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
 
 
 def measure_sequence(res: dict, db, qr, retrieval: dict, args) -> None:
-    """Recall of the route filter (:mod:`geoseg.route_filter`) over the query drive: causal
+    """Recall of the route filter (:mod:`geoseg.reloc.route_filter`) over the query drive: causal
     filter (whole base, GPS window), smoother, no odometry, irregular drives."""
     from geoseg.reloc.retrieval import recall_at_k
     from geoseg.reloc.route_filter import RouteFilter
@@ -577,7 +577,7 @@ def measure_abs_position(res: dict, db, qr, f_db, f_q, head, retrieval: dict, ar
 
 
 def bench_localizer(db, f_db, emb_db, f_q, emb_q, head, args) -> Any:
-    """The library's :class:`geoseg.localizer.Localizer` over the bench's features: queries are
+    """The library's :class:`geoseg.reloc.localizer.Localizer` over the bench's features: queries are
     row indices into ``f_q``/``emb_q``; GPS window, top ``--rerank-k`` re-ranked by predicted
     distance, position from the best ``--top-k`` (the settings of ``geoseg localize``)."""
     from geoseg.reloc.localizer import Localizer, LocalizerConfig, head_relative_poses

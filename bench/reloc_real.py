@@ -14,7 +14,7 @@ Figures per clip (``<clip>/...``) and their means over the clips:
   gets without the relative-pose heads);
 * ``reloc_over_best_match``: the ratio of the two means (<= 1: the heads do not make it worse);
 * ``reloc_gated_share``: the queries whose matches' relative poses did not agree, so that the
-  localiser took its best match's position (:class:`geoseg.localizer.LocalizerConfig`'s
+  localiser took its best match's position (:class:`geoseg.reloc.localizer.LocalizerConfig`'s
   ``min_agreeing_rays``).
 
 Split: ``straight`` showed the failure the gate answers (the rule was checked on it, the
