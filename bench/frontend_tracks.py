@@ -45,7 +45,7 @@ from geoseg.synth.world import WorldConfig
 from slam_bridge.evaluate_tracks import RenderTruth, TruthMap, evaluate_tracks
 from slam_bridge.frontend.frames import FrameList, ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
-from slam_bridge.geometry import two_view_init
+from slam_bridge.geometry.multiview import two_view_init
 
 ROOT = Path(__file__).resolve().parents[1]
 

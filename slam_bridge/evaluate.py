@@ -46,9 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.errors import check_shape
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_log
+from slam_bridge.geometry.camera import project
+from slam_bridge.geometry.lie import so3_log
 
 logger = logging.getLogger(__name__)
 
@@ -217,7 +217,7 @@ def inlier_mask(
     keep = keep & tri[obs_point] & (obs_keyframe < R_wc.shape[0])
     kf, pt = obs_keyframe[keep], obs_point[keep]
     if retriangulate and kf.size:
-        from slam_bridge.geometry import triangulate
+        from slam_bridge.geometry.multiview import triangulate
 
         res = triangulate(
             K, R_wc, t_wc, kf, pt, uv[keep], num_points=P, min_parallax_deg=0.0,

@@ -34,7 +34,7 @@ import numpy as np
 from geoseg.atomic import atomic_write
 from geoseg.errors import check_finite, check_shape
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.geometry.lie import so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
 

@@ -55,12 +55,12 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
 from geoseg.errors import check_finite, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import Factor, FactorBlock
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
+from slam_bridge.geometry.sums import _segment_sum
 
 try:  # optional accelerator: compiled loops for the hot paths (same results up to rounding)
     import numba as _numba
@@ -233,7 +233,7 @@ class BAState:
 def _rotate_kernel(dc, fc, R, t):  # pragma: no cover - compiled
     """In place, per free camera ``k`` (state index ``fc[k]``): ``R <- exp(hat(dw)) R`` and
     ``t <- t + dT`` with ``[dw, dT] = dc[k]``; Rodrigues' formula with the small-angle series of
-    :func:`slam_bridge.lie.so3_exp` below 0.1 rad."""
+    :func:`slam_bridge.geometry.lie.so3_exp` below 0.1 rad."""
     for k in range(fc.shape[0]):
         c = fc[k]
         w0, w1, w2 = dc[k, 0], dc[k, 1], dc[k, 2]
@@ -344,37 +344,6 @@ class NormalEquations:
 def total_cost(factors: Iterable[Factor], state: BAState) -> float:
     """``sum`` of the families' ``cost(state)`` (no Jacobians)."""
     return float(sum(f.cost(state) for f in factors))
-
-
-_IND_CACHE: OrderedDict[tuple, sp.csr_matrix] = OrderedDict()
-
-
-def _indicator(idx: np.ndarray, n: int) -> sp.csr_matrix:
-    """``(n, M)`` sparse 0/1 matrix with ``[idx[m], m] = 1`` for ``idx[m] >= 0`` (cached).
-
-    ``_indicator(idx, n) @ values`` sums the rows of ``values (M, d)`` per index: a segment sum
-    an order of magnitude faster than ``np.add.at`` for the block sizes of bundle adjustment.
-    """
-    key = (n, idx.tobytes())
-    hit = _IND_CACHE.get(key)
-    if hit is not None:
-        _IND_CACHE.move_to_end(key)
-        return hit
-    M = idx.size
-    keep = idx >= 0
-    mat = sp.csr_matrix((np.ones(int(keep.sum())), (idx[keep], np.flatnonzero(keep))), shape=(n, M))
-    _IND_CACHE[key] = mat
-    if len(_IND_CACHE) > 32:
-        _IND_CACHE.popitem(last=False)
-    return mat
-
-
-def _segment_sum(idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """``out[i] = sum_{m: idx[m] == i} values[m]``; ``idx (M,)`` (``-1`` skipped), ``values
-    (M, ...)`` -> ``(n, ...)``."""
-    flat = values.reshape(values.shape[0], -1)
-    out = _indicator(idx, n) @ flat
-    return np.asarray(out).reshape((n,) + values.shape[1:])
 
 
 _LAYOUT_CACHE: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()

@@ -7,7 +7,7 @@ Row ``m`` observes point ``points[m]`` in camera ``cameras[m]`` at pixel ``uv[m]
 Rows whose point is not in front of the camera (``z_c <= eps``) are flagged invalid (zero
 residual and Jacobian, counted in ``FactorBlock.n_invalid``), never divided by. With ``numba``
 (:data:`slam_bridge.problem.USE_NUMBA`) residuals and Jacobians come from one compiled pass that
-gathers cameras and points by index (same formulas as :mod:`slam_bridge.camera`).
+gathers cameras and points by index (same formulas as :mod:`slam_bridge.geometry.camera`).
 """
 
 from __future__ import annotations
@@ -17,9 +17,9 @@ import logging
 import numpy as np
 
 from geoseg.errors import check_finite, check_positive
-from slam_bridge.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import FactorBlock
+from slam_bridge.geometry.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
 from slam_bridge.problem import BAState, _mirror_kernel, _njit, numba_enabled
 from slam_bridge.solvers.robust import RobustKernel, get_kernel
 
@@ -33,7 +33,7 @@ def _reproj_kernel(
     K, R, t, X, cams, pts, uv_obs, inv_s, eps, r, ok, Jc, Jp, jac
 ):  # pragma: no cover
     """Compiled residuals (and, if ``jac``, Jacobians) of every row, gathering the cameras and
-    points by index (the formulas of :func:`slam_bridge.camera.project_with_jacobians`).
+    points by index (the formulas of :func:`slam_bridge.geometry.camera.project_with_jacobians`).
 
     ``K (1 or C, 3, 3)`` (one shared or one per state camera), ``R (C, 3, 3)``, ``t (C, 3)``,
     ``X (P, 3)``, ``cams``/``pts (M,)``, ``uv_obs (M, 2)``; writes ``r (M, 2)``, ``ok (M,)`` and

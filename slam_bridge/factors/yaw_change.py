@@ -15,7 +15,7 @@ import numpy as np
 
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import FactorBlock
-from slam_bridge.lie import so3_left_jacobian_inv, so3_log
+from slam_bridge.geometry.lie import so3_left_jacobian_inv, so3_log
 
 __all__ = ["YawChangeFactor"]
 

@@ -59,7 +59,8 @@ import numpy as np
 import scipy.linalg
 
 from slam_bridge.errors import SlamError
-from slam_bridge.problem import NormalEquations, _njit, _segment_sum, numba_enabled
+from slam_bridge.geometry.sums import _segment_sum
+from slam_bridge.problem import NormalEquations, _njit, numba_enabled
 
 logger = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from slam_bridge.factors.dem import DEMFactor, DemSegments
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.odometry import OdometryFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.problem import BAState
 from slam_bridge.solvers.barrier import (
     BarrierConfig,

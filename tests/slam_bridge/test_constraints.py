@@ -10,7 +10,7 @@ from slam_bridge.factors.building import BuildingFactor, WeightedKernel
 from slam_bridge.factors.dem import DEMFactor, DemSegments
 from slam_bridge.factors.gps import GPSFactor, GPSFixError
 from slam_bridge.factors.odometry import OdometryFactor, dead_reckon
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.problem import BAState, assemble
 from slam_bridge.solvers.robust import GemanMcClureKernel
 

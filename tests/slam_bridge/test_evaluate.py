@@ -9,7 +9,7 @@ import pytest
 
 from slam_bridge import evaluate as ev
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 
 
 def test_rotation_and_translation_errors():

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.camera import project
 from slam_bridge.factors.reprojection import ReprojectionFactor
+from slam_bridge.geometry.camera import project
 from slam_bridge.io import (
     BALProblem,
     bal_project,

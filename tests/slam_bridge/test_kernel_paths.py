@@ -48,8 +48,8 @@ def test_dpc_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
     """The compiled DPC residuals and Jacobians equal the :mod:`slam_bridge.lie` ones, below
     and above the series threshold and past pi/2 (so3_log's near-pi branch), with one and
     with per-pair weights."""
-    from slam_bridge import lie
     from slam_bridge.factors.pose_graph_dpc import dpc_residuals, dpc_whitener
+    from slam_bridge.geometry import lie
 
     rng = np.random.default_rng(7)
     M = 25
@@ -144,7 +144,7 @@ def test_pair_families_compiled_and_numpy_paths_agree(
 def test_retract_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
     """The compiled camera update equals ``so3_exp(dw) @ R`` below and above the series
     threshold (0.1 rad); fixed cameras and points stay bit-identical on both paths."""
-    from slam_bridge import lie
+    from slam_bridge.geometry import lie
     from slam_bridge.problem import BAState
 
     rng = np.random.default_rng(11)

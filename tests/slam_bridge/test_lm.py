@@ -5,7 +5,7 @@ import pytest
 
 from geoseg.errors import GeosegError
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_log
+from slam_bridge.geometry.lie import so3_log
 from slam_bridge.solvers.lm import BAObjective, LMConfig, LMStep, levenberg_marquardt
 from slam_bridge.solvers.robust import GemanMcClureKernel, HuberKernel, TrivialKernel, get_kernel
 

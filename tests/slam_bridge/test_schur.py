@@ -5,7 +5,7 @@ import pytest
 
 from geoseg.errors import GeosegError
 from slam_bridge.factors.base import FactorBlock
-from slam_bridge.lie import so3_log
+from slam_bridge.geometry.lie import so3_log
 from slam_bridge.problem import assemble
 from slam_bridge.solvers.schur import (
     SchurFactorization,
@@ -188,7 +188,8 @@ def test_rhs_shape_and_singular_errors(tiny):
 
 @pytest.mark.parametrize("skewed", [False, True])
 def test_grouped_sums_match_brute_force(skewed):
-    from slam_bridge.problem import _gram_sum, _segment_sum
+    from slam_bridge.geometry.sums import _segment_sum
+    from slam_bridge.problem import _gram_sum
 
     rng = np.random.default_rng(4)
     M, n = 300, 7

@@ -12,7 +12,7 @@ from slam_bridge.factors.dem import DEMFactor, DemSegments
 from slam_bridge.factors.gps import GPSFactor, GPSFixError
 from slam_bridge.factors.odometry import OdometryFactor
 from slam_bridge.factors.single_camera import SingleCameraFactor, check_weights
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.problem import BAState
 
 

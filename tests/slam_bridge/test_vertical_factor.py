@@ -8,7 +8,7 @@ import pytest
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.base import Factor
 from slam_bridge.factors.vertical import VerticalFactor
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.problem import BAState
 
 DOWN_W = np.array([0.0, 0.0, -1.0])

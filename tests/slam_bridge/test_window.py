@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.camera import local_window, project
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
 from slam_bridge.factors.pose_graph_mpc import MPCFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.camera import local_window, project
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.problem import BAState, assemble
 from slam_bridge.scenes import street_scene
 from slam_bridge.solvers.barrier import solve_barrier

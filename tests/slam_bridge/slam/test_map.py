@@ -7,7 +7,7 @@ import pytest
 
 from geoseg.errors import GeosegError
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.slam.map import Map
 
 
