@@ -46,10 +46,10 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
+from slam_bridge.ba.state import BAState  # noqa: E402
 from slam_bridge.factors.reprojection import ReprojectionFactor  # noqa: E402
-from slam_bridge.problem import BAState  # noqa: E402
 from slam_bridge.scenes import perturb, street_scene  # noqa: E402
-from slam_bridge.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
 
 N_FIXED = 2
 
@@ -294,7 +294,7 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{ours['ms_per_iter'] / r['ms_per_iter']:.3f} | {r['note']} |"
             )
     out["final_cost_rel_diff_max"] = max(rel_diffs) if rel_diffs else float("nan")
-    from slam_bridge.problem import numba_enabled
+    from slam_bridge.ba.compiled import numba_enabled
 
     out["ours_kernels"] = f"numba {_version('numba')}" if numba_enabled() else "numpy"
     out["machine"] = (

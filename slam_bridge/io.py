@@ -18,7 +18,7 @@ BAL's camera frame is OpenCV's flipped by ``F = diag(1, -1, -1)``, so ``X_c = F 
 observation ``(x_u, y_u)`` becomes the pixel ``uv = (x_u, -y_u)``. :func:`bal_to_calibrated`
 holds each camera's ``f, k1, k2`` fixed and undistorts the observations (inverting the radial
 polynomial by Newton iterations on the radius), so the calibrated bundle adjustment of
-:mod:`slam_bridge.solvers.lm` runs on real BAL problems.
+:mod:`slam_bridge.ba.solvers.lm` runs on real BAL problems.
 
 Trajectory and GIS file formats will be added here.
 """

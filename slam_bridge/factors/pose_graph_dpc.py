@@ -32,11 +32,13 @@ import logging
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import pair_normal_equations
+from slam_bridge.ba.robust import RobustKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
 from slam_bridge.geometry import lie
-from slam_bridge.problem import BAState, _njit, numba_enabled, pair_normal_equations
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
 
 logger = logging.getLogger(__name__)
 
@@ -506,11 +508,11 @@ class DPCFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.problem.assemble` for this family (numba
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (numba
         only): one batched product per pair instead of the generic path's per-slot segment sums.
 
         Returns:
-            :func:`slam_bridge.problem.pair_normal_equations`'s blocks, those :meth:`evaluate`
+            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those :meth:`evaluate`
             leads the generic path to (up to rounding), or None when a subclass overrides
             :meth:`evaluate`.
         """

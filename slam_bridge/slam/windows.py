@@ -37,11 +37,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.errors import check_positive
+from slam_bridge.ba.solvers.lm import LMConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.slam.links import LinkMemory
 from slam_bridge.slam.map import Map
-from slam_bridge.solvers.lm import LMConfig
 from slam_bridge.window import HybridWindowConfig, WindowError, build_hybrid_problem, minimize_zeta
 
 logger = logging.getLogger(__name__)

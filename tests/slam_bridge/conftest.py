@@ -16,10 +16,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam_bridge.ba.state import BAState
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, SequenceConfig, make_sequence
 from slam_bridge.experiments.landmarks import LandmarkConfig
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.problem import BAState
 from slam_bridge.scenes import StreetScene, perturb, street_scene
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import FusionConfig

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.baseline_length import BaselineLengthFactor
-from slam_bridge.problem import BAState
 
 
 def assert_jacobian_matches_central_differences(f, st, rtol=1e-7, atol=1e-6):

@@ -6,6 +6,11 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.solvers.barrier import solve_barrier
+from slam_bridge.ba.solvers.lm import LMConfig
+from slam_bridge.ba.solvers.schur import latest_camera_covariance
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
@@ -13,11 +18,7 @@ from slam_bridge.factors.pose_graph_mpc import MPCFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.geometry.camera import local_window, project
 from slam_bridge.geometry.lie import so3_exp
-from slam_bridge.problem import BAState, assemble
 from slam_bridge.scenes import street_scene
-from slam_bridge.solvers.barrier import solve_barrier
-from slam_bridge.solvers.lm import LMConfig
-from slam_bridge.solvers.schur import latest_camera_covariance
 from slam_bridge.window import (
     HybridWindowConfig,
     WindowError,
