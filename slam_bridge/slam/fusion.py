@@ -67,7 +67,7 @@ class ConstraintProvider(Protocol):
 
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
         """The constraint families on ``problem``'s state (a
-        :class:`slam_bridge.window.HybridProblem` at ``X*``) for keyframe ``k``."""
+        :class:`slam_bridge.slam.hybrid_problem.HybridProblem` at ``X*``) for keyframe ``k``."""
         ...
 
 

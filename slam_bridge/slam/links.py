@@ -58,7 +58,7 @@ class LinkMemory:
         rebuild its pose-graph terms on the frozen references and the links' weights.
 
         Args:
-            problem: a :class:`slam_bridge.window.HybridProblem` at its pre-k-BA state.
+            problem: a :class:`slam_bridge.slam.hybrid_problem.HybridProblem` at its pre-k-BA state.
         """
         pg = problem.window.pose_graph_pairs
         st = problem.state

@@ -19,7 +19,7 @@ from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.geometry.camera import local_window, project
 from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.scenes import street_scene
-from slam_bridge.window import (
+from slam_bridge.slam.hybrid_problem import (
     HybridWindowConfig,
     WindowError,
     build_hybrid_problem,
@@ -323,7 +323,7 @@ def test_points_behind_every_camera_are_dropped(scene, caplog) -> None:
     hyb0 = _build(scene, l=6, n=2)
     bad = int(hyb0.point_ids[0])
     X[bad] = scene.t_wc[11] - [20.0, 0.0, 0.0]  # behind every forward-looking camera
-    with caplog.at_level("WARNING", logger="slam_bridge.window"):
+    with caplog.at_level("WARNING", logger="slam_bridge.slam.hybrid_problem"):
         hyb = build_hybrid_problem(
             scene.R_wc,
             scene.t_wc,
