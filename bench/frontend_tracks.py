@@ -42,7 +42,7 @@ from threadpoolctl import threadpool_limits
 from geoseg.config import load_config
 from geoseg.synth.export import render_sequence
 from geoseg.synth.world import WorldConfig
-from slam_bridge.evaluate_tracks import RenderTruth, TruthMap, evaluate_tracks
+from slam_bridge.evaluation.tracks import RenderTruth, TruthMap, evaluate_tracks
 from slam_bridge.frontend.frames import FrameList, ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.geometry.multiview import two_view_init

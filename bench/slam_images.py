@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.config import load_config
-from slam_bridge import evaluate as ev
-from slam_bridge.evaluate_tracks import RenderTruth, TrackTable, evaluate_tracks
+from slam_bridge.evaluation import metrics as ev
+from slam_bridge.evaluation.tracks import RenderTruth, TrackTable, evaluate_tracks
 from slam_bridge.image_slam import ImageSlamConfig, evaluate_run, load_inputs, run_on_images
 
 ROOT = Path(__file__).resolve().parents[1]

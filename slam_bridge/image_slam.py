@@ -335,7 +335,7 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         fix's own time: :func:`gps_fix_errors`) and their ratio ``translation_error_over_gps``;
         over the keyframes placed in the world frame only (``keyframes_in_world``).
     """
-    from slam_bridge.evaluate import rotation_errors
+    from slam_bridge.evaluation.metrics import rotation_errors
 
     t_true, R_true, T_true = inputs.truth
     m = result.map

@@ -377,7 +377,7 @@ def run_experiment(
     """
     from geoseg.config import to_dict
     from geoseg.output_dir import prepare_output_dir
-    from slam_bridge import evaluate as ev
+    from slam_bridge.evaluation import tables_ch3 as ev
 
     out = prepare_output_dir(
         out_dir,

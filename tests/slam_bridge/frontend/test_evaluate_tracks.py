@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from slam_bridge.errors import SlamError
-from slam_bridge.evaluate_tracks import (
+from slam_bridge.evaluation.tracks import (
     KIND_EDGE,
     KIND_SKY,
     KIND_SURFACE,

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from slam_bridge.errors import SlamError
-from slam_bridge.evaluate_tracks import evaluate_tracks
+from slam_bridge.evaluation.tracks import evaluate_tracks
 from slam_bridge.frontend.frames import FrameList, ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.frontend.keyframes import KeyframeConfig
