@@ -82,7 +82,7 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
     from evo.tools import file_interface
     from scipy.spatial.transform import Rotation
 
-    from slam_bridge.image_slam import gps_fix_errors
+    from slam_bridge.system.image_slam import gps_fix_errors
 
     summary = json.loads((run_dir / "summary.json").read_text())
     t_true, R_true, T_true = inputs.truth
@@ -141,7 +141,7 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
 
 def run_one(clip: Path, logs: Path, run_dir: Path, variant: str, cfg) -> Path:
     """``geoseg slam run`` with the variant's logs, through the command's library entry."""
-    from slam_bridge.image_slam import load_inputs, run_image_slam
+    from slam_bridge.system.image_slam import load_inputs, run_image_slam
 
     use = VARIANTS[variant]
     inputs = load_inputs(
@@ -158,7 +158,7 @@ def run_one(clip: Path, logs: Path, run_dir: Path, variant: str, cfg) -> Path:
 def main(argv: list[str] | None = None) -> dict:
     from geoseg.config import load_config
     from slam_bridge.experiments.simulated_logs import SimulatedLogsConfig, simulate_from_folder
-    from slam_bridge.image_slam import ImageSlamConfig, load_inputs, read_truth_csv
+    from slam_bridge.system.image_slam import ImageSlamConfig, load_inputs, read_truth_csv
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--clips", type=Path, default=ROOT.parent / "shared" / "data" / "kitti_clips")

@@ -154,7 +154,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
-    from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_image_slam
+    from slam_bridge.system.image_slam import ImageSlamConfig, load_inputs, run_image_slam
 
     source = args.config or default_config_file(DEFAULT_CONFIG.name)
     overrides = list(args.overrides) + ([f"method={args.method}"] if args.method else [])
