@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
 from slam_bridge.ba.state import BAState  # noqa: E402
 from slam_bridge.factors.reprojection import ReprojectionFactor  # noqa: E402
-from slam_bridge.scenes import perturb, street_scene  # noqa: E402
+from slam_bridge.testing.scenes import perturb, street_scene  # noqa: E402
 
 N_FIXED = 2
 

@@ -26,8 +26,8 @@ import numpy as np
 
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.landmarks import LandmarkConfig, Observations
+from slam_bridge.experiments.simulated_tracks import SimulatedTracks
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
-from slam_bridge.frontend.simulated import SimulatedTracks
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.loop import KnownStartPoses, SlamResult, run_slam

@@ -20,10 +20,10 @@ from slam_bridge.ba.state import BAState
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, SequenceConfig, make_sequence
 from slam_bridge.experiments.landmarks import LandmarkConfig
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.scenes import StreetScene, perturb, street_scene
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import FusionConfig
 from slam_bridge.slam.windows import WindowConfig
+from slam_bridge.testing.scenes import StreetScene, perturb, street_scene
 
 
 @pytest.fixture

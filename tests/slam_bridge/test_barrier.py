@@ -40,7 +40,7 @@ def _optimum(scene, n_fixed: int = 2) -> tuple[BAState, ReprojectionFactor]:
 
 @pytest.fixture(scope="module")
 def small_optimum():
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(5, points_per_camera=4, noise_px=1.0, seed=3)
     return _optimum(scene)
@@ -48,7 +48,7 @@ def small_optimum():
 
 @pytest.fixture(scope="module")
 def street_optimum():
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(8, points_per_camera=20, noise_px=1.0, seed=0)
     return _optimum(scene)
@@ -254,7 +254,7 @@ def test_gps_fusion_moves_latest_camera_towards_fix(street_optimum) -> None:
 
 
 def test_zero_zeta_star_is_handled(caplog) -> None:
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(6, points_per_camera=10, noise_px=0.0, seed=4)
     fixed = np.zeros(6, dtype=bool)

@@ -8,7 +8,7 @@ from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt
 from slam_bridge.ba.state import BAState
 from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.geometry.camera import project
-from slam_bridge.io import (
+from slam_bridge.testing.bal import (
     BALProblem,
     bal_project,
     bal_to_calibrated,

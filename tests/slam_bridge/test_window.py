@@ -18,7 +18,6 @@ from slam_bridge.factors.pose_graph_mpc import MPCFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
 from slam_bridge.geometry.camera import local_window, project
 from slam_bridge.geometry.lie import so3_exp
-from slam_bridge.scenes import street_scene
 from slam_bridge.slam.hybrid_problem import (
     HybridWindowConfig,
     WindowError,
@@ -26,6 +25,7 @@ from slam_bridge.slam.hybrid_problem import (
     hybrid_window,
     minimize_zeta,
 )
+from slam_bridge.testing.scenes import street_scene
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ import pytest
 from geoseg.errors import GeosegError
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.fusion_ch3 import gps_for_setting
-from slam_bridge.frontend.simulated import SimulatedTracks
+from slam_bridge.experiments.simulated_tracks import SimulatedTracks
 from slam_bridge.geometry.lie import so3_exp, so3_log
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.initialization import (

@@ -93,7 +93,7 @@ def test_the_core_does_not_import_the_synthetic_world():
     code = (
         "import sys\n"
         "import slam_bridge.slam.loop, slam_bridge.slam.config, slam_bridge.evaluation.tables_ch3\n"
-        "import slam_bridge.frontend.simulated\n"
+        "import slam_bridge.experiments.simulated_tracks\n"
         "bad = [m for m in sys.modules if m.startswith('geoseg.synth') or m == 'torch']\n"
         "assert not bad, bad\n"
     )

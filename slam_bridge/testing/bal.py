@@ -1,4 +1,4 @@
-"""Files: the BAL ("Bundle Adjustment in the Large") format.
+"""Reading the BAL ("Bundle Adjustment in the Large") format, for tests and benches.
 
 **BAL** (Agarwal et al. 2010) text file::
 
@@ -19,8 +19,6 @@ observation ``(x_u, y_u)`` becomes the pixel ``uv = (x_u, -y_u)``. :func:`bal_to
 holds each camera's ``f, k1, k2`` fixed and undistorts the observations (inverting the radial
 polynomial by Newton iterations on the radius), so the calibrated bundle adjustment of
 :mod:`slam_bridge.ba.solvers.lm` runs on real BAL problems.
-
-Trajectory and GIS file formats will be added here.
 """
 
 from __future__ import annotations
