@@ -16,9 +16,9 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 __all__ = ["USE_NUMBA", "numba_enabled"]
 
-#: Use the compiled (numba) kernels of :func:`slam_bridge.ba.normal_equations.assemble`, the Schur solver and the reprojection
-#: factor when numba is installed. ``False`` (or the environment variable
-#: ``SLAM_BRIDGE_NUMBA=0`` at import) selects the pure-NumPy path.
+#: Use the compiled (numba) kernels of :func:`slam_bridge.ba.normal_equations.assemble`, the Schur
+#: solver and the reprojection factor when numba is installed. ``False`` (or the environment
+#: variable ``SLAM_BRIDGE_NUMBA=0`` at import) selects the pure-NumPy path.
 USE_NUMBA = _numba is not None and os.environ.get("SLAM_BRIDGE_NUMBA", "1") != "0"
 
 

@@ -82,8 +82,8 @@ class BaselineLengthFactor:
         )
 
     def _normal_equations(self, state, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int):
-        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` (numba only): the per-pair
-        products ``J^T J``, ``J^T r`` of the one-row pairs, scattered by
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` (numba only): the
+        per-pair products ``J^T J``, ``J^T r`` of the one-row pairs, scattered by
         :func:`slam_bridge.ba.normal_equations.pair_normal_equations` (the generic path's per-family
         overhead was ~0.2 ms per assembly for ~30 rows)."""
         from slam_bridge.ba.normal_equations import pair_normal_equations

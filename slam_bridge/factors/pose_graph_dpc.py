@@ -10,9 +10,9 @@ For two successive keyframes ``i`` and ``j = i + 1`` of the pose-graph window (c
     q_i = log_SE3(S_hat^-1 S(R_i, T_i, R_j, T_j))^vee      (eq. 3.15)
     xi  = q_i^T D q_i,   D = diag(A, B)                    (eq. 3.16)
 
-Twists are rotation first (``[w, v]``, :mod:`slam_bridge.geometry.lie`), so ``A`` weighs the rotation and
-``B`` the translation part (identity by default, as in the thesis). The whitened residual is
-``r = L^T q`` with ``D = L L^T`` (Cholesky), so that ``||r||^2 = xi``.
+Twists are rotation first (``[w, v]``, :mod:`slam_bridge.geometry.lie`), so ``A`` weighs the
+rotation and ``B`` the translation part (identity by default, as in the thesis). The whitened
+residual is ``r = L^T q`` with ``D = L L^T`` (Cholesky), so that ``||r||^2 = xi``.
 
 Analytic Jacobian (the thesis uses finite differences, §3.6.1; this one is exact). With the
 core's increments ``R <- exp(hat(dw)) R``, ``T <- T + dT`` the relative pose moves by a right
@@ -202,8 +202,8 @@ def _dpc_residuals_numpy(
     Wt: np.ndarray,
     with_jacobians: bool,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """:func:`dpc_residuals` with :mod:`slam_bridge.geometry.lie`; ``poses = (R_wc_i, t_wc_i, R_wc_j,
-    t_wc_j)``, ``Wt`` ``(6, 6)`` or ``(M, 6, 6)``."""
+    """:func:`dpc_residuals` with :mod:`slam_bridge.geometry.lie`; ``poses = (R_wc_i, t_wc_i,
+    R_wc_j, t_wc_j)``, ``Wt`` ``(6, 6)`` or ``(M, 6, 6)``."""
     R_wc_i, t_wc_i, R_wc_j, t_wc_j = poses
     R_ij, t_ij = relative_pose(R_wc_i, t_wc_i, R_wc_j, t_wc_j)
     R_hi, t_hi = lie.se3_inverse(R_hat_ij, t_hat_ij)
@@ -227,8 +227,8 @@ def _dpc_residuals_numpy(
 
 
 # ------------------------------------------------------------------ compiled residuals (numba)
-# The same formulas as slam_bridge.geometry.lie (series below lie._SMALL), per pair in one loop: at the
-# pose graph's size (~30 pairs) the NumPy version is ~40 small array calls (~0.3 ms).
+# The same formulas as slam_bridge.geometry.lie (series below lie._SMALL), per pair in one loop: at
+# the pose graph's size (~30 pairs) the NumPy version is ~40 small array calls (~0.3 ms).
 _SMALL2 = lie._SMALL * lie._SMALL
 
 
@@ -508,13 +508,14 @@ class DPCFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (numba
-        only): one batched product per pair instead of the generic path's per-slot segment sums.
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (numba only): one batched product per pair instead of the generic path's per-slot segment
+        sums.
 
         Returns:
-            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those :meth:`evaluate`
-            leads the generic path to (up to rounding), or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those
+            :meth:`evaluate` leads the generic path to (up to rounding), or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not DPCFactor.evaluate:
             return None

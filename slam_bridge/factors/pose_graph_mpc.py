@@ -473,14 +473,14 @@ class MPCFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (numba
-        only): the per-pair sums ``sum w J^T J`` and ``sum w J^T r`` of one compiled pass,
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (numba only): the per-pair sums ``sum w J^T J`` and ``sum w J^T r`` of one compiled pass,
         scattered into the camera blocks; no compression, no materialised row blocks.
 
         Returns:
-            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those :meth:`evaluate`
-            leads the generic path to (up to rounding), or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those
+            :meth:`evaluate` leads the generic path to (up to rounding), or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not MPCFactor.evaluate:
             return None

@@ -100,8 +100,8 @@ def _reproj_normal_kernel(
     Same inputs as :func:`_reproj_kernel` plus the residuals ``r (M, 2)`` of that kernel, the
     robust weights ``w (M,)`` (0 where invalid) and the free indices ``ci``/``pj (M,)``; the
     Jacobians of each row are recomputed in registers (never stored) and added as in
-    :func:`slam_bridge.ba.normal_equations._one_cam_one_point_kernel` (written out again: a shared helper
-    is 3x slower). ``U``/``V`` must start at zero. Returns the number of ``W`` blocks.
+    :func:`slam_bridge.ba.normal_equations._one_cam_one_point_kernel` (written out again: a shared
+    helper is 3x slower). ``U``/``V`` must start at zero. Returns the number of ``W`` blocks.
     """
     per_cam = K.shape[0] > 1
     n = 0
@@ -265,8 +265,9 @@ class ReprojectionFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (used only
-        when numba is enabled): its normal-equation blocks without materialising the Jacobians.
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (used only when numba is enabled): its normal-equation blocks without materialising the
+        Jacobians.
 
         Args:
             state: the current state.

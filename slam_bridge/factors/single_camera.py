@@ -127,13 +127,13 @@ class SingleCameraFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (used with numba):
-        its few rows' camera blocks by one batched product, without the generic path's segment
-        sums (a GPS fix is one row per fusion iteration).
+        """Shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (used with
+        numba): its few rows' camera blocks by one batched product, without the generic path's
+        segment sums (a GPS fix is one row per fusion iteration).
 
         Returns:
-            :func:`slam_bridge.ba.normal_equations.camera_only_blocks`, or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.camera_only_blocks`, or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not SingleCameraFactor.evaluate:
             return None

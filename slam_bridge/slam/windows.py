@@ -145,7 +145,8 @@ class WindowOutcome:
     """The k-BA of one keyframe.
 
     Attributes:
-        problem: the window at its optimum ``X*`` (a :class:`slam_bridge.slam.hybrid_problem.HybridProblem`).
+        problem: the window at its optimum ``X*`` (a
+            :class:`slam_bridge.slam.hybrid_problem.HybridProblem`).
         observations: ``(M_w,)`` map indices of the observations it was built from.
         window_observations: ``(M_a,)`` every active observation of the window's keyframes
             (the hybrid thins the pose-graph ones; the carried points and the gating use all).
@@ -392,7 +393,8 @@ def hessian_bytes(problem) -> int:
     """Memory of the assembled system of ``zeta`` (module docstring).
 
     Args:
-        problem: a :class:`slam_bridge.slam.hybrid_problem.HybridProblem` (its state's fixed masks count).
+        problem: a :class:`slam_bridge.slam.hybrid_problem.HybridProblem` (its state's fixed
+            masks count).
 
     Returns:
         ``8 (36 Cf + 36 Q + 18 N_W + 9 Pf)`` bytes.

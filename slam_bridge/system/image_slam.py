@@ -2,7 +2,8 @@
 
 Inputs (:func:`load_inputs`): a folder of images with its ``camera.json`` (K, image size; the
 layout ``geoseg render`` writes is one such folder, see :mod:`slam_bridge.frontend.frames`),
-and optionally a GPS log, a wheel-odometry log and a road DEM (:mod:`slam_bridge.system.sensor_logs`).
+and optionally a GPS log, a wheel-odometry log and a road DEM
+(:mod:`slam_bridge.system.sensor_logs`).
 ``camera.json`` may also give the rig: ``camera_height_m`` and ``gps_antenna_c`` (the GPS
 antenna in the camera frame, metres; :class:`slam_bridge.slam.initialization.VehicleRig`).
 

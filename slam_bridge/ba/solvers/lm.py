@@ -13,8 +13,9 @@ The solver only decides damping and acceptance; everything problem-specific live
   cost increase and the damping is raised, never accepted.
 
 :class:`BAObjective` is the bundle-adjustment objective ``F = sum rho(||r||^2)`` over factor
-families (:mod:`slam_bridge.ba.factor`), linearised by :func:`slam_bridge.ba.normal_equations.assemble`
-and solved by the Schur complement (:mod:`slam_bridge.ba.solvers.schur`).
+families (:mod:`slam_bridge.ba.factor`), linearised by
+:func:`slam_bridge.ba.normal_equations.assemble` and solved by the Schur complement
+(:mod:`slam_bridge.ba.solvers.schur`).
 
 **Damping** (``LMConfig.damping_mode``): ``"marquardt"`` (default) solves
 ``(H + lambda diag(H)) d = -g``; ``"additive"`` solves ``(H + lambda I) d = -g``.
