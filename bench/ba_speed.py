@@ -1,6 +1,6 @@
 """k-BA speed against the peers: our NumPy LM + Schur vs GTSAM's LM vs Ceres (via pycolmap).
 
-The same problem for every solver: a synthetic street (:func:`slam_bridge.scenes.street_scene`,
+The same problem for every solver: a synthetic street (:func:`slam_bridge.testing.scenes.street_scene`,
 C = 10, 40, 100 cameras 1 m apart, facade and ground points each seen by 3-8 cameras, 1 px
 noise), the same perturbed start, the same two oldest cameras held fixed (gauge, scale
 included), fixed intrinsics, plain least squares. Every final state is scored with the same
@@ -45,10 +45,10 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
+from slam_bridge.ba.state import BAState  # noqa: E402
 from slam_bridge.factors.reprojection import ReprojectionFactor  # noqa: E402
-from slam_bridge.problem import BAState  # noqa: E402
-from slam_bridge.scenes import perturb, street_scene  # noqa: E402
-from slam_bridge.solvers.lm import BAObjective, LMConfig, levenberg_marquardt  # noqa: E402
+from slam_bridge.testing.scenes import perturb, street_scene  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import provenance  # noqa: E402
@@ -250,7 +250,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     sizes = list(args.sizes) + ([200] if args.full else [])
     meta = provenance(
-        f"synthetic street scenes (slam_bridge.scenes.street_scene, seed {args.seed}, "
+        f"synthetic street scenes (slam_bridge.testing.scenes.street_scene, seed {args.seed}, "
         f"C = {', '.join(map(str, sizes))}): a speed comparison, no tuning or reporting data",
         command="python " + " ".join([sys.argv[0]] + (argv if argv is not None else sys.argv[1:])),
     )
@@ -301,7 +301,7 @@ def main(argv: list[str] | None = None) -> dict:
                 f"{ours['ms_per_iter'] / r['ms_per_iter']:.3f} | {r['note']} |"
             )
     out["final_cost_rel_diff_max"] = max(rel_diffs) if rel_diffs else float("nan")
-    from slam_bridge.problem import numba_enabled
+    from slam_bridge.ba.compiled import numba_enabled
 
     out["ours_kernels"] = f"numba {_version('numba')}" if numba_enabled() else "numpy"
     out.update(meta)

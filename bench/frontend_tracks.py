@@ -4,12 +4,12 @@ For each case (rig, appearance condition, world preset) a drive is rendered once
 ``runs/cache/frontend_tracks/<case>`` (``geoseg render`` layout; reused when present), then
 :class:`slam_bridge.frontend.image_tracks.ImageTracks` runs over it with keyframes spaced by the
 distance from the render's wheel odometry (``gis/odometry.csv``; ``--parallax``: the image rule),
-fed back by a :class:`slam_bridge.evaluate_tracks.TruthMap` (true poses, points triangulated from
+fed back by a :class:`slam_bridge.evaluation.tracks.TruthMap` (true poses, points triangulated from
 the tracks as a loop with perfect poses would, so the map check and the re-observation work as in
 the loop). Figures per case:
 
 * ``bad_share``: observations whose true reprojection error exceeds 2 px
-  (:func:`slam_bridge.evaluate_tracks.evaluate_tracks`: depth-referenced), and error percentiles;
+  (:func:`slam_bridge.evaluation.tracks.evaluate_tracks`: depth-referenced), and error percentiles;
 * ``bad_share_consistency``: observations farther than 2 px from the static point that fits the
   track best at the true poses (what would bias the poses);
 * ``tracks_per_keyframe``, ``continued_per_keyframe`` (median number of tracks shared with the
@@ -41,10 +41,10 @@ from threadpoolctl import threadpool_limits
 from geoseg.config import load_config
 from geoseg.synth.export import render_sequence
 from geoseg.synth.world import WorldConfig
-from slam_bridge.evaluate_tracks import RenderTruth, TruthMap, evaluate_tracks
+from slam_bridge.evaluation.tracks import RenderTruth, TruthMap, evaluate_tracks
 from slam_bridge.frontend.frames import FrameList, ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
-from slam_bridge.geometry import two_view_init
+from slam_bridge.geometry.multiview import two_view_init
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))

@@ -1,7 +1,7 @@
 """The SLAM on images: drives through the synthetic city, our online SLAM beside COLMAP.
 
 Each drive is rendered at 640x480 (all channels; cached in ``--data``), and run through the image
-SLAM as a user runs it (:func:`slam_bridge.image_slam.run_on_images`: visual front end, two-view
+SLAM as a user runs it (:func:`slam_bridge.system.image_slam.run_on_images`: visual front end, two-view
 start, odometry scale, georeferencing to the GPS, barrier fusion of GPS + DEM, no ground truth)
 with the render's wheel odometry and road DEM and two GPS logs at the frame rate:
 
@@ -47,9 +47,9 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.config import load_config
-from slam_bridge import evaluate as ev
-from slam_bridge.evaluate_tracks import RenderTruth, TrackTable, evaluate_tracks
-from slam_bridge.image_slam import ImageSlamConfig, evaluate_run, load_inputs, run_on_images
+from slam_bridge.evaluation import metrics as ev
+from slam_bridge.evaluation.tracks import RenderTruth, TrackTable, evaluate_tracks
+from slam_bridge.system.image_slam import ImageSlamConfig, evaluate_run, load_inputs, run_on_images
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
@@ -115,7 +115,7 @@ def render_drive(
 def write_gps_logs(folder: Path, seed: int) -> dict[str, Path]:
     """The two GPS logs of a drive at the frame rate (module docstring)."""
     from geoseg.synth.gps import GpsConfig, simulate_gps
-    from slam_bridge.sensor_logs import read_columns
+    from slam_bridge.csv_columns import read_columns
 
     poses = read_columns(folder / "poses.csv", ["timestamp", "vehicle_x", "vehicle_y", "vehicle_z"])
     t = poses["timestamp"]

@@ -4,7 +4,7 @@ For each clip and GPS seed the sensor logs are simulated from the clip's true po
 ``geoseg slam simulate-logs CLIP --out LOGS --seed S`` does (1 Hz GPS with 0.75 m per axis,
 wheel speed with 1 % noise and yaw rate, DEM segments with 0.2 m error), then
 ``geoseg slam run CLIP --out RUN --gps ... [--odometry ...] [--dem ...]`` runs through the same
-library entry (:func:`slam_bridge.image_slam.load_inputs`, :func:`run_image_slam`), once per
+library entry (:func:`slam_bridge.system.image_slam.load_inputs`, :func:`run_image_slam`), once per
 sensor variant: ``gps_odo``, ``gps_odo_dem``, ``gps_only``, ``odo_only``.
 
 Evaluation reads each run's ``trajectory_tum.txt`` with ``evo`` (a pose for every frame) against
@@ -82,7 +82,7 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
     from evo.tools import file_interface
     from scipy.spatial.transform import Rotation
 
-    from slam_bridge.image_slam import gps_fix_errors
+    from slam_bridge.system.image_slam import gps_fix_errors
 
     summary = json.loads((run_dir / "summary.json").read_text())
     t_true, R_true, T_true = inputs.truth
@@ -141,7 +141,7 @@ def evaluate(run_dir: Path, inputs, variant: str) -> dict:
 
 def run_one(clip: Path, logs: Path, run_dir: Path, variant: str, cfg) -> Path:
     """``geoseg slam run`` with the variant's logs, through the command's library entry."""
-    from slam_bridge.image_slam import load_inputs, run_image_slam
+    from slam_bridge.system.image_slam import load_inputs, run_image_slam
 
     use = VARIANTS[variant]
     inputs = load_inputs(
@@ -158,7 +158,7 @@ def run_one(clip: Path, logs: Path, run_dir: Path, variant: str, cfg) -> Path:
 def main(argv: list[str] | None = None) -> dict:
     from geoseg.config import load_config
     from slam_bridge.experiments.simulated_logs import SimulatedLogsConfig, simulate_from_folder
-    from slam_bridge.image_slam import ImageSlamConfig, load_inputs, read_truth_csv
+    from slam_bridge.system.image_slam import ImageSlamConfig, load_inputs, read_truth_csv
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--clips", type=Path, default=ROOT.parent / "shared" / "data" / "kitti_clips")

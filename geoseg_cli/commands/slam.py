@@ -18,7 +18,7 @@ mesh, ``--buildings-mesh``, by default ``buildings_model.ply`` beside the table)
 ``FRAMES_DIR`` holds the images (PNG/JPEG, directly or in ``rgb/``, sorted by name) and a
 ``camera.json`` (``K``, ``image_size``; optionally ``fps``, ``camera_height_m``,
 ``gps_antenna_c``); timestamps come from ``timestamps.csv``, ``poses.csv`` or ``fps``. The run
-is :func:`slam_bridge.image_slam.run_image_slam`; its outputs are described there (trajectory
+is :func:`slam_bridge.system.image_slam.run_image_slam`; its outputs are described there (trajectory
 CSV with WGS84 positions, map points PLY, per-keyframe log, top-down plot, summary).
 """
 
@@ -154,7 +154,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
-    from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_image_slam
+    from slam_bridge.system.image_slam import ImageSlamConfig, load_inputs, run_image_slam
 
     source = args.config or default_config_file(DEFAULT_CONFIG.name)
     overrides = list(args.overrides) + ([f"method={args.method}"] if args.method else [])

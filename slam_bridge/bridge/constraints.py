@@ -20,10 +20,10 @@ import logging
 import numpy as np
 
 from geoseg.errors import check_positive
+from slam_bridge.ba.factor import Factor
 from slam_bridge.bridge.association import Association
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
 from slam_bridge.factors.building import BuildingFactor
 from slam_bridge.slam.map import Map
 

@@ -18,8 +18,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from geoseg.errors import check_shape
+from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
-from slam_bridge.sensor_logs import read_columns
 
 __all__ = ["Facades"]
 

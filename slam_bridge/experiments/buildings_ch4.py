@@ -2,7 +2,7 @@
 
 A drive with loops through a ``dense_occlusion`` city (trees, parked and moving vehicles,
 poles and shelters in front of the facades) is rendered once, then run through the image SLAM
-(:func:`slam_bridge.image_slam.run_on_images`, same front end for every run) with each way of
+(:func:`slam_bridge.system.image_slam.run_on_images`, same front end for every run) with each way of
 choosing building constraints (``methods``):
 
 * ``nobuild``: no building constraint;
@@ -48,7 +48,7 @@ from slam_bridge.bridge.builder import BridgeConfig, build_bridge, check_covers_
 from slam_bridge.bridge.worker import BridgeWorker
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.replay import RecordingConstraints, ReplayBridge
-from slam_bridge.image_slam import ImageSlamConfig
+from slam_bridge.system.image_slam import ImageSlamConfig
 
 logger = logging.getLogger(__name__)
 
@@ -238,7 +238,7 @@ def prepare_drive(cfg: BuildingsConfig, folder: str | Path, workers: int | None 
         image_size=d.image_size, fps=d.fps, seed=d.route_seed, world=world,
         allow_other_files=True, workers=workers or min(4, os.cpu_count() or 1),
     )  # fmt: skip
-    from slam_bridge.sensor_logs import read_columns
+    from slam_bridge.csv_columns import read_columns
 
     poses = read_columns(folder / "poses.csv", ["timestamp", "vehicle_x", "vehicle_y", "vehicle_z"])
     antenna = np.column_stack([poses["vehicle_x"], poses["vehicle_y"], poses["vehicle_z"]])
@@ -393,8 +393,8 @@ def run_one(
         map points, their association and true facade).
     """
     from slam_bridge.experiments.facade_truth import FacadeTruth
-    from slam_bridge.image_slam import evaluate_run, load_inputs, run_on_images
     from slam_bridge.slam.loop import KnownStartPoses
+    from slam_bridge.system.image_slam import evaluate_run, load_inputs, run_on_images
 
     folder = assets.folder
     inputs = load_inputs(
@@ -689,7 +689,7 @@ def _short(f: dict) -> str:
 
 
 def _drive_length(folder: Path) -> float:
-    from slam_bridge.sensor_logs import read_columns
+    from slam_bridge.csv_columns import read_columns
 
     p = read_columns(folder / "poses.csv", ["vehicle_x", "vehicle_y"])
     xy = np.column_stack([p["vehicle_x"], p["vehicle_y"]])

@@ -50,7 +50,7 @@ def write_pictures(out: Path, folder: Path, facades: dict, methods, models) -> l
     import matplotlib
 
     matplotlib.use("Agg")
-    from slam_bridge.sensor_logs import read_columns
+    from slam_bridge.csv_columns import read_columns
 
     poses = read_columns(folder / "poses.csv", ["timestamp", "tx", "ty"])
     truth_xy = np.column_stack([poses["tx"], poses["ty"]])

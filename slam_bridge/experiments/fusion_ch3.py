@@ -26,8 +26,8 @@ import numpy as np
 
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.landmarks import LandmarkConfig, Observations
+from slam_bridge.experiments.simulated_tracks import SimulatedTracks
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
-from slam_bridge.frontend.simulated import SimulatedTracks
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.loop import KnownStartPoses, SlamResult, run_slam
@@ -377,7 +377,7 @@ def run_experiment(
     """
     from geoseg.config import to_dict
     from geoseg.output_dir import prepare_output_dir
-    from slam_bridge import evaluate as ev
+    from slam_bridge.evaluation import tables_ch3 as ev
 
     out = prepare_output_dir(
         out_dir,

@@ -33,8 +33,8 @@ from scipy.spatial import cKDTree
 from trimesh.ray.ray_pyembree import RayMeshIntersector
 
 from geoseg.errors import check_finite, check_shape
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
+from slam_bridge.geometry.camera import project
 
 logger = logging.getLogger(__name__)
 

@@ -283,7 +283,7 @@ def simulate_from_folder(
         return simulate_logs(
             times, R, T, out_dir, config, source=str(path), source_to_world=KITTI_TO_WORLD
         )
-    from slam_bridge.image_slam import read_truth_csv
+    from slam_bridge.system.image_slam import read_truth_csv
 
     times, R, T = read_truth_csv(path)
     return simulate_logs(times, R, T, out_dir, config, source=str(path))

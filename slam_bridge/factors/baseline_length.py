@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam_bridge.ba.factor import FactorBlock
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
 
 __all__ = ["BaselineLengthFactor"]
 
@@ -35,7 +35,7 @@ class BaselineLengthFactor:
     def __init__(
         self, pairs: np.ndarray, lengths: np.ndarray, sigma: float, *, kernel=None
     ) -> None:
-        from slam_bridge.solvers.robust import TrivialKernel, get_kernel
+        from slam_bridge.ba.robust import TrivialKernel, get_kernel
 
         self.kernel = get_kernel(kernel)
         self._trivial = isinstance(self.kernel, TrivialKernel)
@@ -82,11 +82,11 @@ class BaselineLengthFactor:
         )
 
     def _normal_equations(self, state, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int):
-        """Compiled shortcut of :func:`slam_bridge.problem.assemble` (numba only): the per-pair
-        products ``J^T J``, ``J^T r`` of the one-row pairs, scattered by
-        :func:`slam_bridge.problem.pair_normal_equations` (the generic path's per-family
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` (numba only): the
+        per-pair products ``J^T J``, ``J^T r`` of the one-row pairs, scattered by
+        :func:`slam_bridge.ba.normal_equations.pair_normal_equations` (the generic path's per-family
         overhead was ~0.2 ms per assembly for ~30 rows)."""
-        from slam_bridge.problem import pair_normal_equations
+        from slam_bridge.ba.normal_equations import pair_normal_equations
 
         if type(self).evaluate is not BaselineLengthFactor.evaluate or not self._trivial:
             return None

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite, check_positive, check_shape
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.robust import GemanMcClureKernel, RobustKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import GemanMcClureKernel, RobustKernel, get_kernel
 
 logger = logging.getLogger(__name__)
 

@@ -23,10 +23,10 @@ import logging
 import numpy as np
 
 from geoseg.errors import check_shape
+from slam_bridge.ba.robust import RobustKernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.single_camera import SingleCameraFactor, check_weights
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 

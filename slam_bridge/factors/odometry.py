@@ -20,8 +20,8 @@ import logging
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite, check_shape
+from slam_bridge.ba.robust import RobustKernel
 from slam_bridge.factors.single_camera import SingleCameraFactor
-from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 

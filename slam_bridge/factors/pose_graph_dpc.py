@@ -10,9 +10,9 @@ For two successive keyframes ``i`` and ``j = i + 1`` of the pose-graph window (c
     q_i = log_SE3(S_hat^-1 S(R_i, T_i, R_j, T_j))^vee      (eq. 3.15)
     xi  = q_i^T D q_i,   D = diag(A, B)                    (eq. 3.16)
 
-Twists are rotation first (``[w, v]``, :mod:`slam_bridge.lie`), so ``A`` weighs the rotation and
-``B`` the translation part (identity by default, as in the thesis). The whitened residual is
-``r = L^T q`` with ``D = L L^T`` (Cholesky), so that ``||r||^2 = xi``.
+Twists are rotation first (``[w, v]``, :mod:`slam_bridge.geometry.lie`), so ``A`` weighs the
+rotation and ``B`` the translation part (identity by default, as in the thesis). The whitened
+residual is ``r = L^T q`` with ``D = L L^T`` (Cholesky), so that ``||r||^2 = xi``.
 
 Analytic Jacobian (the thesis uses finite differences, §3.6.1; this one is exact). With the
 core's increments ``R <- exp(hat(dw)) R``, ``T <- T + dT`` the relative pose moves by a right
@@ -22,7 +22,7 @@ perturbation ``S <- S exp(delta)`` with, to first order::
     camera i:  delta = [-R_j^T dw_i,  R_j^T [T_j - T_i]_x dw_i - R_j^T dT_i]
 
 and ``S_hat^-1 S`` moves by the same right perturbation, so ``dq = J_r^-1(q) delta`` with the
-SE(3) right Jacobian (:func:`slam_bridge.lie.se3_right_jacobian_inv`).
+SE(3) right Jacobian (:func:`slam_bridge.geometry.lie.se3_right_jacobian_inv`).
 """
 
 from __future__ import annotations
@@ -32,11 +32,13 @@ import logging
 import numpy as np
 
 from geoseg.errors import GeosegError, check_finite
-from slam_bridge import lie
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import pair_normal_equations
+from slam_bridge.ba.robust import RobustKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState, _njit, numba_enabled, pair_normal_equations
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.geometry import lie
 
 logger = logging.getLogger(__name__)
 
@@ -200,8 +202,8 @@ def _dpc_residuals_numpy(
     Wt: np.ndarray,
     with_jacobians: bool,
 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-    """:func:`dpc_residuals` with :mod:`slam_bridge.lie`; ``poses = (R_wc_i, t_wc_i, R_wc_j,
-    t_wc_j)``, ``Wt`` ``(6, 6)`` or ``(M, 6, 6)``."""
+    """:func:`dpc_residuals` with :mod:`slam_bridge.geometry.lie`; ``poses = (R_wc_i, t_wc_i,
+    R_wc_j, t_wc_j)``, ``Wt`` ``(6, 6)`` or ``(M, 6, 6)``."""
     R_wc_i, t_wc_i, R_wc_j, t_wc_j = poses
     R_ij, t_ij = relative_pose(R_wc_i, t_wc_i, R_wc_j, t_wc_j)
     R_hi, t_hi = lie.se3_inverse(R_hat_ij, t_hat_ij)
@@ -225,8 +227,8 @@ def _dpc_residuals_numpy(
 
 
 # ------------------------------------------------------------------ compiled residuals (numba)
-# The same formulas as slam_bridge.lie (series below lie._SMALL), per pair in one loop: at the
-# pose graph's size (~30 pairs) the NumPy version is ~40 small array calls (~0.3 ms).
+# The same formulas as slam_bridge.geometry.lie (series below lie._SMALL), per pair in one loop: at
+# the pose graph's size (~30 pairs) the NumPy version is ~40 small array calls (~0.3 ms).
 _SMALL2 = lie._SMALL * lie._SMALL
 
 
@@ -237,7 +239,7 @@ def _series(t2, c0, c1, c2, c3, c4):
 
 @_njit
 def _so3_log1(R):
-    """Rotation vector of one matrix (:func:`slam_bridge.lie.so3_log`)."""
+    """Rotation vector of one matrix (:func:`slam_bridge.geometry.lie.so3_log`)."""
     s = 0.5 * np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     c = min(1.0, max(-1.0, 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)))
     th = np.arctan2(np.sqrt(s[0] * s[0] + s[1] * s[1] + s[2] * s[2]), c)
@@ -262,7 +264,7 @@ def _so3_log1(R):
 
 @_njit
 def _coefs(t2):
-    """``C, D, E, F`` of :mod:`slam_bridge.lie` at ``theta^2``."""
+    """``C, D, E, F`` of :mod:`slam_bridge.geometry.lie` at ``theta^2``."""
     if t2 < _SMALL2:
         C = _series(t2, 1.0 / 6, -1.0 / 120, 1.0 / 5040, -1.0 / 362880, 1.0 / 39916800)
         D = _series(t2, 1.0 / 12, 1.0 / 720, 1.0 / 30240, 1.0 / 1209600, 1.0 / 47900160)
@@ -506,13 +508,14 @@ class DPCFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.problem.assemble` for this family (numba
-        only): one batched product per pair instead of the generic path's per-slot segment sums.
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (numba only): one batched product per pair instead of the generic path's per-slot segment
+        sums.
 
         Returns:
-            :func:`slam_bridge.problem.pair_normal_equations`'s blocks, those :meth:`evaluate`
-            leads the generic path to (up to rounding), or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those
+            :meth:`evaluate` leads the generic path to (up to rounding), or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not DPCFactor.evaluate:
             return None

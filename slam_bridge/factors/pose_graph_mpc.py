@@ -27,7 +27,7 @@ and, with ``l = K_i^-T ell``, ``u = x^T l``, ``v = ||P l||`` (eqs. C.8, C.20-C.2
     g_w = R_i K_i^-1 (x / v - u P l / v^3),
 
 so every block is a cross product (``g^T [a]_x = (g x a)^T``), vectorised over correspondences.
-With ``numba`` (:data:`slam_bridge.problem.USE_NUMBA`) the factor computes the same formulas in
+With ``numba`` (:data:`slam_bridge.ba.compiled.USE_NUMBA`) the factor computes the same formulas in
 one compiled pass that gathers the cameras by index, and hands the assembler its per-pair
 normal-equation blocks directly (:meth:`MPCFactor._normal_equations`);
 :func:`epipolar_residuals` is their NumPy reference.
@@ -46,10 +46,12 @@ import logging
 import numpy as np
 
 from geoseg.errors import check_finite, check_positive
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import pair_normal_equations
+from slam_bridge.ba.robust import RobustKernel, TrivialKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState, _njit, numba_enabled, pair_normal_equations
-from slam_bridge.solvers.robust import RobustKernel, TrivialKernel, get_kernel
 
 logger = logging.getLogger(__name__)
 
@@ -471,14 +473,14 @@ class MPCFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.problem.assemble` for this family (numba
-        only): the per-pair sums ``sum w J^T J`` and ``sum w J^T r`` of one compiled pass,
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (numba only): the per-pair sums ``sum w J^T J`` and ``sum w J^T r`` of one compiled pass,
         scattered into the camera blocks; no compression, no materialised row blocks.
 
         Returns:
-            :func:`slam_bridge.problem.pair_normal_equations`'s blocks, those :meth:`evaluate`
-            leads the generic path to (up to rounding), or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.pair_normal_equations`'s blocks, those
+            :meth:`evaluate` leads the generic path to (up to rounding), or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not MPCFactor.evaluate:
             return None

@@ -6,8 +6,8 @@ Row ``m`` observes point ``points[m]`` in camera ``cameras[m]`` at pixel ``uv[m]
 
 Rows whose point is not in front of the camera (``z_c <= eps``) are flagged invalid (zero
 residual and Jacobian, counted in ``FactorBlock.n_invalid``), never divided by. With ``numba``
-(:data:`slam_bridge.problem.USE_NUMBA`) residuals and Jacobians come from one compiled pass that
-gathers cameras and points by index (same formulas as :mod:`slam_bridge.camera`).
+(:data:`slam_bridge.ba.compiled.USE_NUMBA`) residuals and Jacobians come from one compiled pass that
+gathers cameras and points by index (same formulas as :mod:`slam_bridge.geometry.camera`).
 """
 
 from __future__ import annotations
@@ -17,11 +17,13 @@ import logging
 import numpy as np
 
 from geoseg.errors import check_finite, check_positive
-from slam_bridge.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import _mirror_kernel
+from slam_bridge.ba.robust import RobustKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import BAState, _mirror_kernel, _njit, numba_enabled
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.geometry.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
 
 logger = logging.getLogger(__name__)
 
@@ -33,7 +35,7 @@ def _reproj_kernel(
     K, R, t, X, cams, pts, uv_obs, inv_s, eps, r, ok, Jc, Jp, jac
 ):  # pragma: no cover
     """Compiled residuals (and, if ``jac``, Jacobians) of every row, gathering the cameras and
-    points by index (the formulas of :func:`slam_bridge.camera.project_with_jacobians`).
+    points by index (the formulas of :func:`slam_bridge.geometry.camera.project_with_jacobians`).
 
     ``K (1 or C, 3, 3)`` (one shared or one per state camera), ``R (C, 3, 3)``, ``t (C, 3)``,
     ``X (P, 3)``, ``cams``/``pts (M,)``, ``uv_obs (M, 2)``; writes ``r (M, 2)``, ``ok (M,)`` and
@@ -98,8 +100,8 @@ def _reproj_normal_kernel(
     Same inputs as :func:`_reproj_kernel` plus the residuals ``r (M, 2)`` of that kernel, the
     robust weights ``w (M,)`` (0 where invalid) and the free indices ``ci``/``pj (M,)``; the
     Jacobians of each row are recomputed in registers (never stored) and added as in
-    :func:`slam_bridge.problem._one_cam_one_point_kernel` (written out again: a shared helper
-    is 3x slower). ``U``/``V`` must start at zero. Returns the number of ``W`` blocks.
+    :func:`slam_bridge.ba.normal_equations._one_cam_one_point_kernel` (written out again: a shared
+    helper is 3x slower). ``U``/``V`` must start at zero. Returns the number of ``W`` blocks.
     """
     per_cam = K.shape[0] > 1
     n = 0
@@ -263,8 +265,9 @@ class ReprojectionFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Compiled shortcut of :func:`slam_bridge.problem.assemble` for this family (used only
-        when numba is enabled): its normal-equation blocks without materialising the Jacobians.
+        """Compiled shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family
+        (used only when numba is enabled): its normal-equation blocks without materialising the
+        Jacobians.
 
         Args:
             state: the current state.

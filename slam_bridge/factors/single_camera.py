@@ -1,7 +1,7 @@
 """Shared machinery of the unary position factors (GPS, odometry, DEM: appendix B.3).
 
 Each of these families constrains the optical centre ``T_i = t_wc[cameras[i]]`` of one camera
-per residual row (``a = 1`` in :class:`~slam_bridge.factors.base.FactorBlock`), whitened by a
+per residual row (``a = 1`` in :class:`~slam_bridge.ba.factor.FactorBlock`), whitened by a
 per-row weight ``w_i``. They differ only in the residual function ``h``; a subclass of
 :class:`SingleCameraFactor` provides it as :meth:`SingleCameraFactor._residuals` and inherits
 the camera-index check, :meth:`~SingleCameraFactor.evaluate` and
@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from geoseg.errors import GeosegError, check_shape
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import camera_only_blocks
+from slam_bridge.ba.robust import RobustKernel, get_kernel
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.problem import camera_only_blocks
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
 
 if TYPE_CHECKING:
-    from slam_bridge.problem import BAState
+    from slam_bridge.ba.state import BAState
 
 __all__ = ["SingleCameraFactor", "check_weights"]
 
@@ -127,13 +127,13 @@ class SingleCameraFactor:
     def _normal_equations(
         self, state: BAState, cmap: np.ndarray, pmap: np.ndarray, Cf: int, Pf: int
     ) -> tuple | None:
-        """Shortcut of :func:`slam_bridge.problem.assemble` for this family (used with numba):
-        its few rows' camera blocks by one batched product, without the generic path's segment
-        sums (a GPS fix is one row per fusion iteration).
+        """Shortcut of :func:`slam_bridge.ba.normal_equations.assemble` for this family (used with
+        numba): its few rows' camera blocks by one batched product, without the generic path's
+        segment sums (a GPS fix is one row per fusion iteration).
 
         Returns:
-            :func:`slam_bridge.problem.camera_only_blocks`, or None when a subclass overrides
-            :meth:`evaluate`.
+            :func:`slam_bridge.ba.normal_equations.camera_only_blocks`, or None when a subclass
+            overrides :meth:`evaluate`.
         """
         if type(self).evaluate is not SingleCameraFactor.evaluate:
             return None

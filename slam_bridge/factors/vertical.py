@@ -17,11 +17,11 @@ from __future__ import annotations
 import numpy as np
 
 from geoseg.errors import check_finite, check_shape
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.robust import RobustKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.lie import so3_hat
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.robust import RobustKernel, get_kernel
+from slam_bridge.geometry.lie import so3_hat
 
 __all__ = ["VerticalFactor"]
 

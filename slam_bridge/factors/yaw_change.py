@@ -13,9 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from slam_bridge.ba.factor import FactorBlock
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.lie import so3_left_jacobian_inv, so3_log
+from slam_bridge.geometry.lie import so3_left_jacobian_inv, so3_log
 
 __all__ = ["YawChangeFactor"]
 
@@ -31,7 +31,7 @@ class YawChangeFactor:
     """
 
     def __init__(self, pairs: np.ndarray, dpsi: np.ndarray, sigma, *, kernel=None) -> None:
-        from slam_bridge.solvers.robust import get_kernel
+        from slam_bridge.ba.robust import get_kernel
 
         self.kernel = get_kernel(kernel)
         self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)

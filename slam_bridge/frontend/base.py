@@ -6,8 +6,8 @@ points, each point named by an id that stays the same across keyframes (a *track
 appends them to its :class:`slam_bridge.slam.map.Map`, estimates the pose, triangulates and
 optimises, then asks for the next one. Two sources exist:
 
-* :class:`slam_bridge.frontend.simulated.SimulatedTracks`: projections of landmarks sampled on
-  the synthetic city (the chapter-3 experiment, thesis §3.7);
+* :class:`slam_bridge.experiments.simulated_tracks.SimulatedTracks`: projections of landmarks
+  sampled on the synthetic city (the chapter-3 experiment, thesis §3.7);
 * :mod:`slam_bridge.frontend.image_tracks`: corners tracked in images (the visual front end).
 
 Contract:

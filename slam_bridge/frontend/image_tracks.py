@@ -62,7 +62,7 @@ keyframe, the live tracks are checked, in order:
    the view changes: once the map tracks them, a track ends (its point retired)
    ``max_track_keyframes`` keyframes after its reference (``too_old``);
 9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
-   points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.pnp`, RANSAC +
+   points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.multiview.pnp`, RANSAC +
    refinement) on those tracks; the tracks it does not explain within
    ``map_check_threshold_px`` are dropped. The pose is kept in :attr:`ImageTracks.pose_estimate`.
 
@@ -131,7 +131,6 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend import features as ft
 from slam_bridge.frontend.base import KeyframeObservations
@@ -141,7 +140,8 @@ from slam_bridge.frontend.motion import GlobalMotion
 from slam_bridge.frontend.patch_alignment import align_patches, reference_patches
 from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.frontend.tracks_config import ImageTracksConfig
-from slam_bridge.geometry import PnPResult, pnp
+from slam_bridge.geometry.camera import project
+from slam_bridge.geometry.multiview import PnPResult, pnp
 
 if TYPE_CHECKING:
     from slam_bridge.slam.map import Map
@@ -625,7 +625,7 @@ class ImageTracks:
         return sel[slam_map.triangulated[ids[sel]]]
 
     def _pnp(self, X_w: np.ndarray, uv: np.ndarray) -> PnPResult | None:
-        """:func:`slam_bridge.geometry.pnp` with the config's threshold, or None (too few
+        """:func:`slam_bridge.geometry.multiview.pnp` with the config's threshold, or None (too few
         points, failure)."""
         cfg = self.config
         if X_w.shape[0] < cfg.min_map_points:

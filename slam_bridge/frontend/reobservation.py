@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from slam_bridge.camera import project
 from slam_bridge.frontend import features as ft
+from slam_bridge.geometry.camera import project
 
 if TYPE_CHECKING:
     from collections.abc import Callable

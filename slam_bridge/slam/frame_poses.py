@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.geometry.lie import so3_exp, so3_log
 
 __all__ = ["POSE_SOURCES", "FramePoses", "frame_poses"]
 

@@ -3,7 +3,7 @@
 After the k-BA, ``X* = argmin zeta`` (:mod:`slam_bridge.slam.windows`), the newest keyframe's
 window is fused with the constraints ``C_i`` the providers give for it:
 ``argmin gamma / (t - zeta(X)) + sum C_i(X)``, ``t = t_ratio zeta(X*)``, from ``X*``
-(:func:`slam_bridge.solvers.barrier.solve_barrier`; the barrier's rank-one term is handled by
+(:func:`slam_bridge.ba.solvers.barrier.solve_barrier`; the barrier's rank-one term is handled by
 Sherman-Morrison, so a provider must add no dense term, appendix B). A provider is anything
 with a ``name`` and ``factors(slam_map, problem, k) -> list[Factor]``: the GPS fix of the
 keyframe (:class:`GpsConstraints`, chapter 3) today; terrain elevation, odometry and building
@@ -24,8 +24,10 @@ from typing import Protocol
 import numpy as np
 
 from geoseg.errors import check_finite, check_positive, check_shape
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.robust import HuberKernel
+from slam_bridge.ba.solvers.barrier import BarrierConfig, solve_barrier
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
 from slam_bridge.factors.dem import DEMFactor
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.vertical import VerticalFactor
@@ -36,8 +38,6 @@ from slam_bridge.frontend.vertical_lines import (
     vertical_direction,
 )
 from slam_bridge.slam.map import Map
-from slam_bridge.solvers.barrier import BarrierConfig, solve_barrier
-from slam_bridge.solvers.robust import HuberKernel
 
 logger = logging.getLogger(__name__)
 
@@ -67,7 +67,7 @@ class ConstraintProvider(Protocol):
 
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
         """The constraint families on ``problem``'s state (a
-        :class:`slam_bridge.window.HybridProblem` at ``X*``) for keyframe ``k``."""
+        :class:`slam_bridge.slam.hybrid_problem.HybridProblem` at ``X*``) for keyframe ``k``."""
         ...
 
 
@@ -210,7 +210,7 @@ class OdometryConstraints:
     camera is mounted.
 
     Two places. In the k-BA's cost ``zeta`` (:meth:`window_factors`, every pair of the window)
-    with a dead zone of ``band`` sigmas (:class:`slam_bridge.solvers.robust.DeadZoneKernel`):
+    with a dead zone of ``band`` sigmas (:class:`slam_bridge.ba.robust.DeadZoneKernel`):
     a wheel odometry's scale error of a percent or two costs nothing there and the vision keeps
     its own scale, but a monocular scale drift of 20 % after a turn on few points (a 10-sigma
     miss) costs far more than the vision rows gain, and cannot survive. In the barrier fusion
@@ -264,7 +264,7 @@ class OdometryConstraints:
         fixed, with the dead zone (none without ``band``)."""
         if self.band is None:
             return []
-        from slam_bridge.solvers.robust import DeadZoneKernel
+        from slam_bridge.ba.robust import DeadZoneKernel
 
         ids = np.asarray(problem.camera_ids)
         fixed = problem.state.camera_fixed
@@ -374,7 +374,7 @@ class VerticalConstraints:
 
 @dataclass
 class FusionConfig:
-    """Barrier fusion settings (:class:`slam_bridge.solvers.barrier.BarrierConfig`).
+    """Barrier fusion settings (:class:`slam_bridge.ba.solvers.barrier.BarrierConfig`).
 
     Attributes:
         iterations: barrier iterations.

@@ -6,7 +6,7 @@ its images, an optional wheel odometry, an optional GPS and an optional DEM:
 1. **Two views.** The first keyframe ``a`` is the reference; each next keyframe ``b`` is tried
    in turn: the essential matrix of their common tracks (MAGSAC++, ``cv2.findEssentialMat``) and
    ``cv2.recoverPose`` give the relative pose up to scale
-   (:func:`slam_bridge.geometry.two_view_init`); it is accepted when at least
+   (:func:`slam_bridge.geometry.multiview.two_view_init`); it is accepted when at least
    ``min_matches`` tracks are inliers and at least ``min_points`` of them triangulate with
    enough parallax. Tracks the essential matrix rejects lose those observations; keyframes
    between ``a`` and ``b`` take interpolated poses and no observation. After ``max_tries``
@@ -43,8 +43,8 @@ import numpy as np
 from geoseg.errors import check_finite, check_positive, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import ObservationSource
-from slam_bridge.geometry import two_view_init
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.geometry.lie import so3_exp, so3_log
+from slam_bridge.geometry.multiview import two_view_init
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.loop import StartResult
 from slam_bridge.slam.map import Map

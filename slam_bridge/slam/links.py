@@ -58,7 +58,7 @@ class LinkMemory:
         rebuild its pose-graph terms on the frozen references and the links' weights.
 
         Args:
-            problem: a :class:`slam_bridge.window.HybridProblem` at its pre-k-BA state.
+            problem: a :class:`slam_bridge.slam.hybrid_problem.HybridProblem` at its pre-k-BA state.
         """
         pg = problem.window.pose_graph_pairs
         st = problem.state
@@ -146,8 +146,8 @@ class LinkMemory:
 def camera_covariance(problem) -> np.ndarray | None:
     """``S^-1`` of ``problem``'s undamped vision system (eq. 1.32), ``(6 Cf, 6 Cf)``, or None
     when it cannot be factorised (logged)."""
-    from slam_bridge.problem import assemble
-    from slam_bridge.solvers.schur import SchurFactorization
+    from slam_bridge.ba.normal_equations import assemble
+    from slam_bridge.ba.solvers.schur import SchurFactorization
 
     neq = assemble(problem.vision, problem.state)
     try:

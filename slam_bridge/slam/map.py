@@ -224,7 +224,7 @@ class Map:
         t0, t1 = self.timestamps[C - 2], self.timestamps[C - 1]
         a = (timestamp - t1) / (t1 - t0)
         R0, R1 = self.R_wc[C - 2], self.R_wc[C - 1]
-        from slam_bridge.lie import so3_exp, so3_log
+        from slam_bridge.geometry.lie import so3_exp, so3_log
 
         dR = so3_exp(a * so3_log(R1 @ R0.T))
         return dR @ R1, self.t_wc[C - 1] + a * (self.t_wc[C - 1] - self.t_wc[C - 2])

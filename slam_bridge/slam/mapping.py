@@ -1,7 +1,7 @@
 """Mapping: triangulating new points, gating bad observations, culling degenerate points.
 
 * :func:`triangulate_new`: the untriangulated points a keyframe sees are triangulated from all
-  their active observations (DLT + Gauss-Newton, :func:`slam_bridge.geometry.triangulate`,
+  their active observations (DLT + Gauss-Newton, :func:`slam_bridge.geometry.multiview.triangulate`,
   parallax >= ``min_parallax_deg``); a point whose worst observation errs by more than the
   outlier gate loses that observation and waits for the next keyframe.
 * :func:`gate_window`: after the fusion, the fusion window's observations erring by more than
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.errors import check_positive
-from slam_bridge.geometry import ray_parallax_deg, triangulate
+from slam_bridge.geometry.multiview import ray_parallax_deg, triangulate
 from slam_bridge.slam.map import Map
 from slam_bridge.slam.tracking import reprojection_errors
 

@@ -2,13 +2,13 @@
 
 The pose is the better of two candidates, each refined by OpenCV's Levenberg-Marquardt on its
 inliers (reprojection error below ``pnp_threshold_px``): PnP with RANSAC
-(:func:`slam_bridge.geometry.pnp`) and the constant-velocity prediction from the two previous
-keyframes (which survives a RANSAC failure when the motion is smooth). With fewer than
+(:func:`slam_bridge.geometry.multiview.pnp`) and the constant-velocity prediction from the two
+previous keyframes (which survives a RANSAC failure when the motion is smooth). With fewer than
 ``min_tracked`` inliers the tracking is *weak*: the pose is kept and the k-BA decides, and no
 observation is gated at it; with fewer than 6 the loop first tries to *bridge* the gap from the
 tracks shared with the previous keyframe (:func:`bridge_two_view`), else the tracking is *lost*
-(:class:`TrackingLost`), which the loop reports and recovers from. With a good pose, the observations erring more than ``outlier_gate_px`` are gross
-outliers and are deactivated.
+(:class:`TrackingLost`), which the loop reports and recovers from. With a good pose, the
+observations erring more than ``outlier_gate_px`` are gross outliers and are deactivated.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import cv2
 import numpy as np
 
 from geoseg.errors import check_positive
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
-from slam_bridge.geometry import pnp
+from slam_bridge.geometry.camera import project
+from slam_bridge.geometry.multiview import pnp
 from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
@@ -181,9 +181,9 @@ def bridge_two_view(
     When the map has (almost) no point in view (a flat vehicle passing in front of the camera,
     the open ground at the edge of town), the tracks between the previous keyframe and this one
     still give their relative pose up to scale (essential matrix, MAGSAC++,
-    :func:`slam_bridge.geometry.two_view_init`); the length of the baseline is the distance
-    driven (``distance(t0, t1)``, wheel odometry) or, without it, the last motion's speed. The
-    tracks the essential matrix rejects lose their observations. The map then goes on from
+    :func:`slam_bridge.geometry.multiview.two_view_init`); the length of the baseline is the
+    distance driven (``distance(t0, t1)``, wheel odometry) or, without it, the last motion's speed.
+    The tracks the essential matrix rejects lose their observations. The map then goes on from
     this pose instead of starting a new segment.
 
     Returns:
@@ -191,7 +191,7 @@ def bridge_two_view(
         previous keyframe is unplaced or of another segment, too few shared tracks, no
         essential matrix, no scale.
     """
-    from slam_bridge.geometry import two_view_init
+    from slam_bridge.geometry.multiview import two_view_init
 
     m, a = slam_map, k - 1
     if a < 0 or m.segment[a] != m.segment[k] or not np.all(np.isfinite(m.t_wc[a])):

@@ -1,7 +1,7 @@
 """The SLAM's k-BA window at each keyframe: plain (``n = 0``) or hybrid BA / pose graph.
 
 ``n = 0`` (method ``ba``): the plain window of the ``l`` latest keyframes with all their
-observations, older observers held fixed (:mod:`slam_bridge.window`), minimised by
+observations, older observers held fixed (:mod:`slam_bridge.slam.hybrid_problem`), minimised by
 Levenberg-Marquardt. Hybrids (``dpc``, ``mpc``): the hybrid window of eq. 3.4 with
 ``n_eff = max(0, min(n, l_eff - (l - n)))`` pose-graph cameras (the BA window keeps ``l - n``
 cameras while fewer than ``l`` keyframes exist) *is* the k-BA, so the fusion and the next k-BA
@@ -37,12 +37,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from geoseg.errors import check_positive
+from slam_bridge.ba.solvers.lm import LMConfig
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.reprojection import ReprojectionFactor
+from slam_bridge.slam.hybrid_problem import (
+    HybridWindowConfig,
+    WindowError,
+    build_hybrid_problem,
+    minimize_zeta,
+)
 from slam_bridge.slam.links import LinkMemory
 from slam_bridge.slam.map import Map
-from slam_bridge.solvers.lm import LMConfig
-from slam_bridge.window import HybridWindowConfig, WindowError, build_hybrid_problem, minimize_zeta
 
 logger = logging.getLogger(__name__)
 
@@ -140,7 +145,8 @@ class WindowOutcome:
     """The k-BA of one keyframe.
 
     Attributes:
-        problem: the window at its optimum ``X*`` (a :class:`slam_bridge.window.HybridProblem`).
+        problem: the window at its optimum ``X*`` (a
+            :class:`slam_bridge.slam.hybrid_problem.HybridProblem`).
         observations: ``(M_w,)`` map indices of the observations it was built from.
         window_observations: ``(M_a,)`` every active observation of the window's keyframes
             (the hybrid thins the pose-graph ones; the carried points and the gating use all).
@@ -387,7 +393,8 @@ def hessian_bytes(problem) -> int:
     """Memory of the assembled system of ``zeta`` (module docstring).
 
     Args:
-        problem: a :class:`slam_bridge.window.HybridProblem` (its state's fixed masks count).
+        problem: a :class:`slam_bridge.slam.hybrid_problem.HybridProblem` (its state's fixed
+            masks count).
 
     Returns:
         ``8 (36 Cf + 36 Q + 18 N_W + 9 Pf)`` bytes.

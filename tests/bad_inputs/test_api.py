@@ -33,7 +33,7 @@ def _api_cases():
     from geoseg.reloc.route_filter import RouteFilter
     from geoseg.synth.export import render_sequence
     from geoseg.synth.world import WorldConfig
-    from slam_bridge.io import read_bal
+    from slam_bridge.testing.bal import read_bal
     from training.checkpoint import load_checkpoint
     from training.config import TrainConfig
 

@@ -14,7 +14,7 @@ pycolmap = pytest.importorskip("pycolmap")
 from geoseg.errors import GeosegError  # noqa: E402
 from geoseg.synth import build_world, drive, render  # noqa: E402
 from slam_bridge.errors import SlamError  # noqa: E402
-from slam_bridge.lie import so3_exp, so3_log  # noqa: E402
+from slam_bridge.geometry.lie import so3_exp, so3_log  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 

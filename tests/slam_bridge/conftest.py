@@ -1,6 +1,6 @@
 """Shared fixtures for slam_bridge tests: a small synthetic street scene.
 
-``street`` (noisy, 1 px) and ``street_noiseless`` are :class:`slam_bridge.scenes.StreetScene`
+``street`` (noisy, 1 px) and ``street_noiseless`` are :class:`slam_bridge.testing.scenes.StreetScene`
 objects: 8 cameras 1 m apart along a street, facade + ground points each seen by 3-8
 consecutive cameras. ``make_street`` is the builder, for other sizes. ``ba_problem`` turns a scene
 into ``(state, factor)`` with the first two cameras fixed (gauge, including scale) and a perturbed
@@ -16,19 +16,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam_bridge.ba.state import BAState
 from slam_bridge.experiments.fusion_ch3 import ExperimentConfig, SequenceConfig, make_sequence
 from slam_bridge.experiments.landmarks import LandmarkConfig
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.problem import BAState
-from slam_bridge.scenes import StreetScene, perturb, street_scene
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.fusion import FusionConfig
 from slam_bridge.slam.windows import WindowConfig
+from slam_bridge.testing.scenes import StreetScene, perturb, street_scene
 
 
 @pytest.fixture
 def make_street():
-    """The :func:`slam_bridge.scenes.street_scene` builder."""
+    """The :func:`slam_bridge.testing.scenes.street_scene` builder."""
     return street_scene
 
 

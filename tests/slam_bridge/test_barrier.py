@@ -7,15 +7,7 @@ import logging
 import numpy as np
 import pytest
 
-from slam_bridge.errors import SlamError
-from slam_bridge.factors.building import BuildingFactor
-from slam_bridge.factors.dem import DEMFactor, DemSegments
-from slam_bridge.factors.gps import GPSFactor
-from slam_bridge.factors.odometry import OdometryFactor
-from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_exp
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.barrier import (
+from slam_bridge.ba.solvers.barrier import (
     BarrierConfig,
     BarrierSolver,
     barrier_objective,
@@ -24,8 +16,16 @@ from slam_bridge.solvers.barrier import (
     solve_barrier,
     vision_cost,
 )
-from slam_bridge.solvers.lm import BAObjective, levenberg_marquardt
-from slam_bridge.solvers.schur import SchurFactorization
+from slam_bridge.ba.solvers.lm import BAObjective, levenberg_marquardt
+from slam_bridge.ba.solvers.schur import SchurFactorization
+from slam_bridge.ba.state import BAState
+from slam_bridge.errors import SlamError
+from slam_bridge.factors.building import BuildingFactor
+from slam_bridge.factors.dem import DEMFactor, DemSegments
+from slam_bridge.factors.gps import GPSFactor
+from slam_bridge.factors.odometry import OdometryFactor
+from slam_bridge.factors.reprojection import ReprojectionFactor
+from slam_bridge.geometry.lie import so3_exp
 
 
 def _optimum(scene, n_fixed: int = 2) -> tuple[BAState, ReprojectionFactor]:
@@ -40,7 +40,7 @@ def _optimum(scene, n_fixed: int = 2) -> tuple[BAState, ReprojectionFactor]:
 
 @pytest.fixture(scope="module")
 def small_optimum():
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(5, points_per_camera=4, noise_px=1.0, seed=3)
     return _optimum(scene)
@@ -48,7 +48,7 @@ def small_optimum():
 
 @pytest.fixture(scope="module")
 def street_optimum():
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(8, points_per_camera=20, noise_px=1.0, seed=0)
     return _optimum(scene)
@@ -254,7 +254,7 @@ def test_gps_fusion_moves_latest_camera_towards_fix(street_optimum) -> None:
 
 
 def test_zero_zeta_star_is_handled(caplog) -> None:
-    from slam_bridge.scenes import street_scene
+    from slam_bridge.testing.scenes import street_scene
 
     scene = street_scene(6, points_per_camera=10, noise_px=0.0, seed=4)
     fixed = np.zeros(6, dtype=bool)
@@ -263,7 +263,7 @@ def test_zero_zeta_star_is_handled(caplog) -> None:
     rep = ReprojectionFactor(scene.K, scene.obs_cameras, scene.obs_points, scene.uv)
     assert rep.cost(state) < 1e-18
     gps = GPSFactor.most_recent(state, state.t_wc[-1, :2] + [0.5, 0.5])
-    with caplog.at_level(logging.WARNING, logger="slam_bridge.solvers.barrier"):
+    with caplog.at_level(logging.WARNING, logger="slam_bridge.ba.solvers.barrier"):
         res = solve_barrier([rep], [gps], state)
     assert "no slack" in caplog.text
     assert res.t > 0 and res.zeta < res.t

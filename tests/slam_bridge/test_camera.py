@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.camera import PinholeCamera, local_window, project, project_with_jacobians
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.camera import PinholeCamera, local_window, project, project_with_jacobians
+from slam_bridge.geometry.lie import so3_exp
 
 
 def _setup(n=20, seed=0):

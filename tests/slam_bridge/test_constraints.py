@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.robust import GemanMcClureKernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.factors.building import BuildingFactor, WeightedKernel
 from slam_bridge.factors.dem import DEMFactor, DemSegments
 from slam_bridge.factors.gps import GPSFactor, GPSFixError
 from slam_bridge.factors.odometry import OdometryFactor, dead_reckon
-from slam_bridge.lie import so3_exp
-from slam_bridge.problem import BAState, assemble
-from slam_bridge.solvers.robust import GemanMcClureKernel
+from slam_bridge.geometry.lie import so3_exp
 
 
 def _state(seed: int = 0, C: int = 5, P: int = 8) -> BAState:

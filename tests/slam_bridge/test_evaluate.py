@@ -7,9 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from slam_bridge import evaluate as ev
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp
+from slam_bridge.evaluation import metrics as ev
+from slam_bridge.evaluation import tables_ch3
+from slam_bridge.geometry.lie import so3_exp
 
 
 def test_rotation_and_translation_errors():
@@ -98,7 +99,7 @@ def test_inlier_churn_counts_the_flips_both_ways():
 
 def _run(method, setting, t_mean, inliers, sec, its, mem):
     stats = {"mean": t_mean, "std": 0.1, "median": t_mean, "max": 2 * t_mean}
-    return ev.RunSummary(
+    return tables_ch3.RunSummary(
         method=method,
         setting=setting,
         rotation={"mean": 0.01, "std": 0.0, "median": 0.01, "max": 0.02},
@@ -137,7 +138,7 @@ def test_summary_tables_and_files(tmp_path):
     mpc_mask = mask.copy()
     mpc_mask[:30], mpc_mask[1000:1025] = False, True
     runs[3].inlier_points, runs[5].inlier_points = mask, mpc_mask
-    summ = ev.build_summary(runs, ["ba", "dpc", "mpc"], settings)
+    summ = tables_ch3.build_summary(runs, ["ba", "dpc", "mpc"], settings)
     assert (summ["mpc_bias_inliers_lost"], summ["mpc_bias_inliers_gained"]) == (30, 25)
     assert summ["mpc_bias_inlier_loss_noise"] == pytest.approx(np.sqrt(55) / 1000)
     assert "mpc_sigma0.75_inliers_lost" not in summ  # no masks: no churn
@@ -147,13 +148,15 @@ def test_summary_tables_and_files(tmp_path):
     assert summ["memory_ratio"] == pytest.approx(3.0)
     assert summ["inlier_loss_max"] == pytest.approx(0.01)
     assert summ["dpc_sigma0.75_t_mean"] == pytest.approx(0.4)
-    md = ev.markdown_tables(summ)
+    md = tables_ch3.markdown_tables(summ)
     assert "Table 3.1" in md and "0.63" in md  # the thesis's DPC mu_T at sigma_b = 0.75
     assert "| 30 / 25 | 0.74 |" in md  # the churn and its chance sd (%)
-    ev.write_markdown(summ, tmp_path / "t.md")
-    ev.write_json(summ, tmp_path / "t.json")
+    tables_ch3.write_markdown(summ, tmp_path / "t.md")
+    tables_ch3.write_json(summ, tmp_path / "t.json")
     assert json.loads((tmp_path / "t.json").read_text())["memory_ratio"] == pytest.approx(3.0)
     t = np.cumsum(np.ones((10, 3)), axis=0)
-    p = ev.plot_trajectories(tmp_path / "traj.png", t, {"ba": t + 0.1}, t[:, :2] + 0.2)
-    q = ev.plot_memory(tmp_path / "mem.png", {"ba": np.arange(10) * 1e4, "dpc": np.ones(10)})
+    p = tables_ch3.plot_trajectories(tmp_path / "traj.png", t, {"ba": t + 0.1}, t[:, :2] + 0.2)
+    q = tables_ch3.plot_memory(
+        tmp_path / "mem.png", {"ba": np.arange(10) * 1e4, "dpc": np.ones(10)}
+    )
     assert p.stat().st_size > 1000 and q.stat().st_size > 1000

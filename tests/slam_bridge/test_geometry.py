@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.geometry import pnp, ray_parallax_deg, triangulate, two_view_init
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.geometry.lie import so3_exp, so3_log
+from slam_bridge.geometry.multiview import pnp, ray_parallax_deg, triangulate, two_view_init
 
 
 def test_triangulation_exact_on_noiseless_views(street_noiseless):

@@ -11,9 +11,9 @@ import pytest
 
 from geoseg.synth.export import render_sequence
 from geoseg_cli.cli import main
+from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
-from slam_bridge.image_slam import load_inputs
-from slam_bridge.sensor_logs import read_columns
+from slam_bridge.system.image_slam import load_inputs
 
 
 def write_gps(folder, sigma: float = 0.75, seed: int = 3):

@@ -4,9 +4,11 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.camera import project
+from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt
+from slam_bridge.ba.state import BAState
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.io import (
+from slam_bridge.geometry.camera import project
+from slam_bridge.testing.bal import (
     BALProblem,
     bal_project,
     bal_to_calibrated,
@@ -15,8 +17,6 @@ from slam_bridge.io import (
     undistort_bal,
     write_bal,
 )
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.lm import BAObjective, LMConfig, levenberg_marquardt
 
 
 def _bal_from_scene(scene, k1=-0.05, k2=0.01, noise=0.0, seed=0):

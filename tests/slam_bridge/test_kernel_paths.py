@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import slam_bridge.problem as problem
-from slam_bridge.problem import assemble
-from slam_bridge.solvers.schur import SchurFactorization
+import slam_bridge.ba.compiled as switch
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.solvers.schur import SchurFactorization
 
 pytest.importorskip("numba")
 
@@ -19,7 +19,7 @@ pytest.importorskip("numba")
 def _solve_both_paths(monkeypatch, state, factor):
     results = []
     for compiled in (True, False):
-        monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+        monkeypatch.setattr(switch, "USE_NUMBA", compiled)
         neq = assemble([factor], state)
         rhs_c = -neq.g_c
         rhs_p = -neq.g_p
@@ -45,11 +45,11 @@ def test_compiled_and_numpy_paths_agree(monkeypatch, make_street, ba_problem, ke
 
 @pytest.mark.parametrize("scale", [1e-7, 1e-3, 0.05, 0.5, 3.0])
 def test_dpc_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
-    """The compiled DPC residuals and Jacobians equal the :mod:`slam_bridge.lie` ones, below
+    """The compiled DPC residuals and Jacobians equal the :mod:`slam_bridge.geometry.lie` ones, below
     and above the series threshold and past pi/2 (so3_log's near-pi branch), with one and
     with per-pair weights."""
-    from slam_bridge import lie
     from slam_bridge.factors.pose_graph_dpc import dpc_residuals, dpc_whitener
+    from slam_bridge.geometry import lie
 
     rng = np.random.default_rng(7)
     M = 25
@@ -65,7 +65,7 @@ def test_dpc_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
     ):
         out = []
         for compiled in (True, False):
-            monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+            monkeypatch.setattr(switch, "USE_NUMBA", compiled)
             out.append(dpc_residuals(R_i, t_i, R_j, t_j, R_hat, t_hat, W))
             r_only, no_i, no_j = dpc_residuals(
                 R_i, t_i, R_j, t_j, R_hat, t_hat, W, with_jacobians=False
@@ -124,7 +124,7 @@ def test_pair_families_compiled_and_numpy_paths_agree(
     for family in families:
         out = []
         for compiled in (True, False):
-            monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+            monkeypatch.setattr(switch, "USE_NUMBA", compiled)
             neq = assemble([family], state)
             if hasattr(family, "cost_and_invalid"):
                 cost = family.cost_and_invalid(state)
@@ -144,8 +144,8 @@ def test_pair_families_compiled_and_numpy_paths_agree(
 def test_retract_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> None:
     """The compiled camera update equals ``so3_exp(dw) @ R`` below and above the series
     threshold (0.1 rad); fixed cameras and points stay bit-identical on both paths."""
-    from slam_bridge import lie
-    from slam_bridge.problem import BAState
+    from slam_bridge.ba.state import BAState
+    from slam_bridge.geometry import lie
 
     rng = np.random.default_rng(11)
     C, P = 7, 9
@@ -161,7 +161,7 @@ def test_retract_compiled_and_numpy_paths_agree(monkeypatch, scale: float) -> No
     dp = rng.normal(size=(P - 1, 3)) * scale
     out = []
     for compiled in (True, False):
-        monkeypatch.setattr(problem, "USE_NUMBA", compiled)
+        monkeypatch.setattr(switch, "USE_NUMBA", compiled)
         out.append(state.retract(dc, dp))
     a, b = out
     np.testing.assert_allclose(a.R_wc, b.R_wc, rtol=0, atol=1e-14)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge import lie
+from slam_bridge.geometry import lie
 
 
 def _rand_w(rng, n, scale=1.0):

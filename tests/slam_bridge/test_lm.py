@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
+from slam_bridge.ba.robust import GemanMcClureKernel, HuberKernel, TrivialKernel, get_kernel
+from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, LMStep, levenberg_marquardt
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_log
-from slam_bridge.solvers.lm import BAObjective, LMConfig, LMStep, levenberg_marquardt
-from slam_bridge.solvers.robust import GemanMcClureKernel, HuberKernel, TrivialKernel, get_kernel
+from slam_bridge.geometry.lie import so3_log
 
 
 @pytest.mark.parametrize("mode", ["marquardt", "additive"])
@@ -171,7 +171,7 @@ def test_retract_updates_free_parameters_only(street, ba_problem):
 
 
 def test_dead_zone_kernel_is_free_within_its_band_and_quadratic_beyond():
-    from slam_bridge.solvers.robust import DeadZoneKernel
+    from slam_bridge.ba.robust import DeadZoneKernel
 
     k = DeadZoneKernel(2.0)
     r = np.array([0.0, 1.0, 1.99, 2.5, 4.0, 10.0])

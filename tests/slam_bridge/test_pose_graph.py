@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge import lie
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.pose_graph_dpc import (
     DPCFactor,
@@ -15,7 +16,7 @@ from slam_bridge.factors.pose_graph_dpc import (
     relative_pose_information,
 )
 from slam_bridge.factors.pose_graph_mpc import MPCDegenerateError, MPCFactor, epipolar_residuals
-from slam_bridge.problem import BAState, assemble
+from slam_bridge.geometry import lie
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 480.0, 240.0], [0.0, 0.0, 1.0]])
 

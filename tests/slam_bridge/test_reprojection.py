@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
+from slam_bridge.ba.state import BAState
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.problem import BAState
 
 
 def test_residuals_zero_at_truth(street_noiseless, ba_problem):

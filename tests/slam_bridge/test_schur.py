@@ -4,10 +4,9 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.factors.base import FactorBlock
-from slam_bridge.lie import so3_log
-from slam_bridge.problem import assemble
-from slam_bridge.solvers.schur import (
+from slam_bridge.ba.factor import FactorBlock
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.solvers.schur import (
     SchurFactorization,
     _chain_split_point,
     _ChainSplit,
@@ -16,6 +15,7 @@ from slam_bridge.solvers.schur import (
     reduced_camera_matrix,
     schur_solve,
 )
+from slam_bridge.geometry.lie import so3_log
 
 
 class RelativeTranslation:
@@ -188,7 +188,8 @@ def test_rhs_shape_and_singular_errors(tiny):
 
 @pytest.mark.parametrize("skewed", [False, True])
 def test_grouped_sums_match_brute_force(skewed):
-    from slam_bridge.problem import _gram_sum, _segment_sum
+    from slam_bridge.ba.normal_equations import _gram_sum
+    from slam_bridge.geometry.sums import _segment_sum
 
     rng = np.random.default_rng(4)
     M, n = 300, 7

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
 from slam_bridge.factors.dem import DEMFactor, DemSegments
 from slam_bridge.factors.gps import GPSFactor, GPSFixError
 from slam_bridge.factors.odometry import OdometryFactor
 from slam_bridge.factors.single_camera import SingleCameraFactor, check_weights
-from slam_bridge.lie import so3_exp
-from slam_bridge.problem import BAState
+from slam_bridge.geometry.lie import so3_exp
 
 
 def _state(C: int = 4) -> BAState:

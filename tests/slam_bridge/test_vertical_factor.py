@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
 from slam_bridge.factors.vertical import VerticalFactor
-from slam_bridge.lie import so3_exp
-from slam_bridge.problem import BAState
+from slam_bridge.geometry.lie import so3_exp
 
 DOWN_W = np.array([0.0, 0.0, -1.0])
 

@@ -6,25 +6,26 @@ import numpy as np
 import pytest
 
 from geoseg.errors import GeosegError
-from slam_bridge.camera import local_window, project
+from slam_bridge.ba.normal_equations import assemble
+from slam_bridge.ba.solvers.barrier import solve_barrier
+from slam_bridge.ba.solvers.lm import LMConfig
+from slam_bridge.ba.solvers.schur import latest_camera_covariance
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.gps import GPSFactor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
 from slam_bridge.factors.pose_graph_mpc import MPCFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.lie import so3_exp
-from slam_bridge.problem import BAState, assemble
-from slam_bridge.scenes import street_scene
-from slam_bridge.solvers.barrier import solve_barrier
-from slam_bridge.solvers.lm import LMConfig
-from slam_bridge.solvers.schur import latest_camera_covariance
-from slam_bridge.window import (
+from slam_bridge.geometry.camera import local_window, project
+from slam_bridge.geometry.lie import so3_exp
+from slam_bridge.slam.hybrid_problem import (
     HybridWindowConfig,
     WindowError,
     build_hybrid_problem,
     hybrid_window,
     minimize_zeta,
 )
+from slam_bridge.testing.scenes import street_scene
 
 
 @pytest.fixture(scope="module")
@@ -322,7 +323,7 @@ def test_points_behind_every_camera_are_dropped(scene, caplog) -> None:
     hyb0 = _build(scene, l=6, n=2)
     bad = int(hyb0.point_ids[0])
     X[bad] = scene.t_wc[11] - [20.0, 0.0, 0.0]  # behind every forward-looking camera
-    with caplog.at_level("WARNING", logger="slam_bridge.window"):
+    with caplog.at_level("WARNING", logger="slam_bridge.slam.hybrid_problem"):
         hyb = build_hybrid_problem(
             scene.R_wc,
             scene.t_wc,

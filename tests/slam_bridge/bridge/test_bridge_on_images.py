@@ -20,7 +20,7 @@ from slam_bridge.bridge.constraints import BuildingConstraints
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.bridge.worker import BridgeWorker, segmenter_outputs
 from slam_bridge.experiments.facade_truth import FacadeTruth
-from slam_bridge.image_slam import ImageSlamConfig, load_inputs, run_on_images
+from slam_bridge.system.image_slam import ImageSlamConfig, load_inputs, run_on_images
 
 
 @pytest.fixture(scope="module")

@@ -195,9 +195,9 @@ def test_config_refuses_an_unknown_worker():
 
 
 def test_online_associations_must_cover_the_fusion_window():
-    from slam_bridge.image_slam import ImageSlamConfig
     from slam_bridge.slam.config import SlamConfig
     from slam_bridge.slam.windows import WindowConfig
+    from slam_bridge.system.image_slam import ImageSlamConfig
 
     window = WindowConfig(l=20, n=10, history_keyframes=10)
     ImageSlamConfig(slam=SlamConfig(window=window), bridge=BridgeConfig(recent_keyframes=30))

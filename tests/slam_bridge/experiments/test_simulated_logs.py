@@ -10,14 +10,15 @@ import numpy as np
 import pytest
 
 from geoseg_cli.cli import main
+from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.simulated_logs import (
     KITTI_TO_WORLD,
     SimulatedLogsConfig,
     simulate_logs,
 )
-from slam_bridge.image_slam import read_truth_csv
-from slam_bridge.sensor_logs import read_columns, read_odometry_csv
+from slam_bridge.system.image_slam import read_truth_csv
+from slam_bridge.system.sensor_logs import read_odometry_csv
 
 CLIPS = Path(__file__).resolve().parents[4] / "shared" / "data" / "kitti_clips"
 #: a real KITTI drive at half size, in the repository (its README says what and whence)
@@ -85,8 +86,8 @@ def test_the_odometry_holds_the_scale_through_a_real_turn(tmp_path):
     """KITTI's right turn on 10-15 PnP inliers, odometry only: the monocular map's scale
     drifted 6-8 % while the odometry was only fused; inside the k-BA it holds (measured:
     |s - 1| <= 0.003 on seeds 0-2)."""
-    from slam_bridge.image_slam import load_inputs, run_image_slam
     from slam_bridge.slam.initialization import fit_similarity
+    from slam_bridge.system.image_slam import load_inputs, run_image_slam
 
     clip = CLIPS / "right_turn"
     logs = tmp_path / "logs"

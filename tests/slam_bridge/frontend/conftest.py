@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from geoseg.synth.export import render_sequence
-from slam_bridge.evaluate_tracks import RenderTruth, TruthMap
+from slam_bridge.evaluation.tracks import RenderTruth, TruthMap
 from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 

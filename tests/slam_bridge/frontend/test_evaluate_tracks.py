@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
-from slam_bridge.evaluate_tracks import (
+from slam_bridge.evaluation.tracks import (
     KIND_EDGE,
     KIND_SKY,
     KIND_SURFACE,
@@ -17,6 +16,7 @@ from slam_bridge.evaluate_tracks import (
     flatten_tracks,
 )
 from slam_bridge.frontend.base import KeyframeObservations
+from slam_bridge.geometry.camera import project
 
 W, H = 64, 48
 K = np.array([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])

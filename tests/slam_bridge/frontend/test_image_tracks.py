@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from slam_bridge.errors import SlamError
-from slam_bridge.evaluate_tracks import evaluate_tracks
+from slam_bridge.evaluation.tracks import evaluate_tracks
 from slam_bridge.frontend.frames import FrameList, ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.frontend.keyframes import KeyframeConfig
-from slam_bridge.geometry import two_view_init
+from slam_bridge.geometry.multiview import two_view_init
 from slam_bridge.slam.map import Map
 
 SIZE, FRAMES = (640, 480), 24

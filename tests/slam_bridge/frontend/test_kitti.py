@@ -76,8 +76,8 @@ def test_bad_kitti_files_are_clear_errors(tmp_path):
 
 def test_a_kitti_folder_loads_with_simulated_logs_and_refuses_a_truth_in_another_frame(tmp_path):
     from slam_bridge.experiments.simulated_logs import SimulatedLogsConfig, simulate_from_folder
-    from slam_bridge.image_slam import load_inputs
     from slam_bridge.slam.initialization import VehicleRig
+    from slam_bridge.system.image_slam import load_inputs
 
     seq_dir = make_sequence(tmp_path / "seq", n=12)
     utm = (652000.0, 6862000.0, 40.0)
@@ -98,7 +98,7 @@ def test_a_kitti_folder_loads_with_simulated_logs_and_refuses_a_truth_in_another
 def test_map_points_keep_world_sized_coordinates(tmp_path):
     import types
 
-    from slam_bridge.slam_outputs import write_map_points
+    from slam_bridge.system.outputs import write_map_points
 
     X = np.array([[652000.123, 6862000.456, 40.789], [652001.0, 6862001.5, 41.0]])
     fake = types.SimpleNamespace(triangulated_points=lambda: (np.arange(2), X))

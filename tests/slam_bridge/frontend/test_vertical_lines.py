@@ -12,7 +12,7 @@ from slam_bridge.frontend.vertical_lines import (
     detect_segments,
     vertical_direction,
 )
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 
 K = np.array([[457.0, 0.0, 320.0], [0.0, 457.0, 240.0], [0.0, 0.0, 1.0]])
 DOWN_W = np.array([0.0, 0.0, -1.0])

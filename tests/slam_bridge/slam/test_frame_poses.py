@@ -6,7 +6,7 @@ import types
 
 import numpy as np
 
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.lie import so3_exp
 from slam_bridge.slam.frame_poses import frame_poses
 
 

@@ -8,8 +8,8 @@ import pytest
 from geoseg.errors import GeosegError
 from slam_bridge.errors import SlamError
 from slam_bridge.experiments.fusion_ch3 import gps_for_setting
-from slam_bridge.frontend.simulated import SimulatedTracks
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.experiments.simulated_tracks import SimulatedTracks
+from slam_bridge.geometry.lie import so3_exp, so3_log
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.initialization import (
     InitConfig,
@@ -243,7 +243,7 @@ def test_measured_verticals_hold_the_tilt_that_a_sloping_dem_error_gives(noisy, 
 
 
 def test_level_similarity_takes_its_tilt_from_the_up_direction_only():
-    from slam_bridge.lie import so3_exp
+    from slam_bridge.geometry.lie import so3_exp
     from slam_bridge.slam.initialization import fit_level_similarity
 
     rng = np.random.default_rng(4)

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from slam_bridge.factors.pose_graph_dpc import dpc_whitener
-from slam_bridge.lie import so3_exp
-from slam_bridge.scenes import street_scene
+from slam_bridge.geometry.lie import so3_exp
+from slam_bridge.slam.hybrid_problem import HybridWindowConfig, build_hybrid_problem
 from slam_bridge.slam.links import LinkMemory
-from slam_bridge.window import HybridWindowConfig, build_hybrid_problem
+from slam_bridge.testing.scenes import street_scene
 
 
 @pytest.mark.parametrize("kind", ["dpc", "mpc"])

@@ -10,9 +10,10 @@ from threadpoolctl import threadpool_info
 
 import slam_bridge.slam.loop as loop
 from slam_bridge.errors import SlamError
-from slam_bridge.evaluate import count_inliers, loop_records, summarize_run
+from slam_bridge.evaluation.metrics import count_inliers
+from slam_bridge.evaluation.tables_ch3 import loop_records, summarize_run
 from slam_bridge.experiments.fusion_ch3 import gps_for_setting, run_method
-from slam_bridge.frontend.simulated import SimulatedTracks
+from slam_bridge.experiments.simulated_tracks import SimulatedTracks
 from slam_bridge.slam.loop import KnownStartPoses, run_slam
 from slam_bridge.slam.windows import window_n
 

@@ -1,4 +1,4 @@
-"""Files: the BAL ("Bundle Adjustment in the Large") format.
+"""Reading the BAL ("Bundle Adjustment in the Large") format, for tests and benches.
 
 **BAL** (Agarwal et al. 2010) text file::
 
@@ -18,9 +18,7 @@ BAL's camera frame is OpenCV's flipped by ``F = diag(1, -1, -1)``, so ``X_c = F 
 observation ``(x_u, y_u)`` becomes the pixel ``uv = (x_u, -y_u)``. :func:`bal_to_calibrated`
 holds each camera's ``f, k1, k2`` fixed and undistorts the observations (inverting the radial
 polynomial by Newton iterations on the radius), so the calibrated bundle adjustment of
-:mod:`slam_bridge.solvers.lm` runs on real BAL problems.
-
-Trajectory and GIS file formats will be added here.
+:mod:`slam_bridge.ba.solvers.lm` runs on real BAL problems.
 """
 
 from __future__ import annotations
@@ -34,7 +32,7 @@ import numpy as np
 from geoseg.atomic import atomic_write
 from geoseg.errors import check_finite, check_shape
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp, so3_log
+from slam_bridge.geometry.lie import so3_exp, so3_log
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Multi-view geometry for map building: triangulation, two-view initialisation, PnP.
 
-Poses follow :mod:`slam_bridge.camera` (``R_wc``, ``t_wc``, OpenCV camera frame).
+Poses follow :mod:`slam_bridge.geometry.camera` (``R_wc``, ``t_wc``, OpenCV camera frame).
 
 * :func:`triangulate`: linear DLT over all views of each point (vectorised over points: the
   ``4 x 4`` normal matrices ``A^T A`` are summed per point and their smallest eigenvectors taken
@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 
 from geoseg.errors import check_finite, check_shape
-from slam_bridge.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
 from slam_bridge.errors import SlamError
-from slam_bridge.problem import _segment_sum
+from slam_bridge.geometry.camera import DEFAULT_EPS, _check_K, project, project_with_jacobians
+from slam_bridge.geometry.sums import _segment_sum
 
 logger = logging.getLogger(__name__)
 

@@ -15,9 +15,9 @@ Conventions (used by every module of ``slam_bridge``):
   :data:`THESIS_GENERATORS` ``(3, 3, 3)`` with ``THESIS_GENERATORS[i] = G_{i+1}``.
 * **SE(3) twists are rotation first**: ``xi = [w (3), v (3)]`` (the thesis writes ``(v, w)`` in
   eq. 1.51; we put the rotation first to match the camera increment ``[dw, dT]`` of
-  :mod:`slam_bridge.camera`). ``se3_exp(xi) = (exp(w), J_l(w) v)`` where ``J_l`` is the SO(3)
-  left Jacobian, the thesis's ``W`` of eqs. 1.51-1.53 (the thesis's typeset eq. 1.53 has a sign
-  slip on the quadratic term; we use ``W = I + (1 - cos t)/t^2 [w] + (t - sin t)/t^3 [w]^2``).
+  :mod:`slam_bridge.geometry.camera`). ``se3_exp(xi) = (exp(w), J_l(w) v)`` where ``J_l`` is the
+  SO(3) left Jacobian, the thesis's ``W`` of eqs. 1.51-1.53 (the thesis's typeset eq. 1.53 has a
+  sign slip on the quadratic term; we use ``W = I + (1 - cos t)/t^2 [w] + (t - sin t)/t^3 [w]^2``).
 * **Jacobians.** Left: ``exp(w + dw) ~= exp(J_l(w) dw) exp(w)``; right:
   ``exp(w + dw) ~= exp(w) exp(J_r(w) dw)``; ``J_r(w) = J_l(-w)``. The same definitions hold for
   SE(3) with the 6x6 Jacobians and ``se3_exp``.

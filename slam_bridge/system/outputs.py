@@ -1,4 +1,5 @@
-"""The files an image-SLAM run writes (:mod:`slam_bridge.image_slam`), each written atomically.
+"""The files an image-SLAM run writes (:mod:`slam_bridge.system.image_slam`), each written
+atomically.
 
 * :func:`write_trajectory_csv`: one row per keyframe, columns :data:`TRAJECTORY_HEADER`;
 * :func:`write_keyframe_log`: the per-keyframe log, columns :data:`KEYFRAME_LOG_HEADER`;

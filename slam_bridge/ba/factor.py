@@ -9,10 +9,10 @@ object with two methods (see :class:`Factor`):
 Optionally ``num_residuals`` (the number of scalar residuals, without evaluating: the barrier
 counts them once per fusion) and ``cost_and_invalid(state) -> (float, int)`` (cost and number
 of invalid rows):
-:class:`slam_bridge.solvers.lm.BAObjective` uses it, when present, to refuse steps that create
+:class:`slam_bridge.ba.solvers.lm.BAObjective` uses it, when present, to refuse steps that create
 new invalid rows (points crossing behind their camera).
 
-``state`` is a :class:`slam_bridge.problem.BAState`. The family owns its data (observations,
+``state`` is a :class:`slam_bridge.ba.state.BAState`. The family owns its data (observations,
 measurement, covariance) and whitens its residuals itself (``r = sqrt_info (h(x) - z)``), so the
 assembler sees only unit-covariance residuals.
 
@@ -42,15 +42,13 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Protocol, runtime_checkable
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from slam_bridge.ba.robust import RobustKernel, TrivialKernel, get_kernel
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.solvers.robust import RobustKernel, TrivialKernel, get_kernel
-
-if TYPE_CHECKING:
-    from slam_bridge.problem import BAState
 
 logger = logging.getLogger(__name__)
 

@@ -13,8 +13,9 @@ The solver only decides damping and acceptance; everything problem-specific live
   cost increase and the damping is raised, never accepted.
 
 :class:`BAObjective` is the bundle-adjustment objective ``F = sum rho(||r||^2)`` over factor
-families (:mod:`slam_bridge.factors.base`), linearised by :func:`slam_bridge.problem.assemble`
-and solved by the Schur complement (:mod:`slam_bridge.solvers.schur`).
+families (:mod:`slam_bridge.ba.factor`), linearised by
+:func:`slam_bridge.ba.normal_equations.assemble` and solved by the Schur complement
+(:mod:`slam_bridge.ba.solvers.schur`).
 
 **Damping** (``LMConfig.damping_mode``): ``"marquardt"`` (default) solves
 ``(H + lambda diag(H)) d = -g``; ``"additive"`` solves ``(H + lambda I) d = -g``.
@@ -37,10 +38,11 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.normal_equations import NormalEquations, assemble
+from slam_bridge.ba.solvers.schur import DAMPING_MODES, SchurFactorization
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
-from slam_bridge.problem import BAState, NormalEquations, assemble
-from slam_bridge.solvers.schur import DAMPING_MODES, SchurFactorization
 
 logger = logging.getLogger(__name__)
 
@@ -239,7 +241,7 @@ class BALinearization:
     """Block normal equations at a state, solved by the Schur complement.
 
     Args:
-        neq: :class:`slam_bridge.problem.NormalEquations` (of ``0.5 * F``).
+        neq: :class:`slam_bridge.ba.normal_equations.NormalEquations` (of ``0.5 * F``).
         mode: damping mode.
     """
 
@@ -274,7 +276,7 @@ class BAObjective:
     """Bundle adjustment ``F = sum over families of sum rho(||r||^2)``.
 
     Args:
-        factors: factor families (:class:`slam_bridge.factors.base.Factor`).
+        factors: factor families (:class:`slam_bridge.ba.factor.Factor`).
         damping_mode: ``"marquardt"`` or ``"additive"``.
         forbid_new_invalid: reject steps that increase the number of invalid rows (points that
             would cross behind their camera), instead of letting them leave the cost.

@@ -18,16 +18,16 @@ naming the file, the row and the column.
 
 from __future__ import annotations
 
-import csv
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
 from slam_bridge.factors.dem import DemSegments
 
-__all__ = ["GpsLogData", "read_columns", "read_gps_csv", "read_odometry_csv", "read_dem_csv"]
+__all__ = ["GpsLogData", "read_gps_csv", "read_odometry_csv", "read_dem_csv"]
 
 
 @dataclass
@@ -45,55 +45,6 @@ class GpsLogData:
     xy: np.ndarray | None
     lat_lon: np.ndarray | None
     path: Path
-
-
-def read_columns(
-    path: str | Path, required: list[str], optional: list[str] = ()
-) -> dict[str, np.ndarray]:
-    """The named numeric columns of a CSV file (empty cells read as NaN).
-
-    Args:
-        path: the file.
-        required: columns that must be present.
-        optional: columns read when present.
-
-    Returns:
-        ``{name: (R,) float64}`` for the required and the present optional columns.
-
-    Raises:
-        SlamError: no such file, no data row, missing columns, a cell that is not a number.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise SlamError(f"{path}: no such file")
-    try:
-        with path.open(newline="") as f:
-            rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError) as err:
-        raise SlamError(f"{path}: cannot be read as a CSV text file ({err})") from None
-    if not rows:
-        raise SlamError(f"{path}: empty file (expected a header line {','.join(required)})")
-    header = [h.strip() for h in rows[0]]
-    missing = [c for c in required if c not in header]
-    if missing:
-        raise SlamError(f"{path}: missing column(s) {missing} (found {header})")
-    rows = [r for r in rows[1:] if any(cell.strip() for cell in r)]
-    if not rows:
-        raise SlamError(f"{path}: no data rows")
-    out = {}
-    for name in [*required, *(c for c in optional if c in header)]:
-        j = header.index(name)
-        col = np.empty(len(rows))
-        for i, r in enumerate(rows):
-            cell = r[j].strip() if j < len(r) else ""
-            try:
-                col[i] = float(cell) if cell else np.nan
-            except ValueError:
-                raise SlamError(
-                    f"{path}: row {i + 2}, column {name!r}: {cell!r} is not a number"
-                ) from None
-        out[name] = col
-    return out
 
 
 def _check_finite(path: Path, cols: dict[str, np.ndarray], names: list[str], rows=None) -> None:

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
-from slam_bridge.lie import so3_exp
+from slam_bridge.geometry.camera import project
+from slam_bridge.geometry.lie import so3_exp
 
 logger = logging.getLogger(__name__)
 

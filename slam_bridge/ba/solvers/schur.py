@@ -1,6 +1,6 @@
 """The reduced camera system (thesis eqs. 1.28-1.32), solved by Cholesky.
 
-For the block system (see :mod:`slam_bridge.problem`)::
+For the block system (see :mod:`slam_bridge.ba.normal_equations`)::
 
     [[A, W], [W^T, V]] [dc; dp] = [b_c; b_p],   A = U (+ U_offdiag) (+ damping)
 
@@ -32,7 +32,7 @@ smaller dense part saves; timings in ``docs/slam_loop_history.md``).
 :class:`SchurFactorization` keeps the factor so that several right-hand sides can be solved with
 one factorisation (the barrier solver needs two per step, eqs. B.14-B.17).
 
-With ``numba`` (:data:`slam_bridge.problem.USE_NUMBA`) compiled kernels compute ``L_p^-1``,
+With ``numba`` (:data:`slam_bridge.ba.compiled.USE_NUMBA`) compiled kernels compute ``L_p^-1``,
 write ``Z^T`` straight into the padded chunk layout (buffers kept with the cached structure),
 scatter the chunk sums into ``S`` and do the right-hand side and the back-substitution per block
 (with ``W`` and ``V^-1``, no ``Z`` kept); the GEMMs and the Cholesky stay in BLAS/LAPACK. Same
@@ -58,8 +58,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.normal_equations import NormalEquations
 from slam_bridge.errors import SlamError
-from slam_bridge.problem import NormalEquations, _njit, _segment_sum, numba_enabled
+from slam_bridge.geometry.sums import _segment_sum
 
 logger = logging.getLogger(__name__)
 

@@ -1,17 +1,10 @@
-"""Bundle-adjustment state and the block normal equations (thesis eqs. 1.25-1.28).
+"""The block normal equations of the bundle adjustment (thesis eqs. 1.25-1.28).
 
-**State.** :class:`BAState` holds ``C`` cameras named by frame (``R_wc (C, 3, 3)``,
-``t_wc (C, 3)`` = optical centre ``T_i``; ``X_w = R_wc X_c + t_wc``, eq. 1.3), ``P`` points
-``X_w (P, 3)`` and masks of fixed cameras/points (the gauge and the k-BA's fixed older cameras).
-Free cameras/points are numbered in increasing state order (``free_cameras``, ``free_points``);
-the free count is ``Cf``/``Pf``.
-
-**Increments** (:meth:`BAState.retract`): camera ``[dw (3), dT (3)]`` applied as
-``R_wc <- exp(hat(dw)) R_wc`` (left perturbation, thesis eq. 1.56) and ``t_wc <- t_wc + dT``;
-points additive.
+The state (:class:`slam_bridge.ba.state.BAState`) and its increments are in
+:mod:`slam_bridge.ba.state`.
 
 **Normal equations** (:func:`assemble`). For factor rows ``r_m`` (whitened, see
-:mod:`slam_bridge.factors.base`) with robust weights ``w_m = rho'(||r_m||^2)``::
+:mod:`slam_bridge.ba.factor`) with robust weights ``w_m = rho'(||r_m||^2)``::
 
     H = sum_m w_m J_m^T J_m,   g = sum_m w_m J_m^T r_m,   cost = sum_m rho(||r_m||^2)
 
@@ -35,10 +28,11 @@ Gauss-Newton step ``H d = -g`` minimises the local model of ``cost``. ``H`` is k
 Everything is vectorised over rows, no Python loop per observation: per-block sums are either
 one GEMM per camera/point over its rows laid out in a padded, cached layout (rows with one
 camera and one point, i.e. reprojections) or per-row batched ``matmul`` followed by a cached
-sparse 0/1 matrix product (segment sum). When ``numba`` is installed (:data:`USE_NUMBA`), rows
-with one camera, one point and ``k = 2`` (reprojections) are accumulated by one compiled pass
-instead (``U``, ``V`` and the gradients summed in place, ``W`` written per row): the NumPy path
-needs ~10 passes over the rows and their temporaries. A family may also offer a private
+sparse 0/1 matrix product (segment sum). When ``numba`` is installed
+(:data:`slam_bridge.ba.compiled.USE_NUMBA`), rows with one camera, one point and ``k = 2``
+(reprojections) are accumulated by one compiled pass instead (``U``, ``V`` and the gradients
+summed in place, ``W`` written per row): the NumPy path needs ~10 passes over the rows and
+their temporaries. A family may also offer a private
 ``_normal_equations(state, cmap, pmap, Cf, Pf)`` that returns its blocks directly (the
 reprojection, DPC, MPC and single-camera families do, without the generic path's per-row
 passes), optionally followed by its off-diagonal camera blocks ``(pairs, U_pairs)``
@@ -49,227 +43,27 @@ Both paths give the same blocks up to rounding.
 from __future__ import annotations
 
 import logging
-import os
 from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 
-from geoseg.errors import check_finite, check_shape
+from slam_bridge.ba.compiled import _njit, numba_enabled
+from slam_bridge.ba.factor import Factor, FactorBlock
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor, FactorBlock
-from slam_bridge.lie import so3_exp
-
-try:  # optional accelerator: compiled loops for the hot paths (same results up to rounding)
-    import numba as _numba
-except ImportError:  # pragma: no cover - depends on the environment
-    _numba = None
+from slam_bridge.geometry.sums import _segment_sum
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "BAState",
     "NormalEquations",
     "assemble",
     "camera_only_blocks",
     "pair_normal_equations",
     "total_cost",
 ]
-
-#: Use the compiled (numba) kernels of :func:`assemble`, the Schur solver and the reprojection
-#: factor when numba is installed. ``False`` (or the environment variable
-#: ``SLAM_BRIDGE_NUMBA=0`` at import) selects the pure-NumPy path.
-USE_NUMBA = _numba is not None and os.environ.get("SLAM_BRIDGE_NUMBA", "1") != "0"
-
-
-def _njit(fn):
-    """``numba.njit`` (cached on disk) when numba is installed, else ``fn`` itself (unused then)."""
-    if _numba is None:
-        return fn
-    return _numba.njit(cache=True, nogil=True)(fn)
-
-
-def numba_enabled() -> bool:
-    """True when the compiled kernels are used (numba installed and :data:`USE_NUMBA`)."""
-    return bool(USE_NUMBA) and _numba is not None
-
-
-@dataclass
-class BAState:
-    """Cameras and points of a bundle-adjustment problem.
-
-    Attributes:
-        R_wc: ``(C, 3, 3)`` camera-to-world rotations.
-        t_wc: ``(C, 3)`` optical centres in the world frame.
-        X_w: ``(P, 3)`` points in the world frame.
-        camera_fixed: ``(C,)`` bool, cameras held constant (gauge / older k-BA cameras).
-        point_fixed: ``(P,)`` bool, points held constant.
-    """
-
-    R_wc: np.ndarray
-    t_wc: np.ndarray
-    X_w: np.ndarray
-    camera_fixed: np.ndarray | None = None
-    point_fixed: np.ndarray | None = None
-    _cam_map: np.ndarray = field(init=False, repr=False)
-    _pt_map: np.ndarray = field(init=False, repr=False)
-
-    def __post_init__(self) -> None:
-        self.R_wc = np.asarray(self.R_wc, dtype=np.float64)
-        self.t_wc = np.asarray(self.t_wc, dtype=np.float64)
-        self.X_w = np.asarray(self.X_w, dtype=np.float64)
-        check_shape("R_wc", self.R_wc, (None, 3, 3))
-        C = self.R_wc.shape[0]
-        check_shape("t_wc", self.t_wc, (C, 3))
-        check_shape("X_w", self.X_w, (None, 3))
-        P = self.X_w.shape[0]
-        for name, v in (("R_wc", self.R_wc), ("t_wc", self.t_wc), ("X_w", self.X_w)):
-            check_finite(name, v)
-        if self.camera_fixed is None:
-            self.camera_fixed = np.zeros(C, dtype=bool)
-        if self.point_fixed is None:
-            self.point_fixed = np.zeros(P, dtype=bool)
-        self.camera_fixed = np.asarray(self.camera_fixed, dtype=bool).copy()
-        self.point_fixed = np.asarray(self.point_fixed, dtype=bool).copy()
-        check_shape("camera_fixed", self.camera_fixed, (C,))
-        check_shape("point_fixed", self.point_fixed, (P,))
-        self._cam_map = _index_map(self.camera_fixed)
-        self._pt_map = _index_map(self.point_fixed)
-
-    # ----------------------------------------------------------------------------- bookkeeping
-    @property
-    def num_cameras(self) -> int:
-        """``C``."""
-        return self.R_wc.shape[0]
-
-    @property
-    def num_points(self) -> int:
-        """``P``."""
-        return self.X_w.shape[0]
-
-    @property
-    def free_cameras(self) -> np.ndarray:
-        """``(Cf,)`` state indices of the free cameras, increasing."""
-        return np.flatnonzero(~self.camera_fixed)
-
-    @property
-    def free_points(self) -> np.ndarray:
-        """``(Pf,)`` state indices of the free points, increasing."""
-        return np.flatnonzero(~self.point_fixed)
-
-    @property
-    def camera_index_map(self) -> np.ndarray:
-        """``(C,)`` int: free index of each camera, ``-1`` if fixed (follows in-place mask edits)."""
-        if self._cam_map.size != self.camera_fixed.size or np.any(
-            (self._cam_map < 0) != self.camera_fixed
-        ):
-            self._cam_map = _index_map(self.camera_fixed)
-        return self._cam_map
-
-    @property
-    def point_index_map(self) -> np.ndarray:
-        """``(P,)`` int: free index of each point, ``-1`` if fixed (follows in-place mask edits)."""
-        if self._pt_map.size != self.point_fixed.size or np.any(
-            (self._pt_map < 0) != self.point_fixed
-        ):
-            self._pt_map = _index_map(self.point_fixed)
-        return self._pt_map
-
-    def copy(self) -> BAState:
-        """Deep copy."""
-        return BAState(
-            self.R_wc.copy(),
-            self.t_wc.copy(),
-            self.X_w.copy(),
-            self.camera_fixed.copy(),
-            self.point_fixed.copy(),
-        )
-
-    def retract(self, delta_cameras: np.ndarray, delta_points: np.ndarray) -> BAState:
-        """Apply increments to the free parameters and return a new state.
-
-        Args:
-            delta_cameras: ``(Cf, 6)`` ``[dw, dT]`` per free camera:
-                ``R_wc <- exp(hat(dw)) R_wc``, ``t_wc <- t_wc + dT``.
-            delta_points: ``(Pf, 3)`` additive point increments.
-
-        Returns:
-            A new :class:`BAState` (masks shared by value).
-        """
-        fc, fp = self.free_cameras, self.free_points
-        dc = np.asarray(delta_cameras, dtype=np.float64)
-        dp = np.asarray(delta_points, dtype=np.float64)
-        check_shape("delta_cameras", dc, (fc.size, 6))
-        check_shape("delta_points", dp, (fp.size, 3))
-        check_finite("delta_cameras", dc)
-        check_finite("delta_points", dp)
-        R_wc, t_wc = self.R_wc.copy(), self.t_wc.copy()
-        if numba_enabled():  # one pass instead of so3_exp's series/branch arrays (~40 us)
-            _rotate_kernel(np.ascontiguousarray(dc), fc, R_wc, t_wc)
-        elif fc.size:
-            R_wc[fc] = so3_exp(dc[:, :3]) @ self.R_wc[fc]
-            t_wc[fc] += dc[:, 3:]
-        if fp.size == self.X_w.shape[0]:  # every point free (a window's usual case)
-            X_w = self.X_w + dp
-        else:
-            X_w = self.X_w.copy()
-            X_w[fp] += dp
-        for name, v in (("R_wc", R_wc), ("t_wc", t_wc), ("X_w", X_w)):
-            check_finite(name, v)  # finite + finite can still overflow
-        # the shapes and masks are this state's: skip the constructor's checks (a trial state
-        # per solver step, where they cost as much as the update)
-        new = object.__new__(BAState)
-        new.R_wc, new.t_wc, new.X_w = R_wc, t_wc, X_w
-        new.camera_fixed = self.camera_fixed.copy()
-        new.point_fixed = self.point_fixed.copy()
-        new._cam_map = self.camera_index_map.copy()
-        new._pt_map = self.point_index_map.copy()
-        return new
-
-
-@_njit
-def _rotate_kernel(dc, fc, R, t):  # pragma: no cover - compiled
-    """In place, per free camera ``k`` (state index ``fc[k]``): ``R <- exp(hat(dw)) R`` and
-    ``t <- t + dT`` with ``[dw, dT] = dc[k]``; Rodrigues' formula with the small-angle series of
-    :func:`slam_bridge.lie.so3_exp` below 0.1 rad."""
-    for k in range(fc.shape[0]):
-        c = fc[k]
-        w0, w1, w2 = dc[k, 0], dc[k, 1], dc[k, 2]
-        t2 = w0 * w0 + w1 * w1 + w2 * w2
-        if t2 < 0.01:
-            a = 1.0 + t2 * (-1 / 6 + t2 * (1 / 120 + t2 * (-1 / 5040 + t2 / 362880)))
-            b = 0.5 + t2 * (-1 / 24 + t2 * (1 / 720 + t2 * (-1 / 40320 + t2 / 3628800)))
-        else:
-            th = np.sqrt(t2)
-            a = np.sin(th) / th
-            b = (1.0 - np.cos(th)) / t2
-        # E = I + a W + b W^2, W = hat(w), W^2 = w w^T - t2 I
-        e00 = 1.0 + b * (w0 * w0 - t2)
-        e11 = 1.0 + b * (w1 * w1 - t2)
-        e22 = 1.0 + b * (w2 * w2 - t2)
-        e01 = -a * w2 + b * w0 * w1
-        e10 = a * w2 + b * w0 * w1
-        e02 = a * w1 + b * w0 * w2
-        e20 = -a * w1 + b * w0 * w2
-        e12 = -a * w0 + b * w1 * w2
-        e21 = a * w0 + b * w1 * w2
-        for j in range(3):
-            r0, r1, r2 = R[c, 0, j], R[c, 1, j], R[c, 2, j]
-            R[c, 0, j] = e00 * r0 + e01 * r1 + e02 * r2
-            R[c, 1, j] = e10 * r0 + e11 * r1 + e12 * r2
-            R[c, 2, j] = e20 * r0 + e21 * r1 + e22 * r2
-        t[c, 0] += dc[k, 3]
-        t[c, 1] += dc[k, 4]
-        t[c, 2] += dc[k, 5]
-
-
-def _index_map(fixed: np.ndarray) -> np.ndarray:
-    m = np.full(fixed.shape[0], -1, dtype=np.int64)
-    free = np.flatnonzero(~fixed)
-    m[free] = np.arange(free.size)
-    return m
 
 
 @dataclass
@@ -344,37 +138,6 @@ class NormalEquations:
 def total_cost(factors: Iterable[Factor], state: BAState) -> float:
     """``sum`` of the families' ``cost(state)`` (no Jacobians)."""
     return float(sum(f.cost(state) for f in factors))
-
-
-_IND_CACHE: OrderedDict[tuple, sp.csr_matrix] = OrderedDict()
-
-
-def _indicator(idx: np.ndarray, n: int) -> sp.csr_matrix:
-    """``(n, M)`` sparse 0/1 matrix with ``[idx[m], m] = 1`` for ``idx[m] >= 0`` (cached).
-
-    ``_indicator(idx, n) @ values`` sums the rows of ``values (M, d)`` per index: a segment sum
-    an order of magnitude faster than ``np.add.at`` for the block sizes of bundle adjustment.
-    """
-    key = (n, idx.tobytes())
-    hit = _IND_CACHE.get(key)
-    if hit is not None:
-        _IND_CACHE.move_to_end(key)
-        return hit
-    M = idx.size
-    keep = idx >= 0
-    mat = sp.csr_matrix((np.ones(int(keep.sum())), (idx[keep], np.flatnonzero(keep))), shape=(n, M))
-    _IND_CACHE[key] = mat
-    if len(_IND_CACHE) > 32:
-        _IND_CACHE.popitem(last=False)
-    return mat
-
-
-def _segment_sum(idx: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
-    """``out[i] = sum_{m: idx[m] == i} values[m]``; ``idx (M,)`` (``-1`` skipped), ``values
-    (M, ...)`` -> ``(n, ...)``."""
-    flat = values.reshape(values.shape[0], -1)
-    out = _indicator(idx, n) @ flat
-    return np.asarray(out).reshape((n,) + values.shape[1:])
 
 
 _LAYOUT_CACHE: OrderedDict[tuple, tuple[np.ndarray, np.ndarray, int]] = OrderedDict()
@@ -604,7 +367,7 @@ def assemble(factors: Sequence[Factor] | Iterable[Factor], state: BAState) -> No
     """Evaluate every factor family and assemble the block normal equations.
 
     Args:
-        factors: factor families (objects following :class:`slam_bridge.factors.base.Factor`).
+        factors: factor families (objects following :class:`slam_bridge.ba.factor.Factor`).
         state: the current :class:`BAState`.
 
     Returns:

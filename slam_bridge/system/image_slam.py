@@ -2,7 +2,8 @@
 
 Inputs (:func:`load_inputs`): a folder of images with its ``camera.json`` (K, image size; the
 layout ``geoseg render`` writes is one such folder, see :mod:`slam_bridge.frontend.frames`),
-and optionally a GPS log, a wheel-odometry log and a road DEM (:mod:`slam_bridge.sensor_logs`).
+and optionally a GPS log, a wheel-odometry log and a road DEM
+(:mod:`slam_bridge.system.sensor_logs`).
 ``camera.json`` may also give the rig: ``camera_height_m`` and ``gps_antenna_c`` (the GPS
 antenna in the camera frame, metres; :class:`slam_bridge.slam.initialization.VehicleRig`).
 
@@ -42,12 +43,12 @@ import numpy as np
 
 from geoseg.errors import check_finite
 from slam_bridge.bridge.builder import BridgeConfig, check_covers_window
+from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
 from slam_bridge.frontend.frames import ImageFolder
 from slam_bridge.frontend.image_tracks import ImageTracks, ImageTracksConfig
 from slam_bridge.frontend.vertical_lines import VerticalLinesConfig
-from slam_bridge.sensor_logs import read_columns, read_dem_csv, read_gps_csv, read_odometry_csv
 from slam_bridge.slam.config import SlamConfig
 from slam_bridge.slam.frame_poses import POSE_SOURCES, frame_poses
 from slam_bridge.slam.fusion import (
@@ -60,6 +61,7 @@ from slam_bridge.slam.health import HealthConfig, assess_run
 from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
 from slam_bridge.slam.loop import SlamResult, run_slam
 from slam_bridge.slam.windows import METHODS
+from slam_bridge.system.sensor_logs import read_dem_csv, read_gps_csv, read_odometry_csv
 
 logger = logging.getLogger(__name__)
 
@@ -314,7 +316,7 @@ def run_image_slam(
     summary["frames_with_pose"] = {s: int(np.sum(poses.source == s)) for s in POSE_SOURCES}
     if inputs.truth is not None:
         summary.update(evaluate_run(result, inputs))
-    from slam_bridge import slam_outputs as so
+    from slam_bridge.system import outputs as so
 
     so.write_trajectory_csv(out / "trajectory.csv", result, frame_of, inputs.georef)
     so.write_frame_poses(out, poses)
@@ -335,7 +337,7 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         fix's own time: :func:`gps_fix_errors`) and their ratio ``translation_error_over_gps``;
         over the keyframes placed in the world frame only (``keyframes_in_world``).
     """
-    from slam_bridge.evaluate import rotation_errors
+    from slam_bridge.evaluation.metrics import rotation_errors
 
     t_true, R_true, T_true = inputs.truth
     m = result.map

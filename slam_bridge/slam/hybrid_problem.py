@@ -23,7 +23,7 @@ The window holds the ``l`` most recent keyframes ``z_1..z_l`` (time order, ``z_l
   exists to anchor a pose-graph window).
 
 The vision error of the window is ``zeta = sum reprojection + sum xi`` (eq. 3.4), given to
-:mod:`slam_bridge.solvers.barrier` as the ``vision`` factor families.
+:mod:`slam_bridge.ba.solvers.barrier` as the ``vision`` factor families.
 
 MPC note: the epipolar residual is blind to the length of each baseline, so a chain of MPC
 cameras has free directions (one scale per link, minus what the BA window closes); the barrier's
@@ -39,14 +39,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geoseg.errors import check_finite, check_shape
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.robust import RobustKernel
+from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, LMResult, levenberg_marquardt
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
 from slam_bridge.factors.pose_graph_dpc import DPCFactor
 from slam_bridge.factors.pose_graph_mpc import MPCDegenerateError, MPCFactor
 from slam_bridge.factors.reprojection import ReprojectionFactor
-from slam_bridge.problem import BAState
-from slam_bridge.solvers.lm import BAObjective, LMConfig, LMResult, levenberg_marquardt
-from slam_bridge.solvers.robust import RobustKernel
 
 logger = logging.getLogger(__name__)
 

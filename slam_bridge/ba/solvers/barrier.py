@@ -7,7 +7,7 @@ Objective (eq. 2.3)::
 where ``zeta`` is the vision error, the summed cost of the *vision* factor families (reprojection
 errors, plus the pose-graph terms of the hybrid window, eq. 3.4) and ``C_i`` the cost of the
 *constraint* families (GPS, DEM, odometry, building...). Every family's cost is
-``sum_m rho(||r_m||^2)`` (:mod:`slam_bridge.factors.base`; plain ``r^T r``, eq. B.1, with the
+``sum_m rho(||r_m||^2)`` (:mod:`slam_bridge.ba.factor`; plain ``r^T r``, eq. B.1, with the
 trivial kernel). The optimisation starts at ``X*``, the minimiser of ``zeta`` (the caller runs
 the unconstrained k-BA first).
 
@@ -30,7 +30,7 @@ We solve the Newton system of ``f / 2`` (same step)::
 
 ``H~`` has the sparse BA structure (the constraints only add diagonal blocks, appendix B.3, or
 point blocks), so with Sherman-Morrison (B.15) and **one** Schur factorisation of ``H~``
-(:class:`slam_bridge.solvers.schur.SchurFactorization`) we solve ``H~ a = -g_f`` (B.16) and
+(:class:`slam_bridge.ba.solvers.schur.SchurFactorization`) we solve ``H~ a = -g_f`` (B.16) and
 ``H~ b = u`` (B.17) and take ``dX = a - b (u^T a) / (1 + u^T b)``. The only dense coupling is the
 rank-1 ``u u^T``.
 
@@ -71,10 +71,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from geoseg.errors import check_positive
+from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.normal_equations import NormalEquations, assemble
+from slam_bridge.ba.solvers.schur import DAMPING_MODES, SchurFactorization
+from slam_bridge.ba.state import BAState
 from slam_bridge.errors import SlamError
-from slam_bridge.factors.base import Factor
-from slam_bridge.problem import BAState, NormalEquations, assemble
-from slam_bridge.solvers.schur import DAMPING_MODES, SchurFactorization
 
 logger = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ class BarrierConfig:
             to this many times (same direction, no new factorisation) before rejecting it and
             raising ``lambda``; a shortened step that is accepted keeps ``lambda`` (module
             docstring). 0: the thesis's Levenberg-Marquardt alone.
-        damping_mode: ``"additive"`` or ``"marquardt"`` (see :mod:`slam_bridge.solvers.schur`).
+        damping_mode: ``"additive"`` or ``"marquardt"`` (see :mod:`slam_bridge.ba.solvers.schur`).
         rel_tol: stop when an accepted step lowers ``f`` by less than ``rel_tol * |f|``.
         grad_tol: stop when ``max |grad f / 2| < grad_tol``.
     """

@@ -27,8 +27,8 @@ per keyframe, track lengths (keyframes per point), and re-observations (an obser
 was missing from the previous keyframe). It also gives ``bad_share_consistency``: the share of
 non-reference observations farther than ``threshold_px`` from the projection of the static point
 that fits all the point's observations best at the true poses (linear triangulation + Gauss-Newton,
-:func:`slam_bridge.geometry.triangulate`): what would pull the SLAM's poses away from the truth,
-blind to a drift along the epipolar lines (a wrong depth), which ``bad_share`` sees; with two
+:func:`slam_bridge.geometry.multiview.triangulate`): what would pull the SLAM's poses away from the
+truth, blind to a drift along the epipolar lines (a wrong depth), which ``bad_share`` sees; with two
 observations only the distance to the epipolar line counts.
 
 :class:`RenderTruth` reads the truth from a ``geoseg render`` folder (``poses.csv``,
@@ -49,9 +49,9 @@ from pathlib import Path
 import numpy as np
 
 from geoseg.errors import check_shape
-from slam_bridge.camera import project
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
+from slam_bridge.geometry.camera import project
 
 logger = logging.getLogger(__name__)
 
@@ -316,7 +316,7 @@ def _best_fit_errors(
 ) -> np.ndarray:
     """``(M,)`` distance of each observation to the projection of its point's best-fitting
     static point at the true poses (inf where that point is behind the camera)."""
-    from slam_bridge.geometry import triangulate
+    from slam_bridge.geometry.multiview import triangulate
 
     M = table.point.size
     if M == 0:
@@ -391,8 +391,8 @@ class TruthMap:
       module docstring), marked triangulated once two keyframes observe it;
     * ``points="triangulate"``: what a loop with perfect poses would estimate: the points of each
       new keyframe seen at least twice are triangulated from all their observations at the true
-      poses (:func:`slam_bridge.geometry.triangulate`, ``min_parallax_deg``); drifting tracks
-      thus get drifting points, as in the loop.
+      poses (:func:`slam_bridge.geometry.multiview.triangulate`, ``min_parallax_deg``); drifting
+      tracks thus get drifting points, as in the loop.
 
     With ``reject_px``, each new observation whose reprojection error against its point exceeds
     it is marked inactive, as the loop's outlier rejection would.
@@ -467,7 +467,7 @@ class TruthMap:
         return k
 
     def _triangulate(self, ids: np.ndarray) -> None:
-        from slam_bridge.geometry import triangulate
+        from slam_bridge.geometry.multiview import triangulate
 
         m = self.map
         obs = np.flatnonzero(np.isin(m.obs_point, ids) & m.obs_active)

@@ -1,9 +1,9 @@
 """Robust kernels ``rho(s)`` of the squared whitened residual norm ``s = ||r||^2``.
 
 A factor family's cost is ``sum_m rho(s_m)``. The assembler
-(:func:`slam_bridge.problem.assemble`) uses iteratively reweighted least squares: each residual
-row's Jacobian products are weighted by ``rho'(s_m)`` (the Gauss-Newton Hessian of the robust
-cost, without the ``rho''`` term), which is what Ceres and GTSAM do by default as well.
+(:func:`slam_bridge.ba.normal_equations.assemble`) uses iteratively reweighted least squares: each
+residual row's Jacobian products are weighted by ``rho'(s_m)`` (the Gauss-Newton Hessian of the
+robust cost, without the ``rho''`` term), which is what Ceres and GTSAM do by default as well.
 
 Kernels (``delta``/``sigma`` in whitened units, i.e. pixels for a 1-px reprojection sigma):
 
