@@ -158,8 +158,9 @@ def step_map(ctx: DemoContext) -> None:
         streets=world.streets,
         tracks=tracks,
         gps=gps,
+        # two lines: one would run past the left panel's edge
         title=f"world seed {ctx.world_config.seed} from above: true buildings, the GIS building "
-        "model (with its errors), DEM road segments, the routes driven, GPS fixes",
+        "model (with its errors),\nDEM road segments, the routes driven, GPS fixes",
     )
     ctx.outputs["map"] = path
 

@@ -17,14 +17,17 @@ For each input image ``NAME.ext`` it writes to ``--out``:
 * with ``--probabilities``: ``NAME_probabilities.npy`` (``(8, H, W)`` float16 class
   probabilities).
 
-``legend.json`` (class ids, names and colours, and the normal-colour code) sits beside them.
+``legend.json`` (class ids, names and colours, and the normal-colour code) and
+``legend.png`` (the class colours and the normal-colour sphere, the key to the pictures) sit
+beside them.
 Inputs from several folders keep their folders below the inputs' common folder (``a/x.png``
 and ``b/x.png`` give ``OUT/a/x_*`` and ``OUT/b/x_*``), so no result overwrites another; two
 inputs that would still write the same names (``x.png`` and ``x.jpg``) are refused before any
 work.
 
 An unreadable input does not stop the batch: every other image is processed, then the command
-lists every input it could not process and exits with status 2.
+lists every input it could not process and exits with status 2. When none of the inputs exists,
+it says so before writing anything.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ SUFFIXES = (
     "_probabilities.npy",
 )
 LEGEND = "legend.json"
+LEGEND_PICTURE = "legend.png"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -191,12 +195,19 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.errors import GeosegError
     from geoseg.export import available_providers
     from geoseg.infer import Segmenter, normals_to_rgb
+    from geoseg.legends import class_legend, normal_key
     from geoseg.output_dir import prepare_output_dir, record_outputs
     from geoseg.pretrained import path_or_shipped, real_photo_network
 
     if not 0.0 <= args.alpha <= 1.0:
         raise GeosegError(f"--alpha: expected a value in [0, 1], got {args.alpha}")
     stems = output_stems(list(args.images))
+    if not any(path.is_file() for path in stems):
+        shown = ", ".join(str(path) for path in list(stems)[:3])
+        raise GeosegError(
+            f"none of the {len(stems)} input(s) exists ({shown}{', ...' if len(stems) > 3 else ''})"
+            ": nothing was written"
+        )
     args.model = path_or_shipped(args.model or real_photo_network(), "model.onnx")
     if str(args.model).lower().endswith(".onnx"):
         segmenter = Segmenter.from_onnx(args.model, providers=available_providers(args.device))
@@ -209,13 +220,19 @@ def run(args: argparse.Namespace) -> int:
     )
     # recorded once, up front (the normals file only exists for a model predicting normals)
     record_outputs(
-        out, [LEGEND] + [stem + suffix for stem in stems.values() for suffix in SUFFIXES]
+        out,
+        [LEGEND, LEGEND_PICTURE]
+        + [stem + suffix for stem in stems.values() for suffix in SUFFIXES],
     )
     atomic_write(out / LEGEND, json.dumps(legend(), indent=1) + "\n")
+    key = np.concatenate([class_legend(), normal_key()], axis=1)
+    atomic_imwrite(out / LEGEND_PICTURE, cv2.cvtColor(key, cv2.COLOR_RGB2BGR))
 
     failed: list[str] = []
+    written_any = False
     for image_path, stem in stems.items():
-        bgr = cv2.imread(str(image_path), cv2.IMREAD_COLOR)
+        # a missing file is named here: cv2.imread would print its own raw warning first
+        bgr = cv2.imread(str(image_path), cv2.IMREAD_COLOR) if image_path.is_file() else None
         if bgr is None:
             reason = "no such file" if not image_path.exists() else "not a readable image"
             failed.append(f"{image_path} ({reason})")
@@ -249,10 +266,12 @@ def run(args: argparse.Namespace) -> int:
             with atomic_output(out / f"{stem}_{kind}.npy", "wb") as f:
                 np.save(f, array)
         written = ["classes", *images, *(f"{k}.npy" for k in arrays)]
+        written_any = True
         print(f"{image_path}: {'/'.join(written)} → {out / Path(stem).parent}")
     if failed:
+        others = "the others were written" if written_any else f"only the legend is in {out}"
         raise GeosegError(
-            f"{len(failed)} of {len(stems)} input(s) could not be processed (the others were "
-            "written): " + "; ".join(failed)
+            f"{len(failed)} of {len(stems)} input(s) could not be processed ({others}): "
+            + "; ".join(failed)
         )
     return 0

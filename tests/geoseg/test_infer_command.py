@@ -57,6 +57,27 @@ def test_a_batch_reports_every_unreadable_input_and_goes_on(model, tmp_path, cap
     assert (out / "good1_labels.png").is_file() and (out / "good2_labels.png").is_file()
 
 
+def test_a_wrong_path_is_named_plainly_and_leaves_nothing(model, tmp_path, capfd) -> None:
+    """Only missing inputs: a message before any work and no output folder; a missing and a
+    broken input: no raw OpenCV warning, and the message does not claim that others were
+    written."""
+    out = tmp_path / "out"
+    argv = ["infer", str(tmp_path / "typo.png"), "--model", str(model), "--out", str(out)]
+    assert main(argv) == 2
+    err = capfd.readouterr().err
+    assert "none of the 1 input(s) exists" in err and "typo.png" in err and not out.exists()
+    broken = tmp_path / "broken.png"
+    broken.write_bytes(b"not a png")
+    argv = ["infer", str(tmp_path / "typo.png"), str(broken), "--model", str(model)]
+    assert main(argv + ["--out", str(out)]) == 2
+    err = capfd.readouterr().err
+    assert "WARN" not in err and "others were written" not in err and "only the legend" in err
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "legend.json",
+        "legend.png",
+    ]
+
+
 def test_infer_refuses_a_folder_of_other_files_and_a_file_as_out(model, tmp_path, capsys) -> None:
     image = _image(tmp_path / "in" / "x.png", 1)
     other = tmp_path / "other"
@@ -96,6 +117,8 @@ def test_outputs_class_ids_colours_masked_normals_and_probabilities(tmp_path) ->
     np.testing.assert_allclose(np.linalg.norm(normals[:, ~invalid], axis=0), 1.0, atol=1e-3)
     legend = json.loads((out / "legend.json").read_text())
     assert [c["name"] for c in legend["classes"]][SKY] == "sky" and len(legend["classes"]) == 8
+    key = cv2.imread(str(out / "legend.png"))
+    assert key.shape == (240, 560, 3)  # the class colours beside the normal-colour sphere
 
 
 def test_normals_are_masked_on_the_sky() -> None:
