@@ -120,7 +120,7 @@ def test_demo_runs_the_chapter_4_chain(tmp_path, tiny_config, capsys) -> None:
         assert "% on the right one" in block
     assert "GPS fixes" in printed[gis:] and "GPS fixes" not in printed[exact:gis]
     report = (out / "buildings" / "buildings_ch4.md").read_text()
-    assert "## Model `exact`" in report and "## Model `gis`" in report and "| bayes |" in report
+    assert "## Model `exact`" in report and "## Model `gis`" in report and "`bayes` |" in report
     assert str(out / "buildings" / "buildings_ch4.md") in printed
     for model in ("exact", "gis"):
         for name in ("trajectories", "association", "reprojection"):

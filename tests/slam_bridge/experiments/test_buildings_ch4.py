@@ -160,7 +160,7 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
     for name in ("trajectories_exact", "association_gis", "reprojection_gis"):
         assert cv2.imread(str(out / f"{name}.png")) is not None, name
     report = (out / "buildings_ch4.md").read_text()
-    assert "| bayes |" in report
+    assert "| network (eq. 4.14), `bayes` |" in report  # the README's words, and the key
     assert all(ch4.MODEL_NOTES[model] in report for model in cfg.models)  # what each model is
 
     # a second call reuses the saved runs (nothing recomputed) and the rendered drive
