@@ -5,7 +5,7 @@ cities with parked cars) land near each other in weight space, and a weighted me
 weights can keep much of what each was good at (a "model soup": Wortsman et al., "Model soups",
 ICML 2022). Every floating-point tensor of the sources' state dicts is averaged with the given
 weights, the batch-norm running statistics included: recomputing them on synthetic training
-frames instead cost ``seg_real`` 0.02-0.04 of CamVid building IoU (docs/realism_history.md).
+frames instead cost ``seg_real`` 0.02-0.04 of CamVid building IoU (docs/lessons.md).
 Integer buffers (batch-norm step counts) come from the heaviest source.
 
 The result is evaluated on the validation set of ``--config`` (a ``geoseg train seg`` config;

@@ -64,7 +64,7 @@ RelativePoseFn = Callable[[np.ndarray, Any], list[dict[str, Any]]]
 NETWORK_SIZE = (320, 240)
 
 # The near head's distance (m) below which :class:`GatedRelPoseHead` takes it; chosen on
-# validation city 13 (docs/relocalisation_history.md, "Queries at the base poses").
+# validation city 13 (docs/lessons.md, "Queries at the base poses").
 NEAR_GATE_M = 0.2
 
 

@@ -58,7 +58,7 @@ keyframe, the live tracks are checked, in order:
    ``2 align_half_window + 1`` window, accepted when it moves the track at most
    ``align_max_shift_px`` with a correlation of at least ``align_min_zncc``; otherwise the
    track is left where LK put it). The frame-to-frame drift then does not accumulate over a
-   track's life (measured in ``docs/frontend_accuracy.md``). The accumulated warp does, as
+   track's life (measured in ``docs/lessons.md``). The accumulated warp does, as
    the view changes: once the map tracks them, a track ends (its point retired)
    ``max_track_keyframes`` keyframes after its reference (``too_old``);
 9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated

@@ -36,7 +36,7 @@ class ImageTracksConfig:
         window_px: Lucas-Kanade window side (odd, pixels). LK moves a window by one
             translation; the views of a surface seen 2 m apart differ by more (scale, shear),
             which biases a wide window along the motion, past 2 px on a tenth of the
-            observations with 11 px, on 3 % with 5 px (docs/frontend_accuracy.md).
+            observations with 11 px, on 3 % with 5 px (docs/lessons.md).
         pyramid_levels: LK pyramid levels above the image (reach about
             ``2 ** levels * window_px / 2`` pixels from the prediction).
         lk_iterations: LK iterations per level.
@@ -84,7 +84,7 @@ class ImageTracksConfig:
             a start), a track ends this many keyframes after its reference keyframe (stage 8):
             the alignment bounds the frame-to-frame drift but not the error of its accumulated
             warp, which grows with the change of view (six drives: 2 px outliers 2.4 % -> 1.9 %
-            of the observations, docs/frontend_accuracy.md; None: tracks live on).
+            of the observations, docs/lessons.md; None: tracks live on).
         map_check: the PnP check of the tracks of triangulated points (stage 9).
         map_check_threshold_px: reprojection error above which a track fails it.
         min_map_points: fewer tracked triangulated points: no map check.

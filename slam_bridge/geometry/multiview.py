@@ -146,7 +146,7 @@ def triangulate(
     xn = xn[:, :2] / xn[:, 2:]
     # world -> camera projection matrices, in a frame centred on the mean optical centre of the
     # cameras given (the map's keyframes). Centring on each point's observing cameras instead
-    # was measured worse on the chapter-3 grid (docs/slam_loop_history.md).
+    # was measured worse on the chapter-3 grid (docs/lessons.md).
     centre = np.nanmean(t_wc, axis=0) if t_wc.shape[0] else np.zeros(3)
     Rt = np.swapaxes(R_wc[cams], 1, 2)  # R_cw (M, 3, 3)
     tc = -(Rt @ (t_wc[cams] - centre)[:, :, None])[:, :, 0]

@@ -47,7 +47,7 @@ follow, and ``zeta`` first grows with ``lambda``). Since ``grad zeta = 0`` at ``
 grows about quadratically along the step: half of it is feasible. So an infeasible trial is
 first retried halved (up to ``max_backtracks`` times; each retry costs one evaluation of the
 costs, no factorisation), and only then rejected. What this changed on the chapter-3 runs is
-recorded in ``docs/slam_loop_history.md``.
+recorded in ``docs/lessons.md``.
 
 **gamma.** The thesis does not fix it. By default ``gamma = gamma_rel * (t - zeta*) * C(X*)``:
 the barrier starts at ``gamma_rel`` times the constraint cost, so the result does not depend on

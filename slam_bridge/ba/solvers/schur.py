@@ -28,7 +28,7 @@ banded enough but its first cameras form a chain coupled only to their neighbour
 pose-graph window of a hybrid, fig. 3.3) that the other cameras reach only through its last
 ones, the chain is factorised apart, banded, and only the rest densely (:class:`_ChainSplit`;
 not used below a chain of a third of the cameras, where the extra LAPACK calls cost what the
-smaller dense part saves; timings in ``docs/slam_loop_history.md``).
+smaller dense part saves; timings in ``docs/lessons.md``).
 :class:`SchurFactorization` keeps the factor so that several right-hand sides can be solved with
 one factorisation (the barrier solver needs two per step, eqs. B.14-B.17).
 
@@ -154,7 +154,7 @@ def _chunk_structure(
     chunk of points with nearby first and last cameras touches few cameras and its contribution
     ``A^T A`` is a small dense GEMM with little padding. Chunks with the same ``L`` share one
     batched GEMM, with far less padding than chunks of same-length tracks (which span the
-    whole window; the figures are in ``docs/slam_loop_history.md``). Any other pattern stays
+    whole window; the figures are in ``docs/lessons.md``). Any other pattern stays
     correct (``L`` just grows; the chunks shrink when the padding gets large).
     """
     last = _LAST_STRUCT[0] if _LAST_STRUCT else None
