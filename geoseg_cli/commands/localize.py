@@ -107,6 +107,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="matches used for the absolute position, best first (default: all --k)",
     )
     parser.add_argument(
+        "--min-agreeing-rays",
+        type=int,
+        default=2,
+        help="ranged rays that must agree for the position to come from them; otherwise the "
+        "best match's position (default 2; 1: always the rays' fit)",
+    )
+    parser.add_argument(
         "--pool",
         type=int,
         nargs=2,
@@ -365,6 +372,7 @@ def _config(args: argparse.Namespace):
         appearance_weight=weight,
         rerank=not args.no_rerank,
         position_k=args.position_k,
+        min_agreeing_rays=args.min_agreeing_rays,
         sequence=args.sequence,
         step_m=args.step_m,
         appearance_scale=args.appearance_scale,
