@@ -74,6 +74,7 @@ DOMAINS: dict[tuple[str, str], Domain] = {
     ("localize", "--distance-rel-sigma"): _positive,
     ("localize", "--appearance-weight"): _non_negative,
     ("localize", "--position-k"): _int_at_least(1),
+    ("localize", "--min-agreeing-rays"): _int_at_least(1),
     ("localize", "--focal"): _positive,
     ("localize", "--step-m"): _non_negative,
     ("localize", "--appearance-scale"): _positive,
