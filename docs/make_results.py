@@ -389,7 +389,11 @@ ABOUT: dict[str, str] = {
     "2-core host with the same code and seeds: how far its figures move between renders of the "
     "same drive; see docs/bridge.md.",
     "slam_images": "The SLAM on rendered image sequences (six 600 m drives), georeferenced "
-    "without ground truth, against COLMAP.",
+    "without ground truth, against COLMAP. The pass at 69b524d ran beside three test suites "
+    "(load 10-13 after its first minutes, although `machine` gives the load at its start), so "
+    "its speed keys (`frames_per_second`, `*_ms_*`, `wall_time_over_colmap`) are loaded "
+    "figures; the previous pass's idle figure was 17.6 frames/s, the reporting split's 15.4 "
+    "(`slam_images_report.json`, load 1.3).",
     "accuracy_real_seg_real_train": "The shipped `seg_real` on CamVid's train split (367 "
     "frames of three sequences; val holds 101 frames of one of them), which no synthetic-only "
     "network trains on: a split to choose among synthetic-only candidates without looking at "

@@ -57,8 +57,6 @@ PENDING_REMEASURE: dict[str, str] = {
     "bench/fusion_ch3.py --full --drives 3 4 6 7 8 9",
     "render_speed.json": "frames per second that a loaded host lowers (19.7 against 26.3 at "
     "320x240, load 5): re-measure on an idle host: python bench/render_speed.py",
-    "slam_images.json": "its speed keys were replaced by a second pass and its loaded_* / timing "
-    "keys are written by no script: python bench/slam_images.py --full",
     "train_speed.json": "thread settings timed against each other, ~10 min of both cores; "
     "re-measure with the host otherwise idle: python bench/train_speed.py",
 }
