@@ -40,11 +40,11 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import ROOT, provenance  # noqa: E402
 
+from slam_bridge.experiments.simulated_logs import KITTI_TO_WORLD, headings  # noqa: E402
+from slam_bridge.frontend.kitti import KITTI_CAMERA_HEIGHT_M, read_kitti_poses  # noqa: E402
+
 CLIPS = ("straight", "right_turn")
 SPLIT = "tuning: straight (the gate's rule was checked on it); report: right_turn"
-#: KITTI camera frame -> z-up world (x east = x_cam0, y north = z_cam0, z up = -y_cam0)
-KITTI_TO_WORLD = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])
-CAMERA_HEIGHT_M = 1.65
 
 
 def split_clip(clip: Path, out: Path) -> tuple[Path, Path, Path, dict[str, np.ndarray]]:
@@ -53,11 +53,10 @@ def split_clip(clip: Path, out: Path) -> tuple[Path, Path, Path, dict[str, np.nd
     Returns:
         ``(base images, positions CSV, query images, true (x, y) per query file name)``.
     """
-    poses = np.loadtxt(clip / "poses.txt").reshape(-1, 3, 4)
+    R_wc, t_wc = read_kitti_poses(clip / "poses.txt")
     times = np.loadtxt(clip / "times.txt").reshape(-1)
-    centres = poses[:, :, 3] @ KITTI_TO_WORLD.T
-    forward = np.einsum("ij,njk,k->ni", KITTI_TO_WORLD, poses[:, :, :3], [0.0, 0.0, 1.0])
-    heading = np.degrees(np.arctan2(forward[:, 1], forward[:, 0]))
+    centres = t_wc @ KITTI_TO_WORLD.T  # the frame `geoseg slam simulate-logs` writes
+    heading = np.degrees(headings(KITTI_TO_WORLD @ R_wc))
     base, queries = out / "base_images", out / "queries"
     for folder in (base, queries):
         folder.mkdir(parents=True, exist_ok=True)
@@ -66,7 +65,7 @@ def split_clip(clip: Path, out: Path) -> tuple[Path, Path, Path, dict[str, np.nd
         x, y, z = centres[i]
         if i % 2 == 0:
             shutil.copy(image, base / image.name)
-            rows.append([image.name, x, y, z - CAMERA_HEIGHT_M, heading[i], times[i]])
+            rows.append([image.name, x, y, z - KITTI_CAMERA_HEIGHT_M, heading[i], times[i]])
         else:
             shutil.copy(image, queries / image.name)
             truth[image.name] = np.array([x, y])
@@ -121,7 +120,7 @@ def main(argv: list[str] | None = None) -> dict:
         base_images, positions, queries, truth = split_clip(clip, out)
         base = out / "base"
         geoseg("base", "build", str(base_images), "--out", str(base), "--overwrite",
-               "--positions", str(positions), "--camera-height", str(CAMERA_HEIGHT_M))  # fmt: skip
+               "--positions", str(positions), "--camera-height", str(KITTI_CAMERA_HEIGHT_M))  # fmt: skip
         located = out / "localized.json"
         geoseg("localize", *map(str, sorted(queries.iterdir())), "--base", str(base),
                "--out", str(located), "--overwrite")  # fmt: skip

@@ -63,7 +63,7 @@ def rigid_fit_2d(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     Returns:
         ``(R (2, 2), T (2,))``.
     """
-    from slam_bridge.slam.initialization import rotation_and_scale
+    from slam_bridge.geometry.alignment import rotation_and_scale
 
     ms, md = src.mean(axis=0), dst.mean(axis=0)
     a, b = src - ms, dst - md

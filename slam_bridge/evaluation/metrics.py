@@ -34,6 +34,7 @@ import numpy as np
 
 from geoseg.errors import check_shape
 from slam_bridge.errors import SlamError
+from slam_bridge.geometry.alignment import rotation_and_scale
 from slam_bridge.geometry.camera import project
 from slam_bridge.geometry.lie import so3_log
 
@@ -110,16 +111,7 @@ def align_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarra
         raise SlamError("align_similarity: needs at least 3 points")
     ms, md = src.mean(0), dst.mean(0)
     xs, xd = src - ms, dst - md
-    Sigma = xd.T @ xs / src.shape[0]
-    U, D, Vt = np.linalg.svd(Sigma)
-    S = np.eye(3)
-    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
-        S[2, 2] = -1.0
-    R = U @ S @ Vt
-    var = np.mean(np.sum(xs**2, axis=1))
-    if var <= 0:
-        raise SlamError("align_similarity: the source points coincide")
-    s = float(np.trace(np.diag(D) @ S) / var)
+    s, R = rotation_and_scale(xs, xd, xd.T @ xs, fix_scale=False, name="align_similarity")
     return s, R, md - s * R @ ms
 
 

@@ -43,6 +43,7 @@ import numpy as np
 from geoseg.errors import check_finite, check_positive, check_shape
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import ObservationSource
+from slam_bridge.geometry.alignment import rotation_and_scale
 from slam_bridge.geometry.lie import so3_exp, so3_log
 from slam_bridge.geometry.multiview import two_view_init
 from slam_bridge.slam.fusion import GpsConstraints
@@ -59,7 +60,6 @@ __all__ = [
     "TwoViewStart",
     "fit_similarity",
     "fit_level_similarity",
-    "rotation_and_scale",
 ]
 
 
@@ -200,39 +200,6 @@ class OdometryDistance:
         if self.yaw_rate is None:
             return None
         return self._at(t1, self.yaw_rate, self.psi) - self._at(t0, self.yaw_rate, self.psi)
-
-
-def rotation_and_scale(
-    a: np.ndarray, b: np.ndarray, H: np.ndarray, *, fix_scale: bool, name: str
-) -> tuple[float, np.ndarray]:
-    """Umeyama's rotation and scale of centred point sets, ``b ~ s R a``.
-
-    Args:
-        a: ``(N, D)`` centred source points.
-        b: ``(N, D)`` centred targets.
-        H: ``(D, D)`` the cross-covariance ``b^T a`` (plus any extra pair a caller weighs in).
-        fix_scale: keep ``s = 1``.
-        name: the caller, named in the errors.
-
-    Returns:
-        ``(s, R (D, D))``, ``R`` a proper rotation.
-
-    Raises:
-        SlamError: coincident source points, a non-positive scale.
-    """
-    U, _, Vt = np.linalg.svd(H)
-    D = np.eye(H.shape[0])
-    D[-1, -1] = np.sign(np.linalg.det(U @ Vt)) or 1.0
-    R = U @ D @ Vt
-    if fix_scale:
-        return 1.0, R
-    var = float(np.sum(a * a))
-    if var < 1e-12:
-        raise SlamError(f"{name}: the source points coincide")
-    s = float(np.sum(b * (a @ R.T)) / var)
-    if not s > 0:
-        raise SlamError(f"{name}: non-positive scale {s}")
-    return s, R
 
 
 def fit_level_similarity(
