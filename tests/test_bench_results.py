@@ -112,6 +112,10 @@ def test_results_page_and_readme_table_are_what_the_generator_writes() -> None:
     assert readme == mr.readme_with_table(readme, table), (
         "README.md's results table: run python docs/make_results.py"
     )
+    demo = mr.demo_paragraph(results)
+    assert readme == mr.readme_with_table(readme, demo, mr.DEMO_BEGIN, mr.DEMO_END), (
+        "README.md's demo figures: run python docs/make_results.py"
+    )
 
 
 def test_every_results_file_is_described_and_every_other_entry_is_used() -> None:

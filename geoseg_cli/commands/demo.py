@@ -56,6 +56,8 @@ class DemoContext:
         world: the built world (set by the first step that needs it).
         sequences: ``(rig, condition)`` -> sequence directory.
         outputs: label -> path of what the steps wrote, printed at the end.
+        figures: figure name -> value of what the steps measured, written to ``demo.json``
+            (the README's demo figures are ``bench/demo.py``'s copy of it).
     """
 
     out: Path
@@ -72,6 +74,7 @@ class DemoContext:
     world: Any = None
     sequences: dict[tuple[str, str], Path] = field(default_factory=dict)
     outputs: dict[str, Path] = field(default_factory=dict)
+    figures: dict[str, float | int] = field(default_factory=dict)
 
     def get_world(self) -> Any:
         if self.world is None:
@@ -235,6 +238,7 @@ def step_segment(ctx: DemoContext) -> None:
         f"segmentation ({segmenter.source.name}, {ctx.frames * len(ctx.sequences)} frames): "
         f"mIoU {miou:.3f}, pixel accuracy {accuracy:.3f}; IoU {per_class}"
     )
+    ctx.figures.update(segmentation_miou=miou, segmentation_pixel_accuracy=accuracy)
     ctx.outputs["segmentation"] = path
 
 
@@ -267,6 +271,7 @@ def step_buildings(ctx: DemoContext) -> None:
         print(f"slam on images, {model} building model ({setting}):")
         for method in cfg.methods:
             print("  " + _run_line(method, runs[f"{method}_{model}"]))
+            ctx.figures.update(_run_figures(f"{method}_{model}", runs[f"{method}_{model}"]))
     ctx.outputs["buildings report"] = out / "buildings_ch4.md"
     for picture in sorted(out.glob("*.png")):
         ctx.outputs[picture.stem.replace("_", " ")] = picture
@@ -290,6 +295,18 @@ def _run_line(method: str, r: dict) -> str:
             f"{100 * r['association_precision']:.0f} % on the right one"
         )
     return line
+
+
+#: what the demo keeps of each SLAM run of the buildings step (``<name>_<method>_<model>``)
+RUN_FIGURES = (
+    "translation_error_m", "rotation_error_deg", "tracking_failures", "gps_error_m",
+    "associated_points", "association_precision",
+)  # fmt: skip
+
+
+def _run_figures(run: str, r: dict) -> dict[str, float | int]:
+    """The figures of one SLAM run of the buildings step, by ``<name>_<run>``."""
+    return {f"{name}_{run}": r[name] for name in RUN_FIGURES if r.get(name) is not None}
 
 
 # The demo, in order; later issues append (name, step) pairs.
@@ -404,6 +421,9 @@ def run(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         step(ctx)
         logger.info("demo step %s: %.1f s", name, time.perf_counter() - t0)
+    if ctx.figures:
+        ctx.outputs["figures"] = out / "demo.json"
+        (out / "demo.json").write_text(json.dumps(ctx.figures, indent=1, sort_keys=True) + "\n")
     print(f"geoseg demo finished in {time.perf_counter() - start:.1f} s; outputs in {out}/")
     for label, path in ctx.outputs.items():
         print(f"  {label}: {path}")
