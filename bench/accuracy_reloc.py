@@ -85,13 +85,17 @@ ROOT = Path(__file__).resolve().parents[1]
 NAME = "accuracy_reloc"
 sys.path.insert(0, str(ROOT / "bench"))
 from provenance import provenance  # noqa: E402
+from splits import RELOC_REPORT_CITY, RELOC_TUNING_CITY  # noqa: E402
 
 
 def _split(city: int) -> str:
-    if city == 1000:
-        return "report: the held-out city 1000 (the settings were chosen on validation city 13)"
-    if city == 13:
-        return "tuning: validation city 13, on which the settings were chosen"
+    if city == RELOC_REPORT_CITY:
+        return (
+            f"report: the held-out city {city} (the settings were chosen on validation city "
+            f"{RELOC_TUNING_CITY})"
+        )
+    if city == RELOC_TUNING_CITY:
+        return f"tuning: validation city {city}, on which the settings were chosen"
     return f"city {city} (neither the held-out city 1000 nor the validation city 13)"
 
 

@@ -39,12 +39,16 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from provenance import ROOT, provenance  # noqa: E402
+from splits import KITTI_REPORT_CLIPS, KITTI_TUNING_CLIPS  # noqa: E402
 
 from slam_bridge.experiments.simulated_logs import KITTI_TO_WORLD, headings  # noqa: E402
 from slam_bridge.frontend.kitti import KITTI_CAMERA_HEIGHT_M, read_kitti_poses  # noqa: E402
 
-CLIPS = ("straight", "right_turn")
-SPLIT = "tuning: straight (the gate's rule was checked on it); report: right_turn"
+CLIPS = KITTI_TUNING_CLIPS + KITTI_REPORT_CLIPS
+SPLIT = (
+    f"tuning: {', '.join(KITTI_TUNING_CLIPS)} (the gate's rule was checked on it); report: "
+    f"{', '.join(KITTI_REPORT_CLIPS)}"
+)
 
 
 def split_clip(clip: Path, out: Path) -> tuple[Path, Path, Path, dict[str, np.ndarray]]:

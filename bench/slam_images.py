@@ -54,6 +54,11 @@ from slam_bridge.system.image_slam import ImageSlamConfig, evaluate_run, load_in
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "bench"))
 from provenance import provenance  # noqa: E402
+from splits import (  # noqa: E402
+    SLAM_IMAGES_QUICK_DRIVES,
+    SLAM_IMAGES_REPORT_DRIVES,
+    SLAM_IMAGES_TUNING_DRIVES,
+)
 
 #: which data each run measures (``--split``)
 SPLITS = {
@@ -65,24 +70,10 @@ SPLITS = {
 
 logger = logging.getLogger("bench.slam_images")
 
-#: (name, rig, world preset, condition, route seed, length in metres)
-FULL_DRIVES = [
-    ("car_light", "car", "light", "summer_day", 1, 600.0),
-    ("car_dense", "car", "dense_occlusion", "summer_day", 2, 600.0),
-    ("tram_light", "tram", "light", "overcast", 3, 600.0),
-    ("tram_dense", "tram", "dense_occlusion", "summer_day", 4, 600.0),
-    ("car_winter", "car", "light", "winter", 5, 600.0),
-    ("car_dusk", "car", "dense_occlusion", "dusk", 6, 600.0),
-]
-QUICK_DRIVES = [("car_light_300", "car", "light", "summer_day", 1, 300.0)]
-#: drives no setting was chosen on (other world and route seeds): the reporting split
-REPORT_DRIVES = [
-    ("report_car_light", "car", "light", "summer_day", 11, 300.0),
-    ("report_car_dense", "car", "dense_occlusion", "overcast", 12, 300.0),
-    ("report_tram_light", "tram", "light", "summer_day", 13, 300.0),
-    ("report_car_winter", "car", "light", "winter", 14, 300.0),
-    ("report_tram_dense", "tram", "dense_occlusion", "dusk", 15, 300.0),
-]
+#: (name, rig, world preset, condition, route seed, length in metres): bench/splits.py
+FULL_DRIVES = SLAM_IMAGES_TUNING_DRIVES
+QUICK_DRIVES = SLAM_IMAGES_QUICK_DRIVES
+REPORT_DRIVES = SLAM_IMAGES_REPORT_DRIVES
 SIGMA_B = 0.75
 FPS = 10.0
 SIZE = (640, 480)
