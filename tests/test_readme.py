@@ -199,6 +199,14 @@ def _check_demo_figures(out: str, figures_path: Path) -> None:
         else:  # rotations, points on facades, failures: printed, not quoted with a tolerance
             continue
         assert abs(value - quoted[key]) <= allowed, f"demo {key} {value}, README {quoted[key]}"
+    # what the figures say: with the true facades and no GPS, both building rules hold the
+    # trajectory the SLAM alone lets drift
+    for rule in ("raycast", "bayes"):
+        error, alone = (
+            figures[f"translation_error_m_{rule}_exact"],
+            figures["translation_error_m_nobuild_exact"],
+        )
+        assert error < 0.5 * alone, f"{rule}: {error:.3f} m, without buildings {alone:.3f} m"
 
 
 def _check_own_photos_localised(folder: Path) -> None:

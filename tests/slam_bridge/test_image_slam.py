@@ -110,7 +110,8 @@ def test_hybrid_windows_run_on_images(drive, tmp_path, method):
     assert main(slam_args(folder, gps, out, "--method", method)) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["method"] == method and s["tracking_failures"] == 0 and s["georeferenced"]
-    assert s["translation_error_m"] < 1.5 and s["rotation_error_deg"] < 3.0
+    # measured: dpc 0.20 m, mpc 0.17 m against the fixes' 0.97 m, 0.5 deg: they beat the GPS
+    assert s["translation_error_m"] < 0.5 * s["gps_error_m"] and s["rotation_error_deg"] < 1.0
     log = list(csv.DictReader(open(out / "keyframes.csv")))
     assert sum(int(r["pose_graph_cameras"]) > 0 for r in log) >= 0.3 * len(log)
     assert any("gps" in r["constraints"] for r in log)

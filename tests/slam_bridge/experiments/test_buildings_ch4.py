@@ -140,12 +140,18 @@ def test_the_stage_on_a_short_drive(tmp_path, monkeypatch):
         for model in cfg.models:
             run = summary["runs"][f"{method}_{model}"]
             assert "error" not in run, run
-            assert np.isfinite(summary[f"translation_error_m_{method}_{model}"])
+            error = summary[f"translation_error_m_{method}_{model}"]
             assert summary[f"tracking_failures_{method}_{model}"] == 0
+            if model == "gis":  # beside a 0.75 m GPS, every run beats its fixes
+                assert error < run["gps_error_m"], (method, error, run["gps_error_m"])
+            else:  # the true facades from true first poses: centimetres (measured <= 0.063 m)
+                assert error < 0.15, (method, error)
     # the oracle is right by construction; the network's association is mostly right
     assert summary["association_precision_oracle"] == 1.0
     assert summary["runs"]["oracle_exact"]["associated_points"] > 50
     assert summary["association_precision_bayes"] >= 0.8
+    # (45 m are too short for the exact model's drift to show: that the building rows hold it
+    # is asserted on the demo's 150 m drive, tests/test_readme.py)
     # the baseline gilds what stands in front of the facades; the network does not
     assert summary["association_precision_raycast"] < summary["association_precision_bayes"]
     assert summary["runs"]["bayes_exact"]["building_keyframes"] > 0
