@@ -21,7 +21,7 @@ head with a normals head trained on the randomised city, ``configs/normals_real.
 ``configs/dirichlet_real.yaml``), ``dirichlet_real_synth`` (``naive_real``'s filter for rendered
 frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose``
 (the relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
-one place, :class:`geoseg.reloc.localizer.GatedRelPoseHead`).
+one place, :class:`geoseg.reloc.networks.GatedRelPoseHead`).
 
 ``street`` (the joint labels + normals network for real street photographs, trained on real
 labelled frames: ``configs/street_seg.yaml`` then ``configs/street.yaml``) is *not* inside the
