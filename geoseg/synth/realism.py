@@ -87,7 +87,11 @@ from geoseg.config import check_range
 from geoseg.errors import ConfigError
 from geoseg.synth.conditions import Condition
 
-_PROBABILITIES = (
+# The order of the draws (the random stream of every variation depends on it): first one uniform
+# per scene option, together; then, when any is on, the twig, kerb and overcast options'
+# together; then each of the later options on its own, in this order, when it is on. An option
+# added later draws after these, so the variations drawn before it stay as they were.
+_SCENE_PROBABILITIES = (
     "p_shopfront",
     "p_paint",
     "p_vehicle_colour",
@@ -98,20 +102,9 @@ _PROBABILITIES = (
     "p_bare_trees",
     "p_lens",
 )
-# drawn after the options above (their draws, and so the older variations, stay as they were)
-_PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
-_PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
-_PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these after those, in this order)
-_PROBABILITIES_5 = ("p_posters",)  # (and this after those)
-_PROBABILITIES_6 = ("p_limbs",)  # (and this last)
-_ALL = (
-    _PROBABILITIES
-    + _PROBABILITIES_2
-    + _PROBABILITIES_3
-    + _PROBABILITIES_4
-    + _PROBABILITIES_5
-    + _PROBABILITIES_6
-)
+_TWIG_KERB_OVERCAST_PROBABILITIES = ("p_twigs", "p_kerb", "p_overcast")
+_SEPARATE_PROBABILITIES = ("p_kerb_lines", "p_furniture", "p_road_texture", "p_posters", "p_limbs")
+_ALL = _SCENE_PROBABILITIES + _TWIG_KERB_OVERCAST_PROBABILITIES + _SEPARATE_PROBABILITIES
 
 
 @dataclass
@@ -247,9 +240,10 @@ REALISTIC = RealismConfig(
     p_bare_trees=0.15,
     p_lens=0.3,
 )
-"""Every variation of the first round on (configs: copy its values)."""
+"""The scene options on: facades, vehicles, ground, light, sky, shadows, bare trees, lens
+(configs: copy its values)."""
 
-REALISTIC_2 = dataclasses.replace(
+REALISTIC_STREETS = dataclasses.replace(
     REALISTIC,
     p_bare_trees=0.4,
     p_twigs=0.8,
@@ -257,11 +251,11 @@ REALISTIC_2 = dataclasses.replace(
     p_overcast=0.25,
     bare_crown_label=True,
 )
-""":data:`REALISTIC` with the second round on: more bare trees, labelled as real datasets
-label them, twig haze, kerbs and slab paving, overcast skies."""
+""":data:`REALISTIC` with more bare trees, labelled as real datasets label them, twig haze,
+kerbs and slab paving, overcast skies."""
 
-REALISTIC_3 = dataclasses.replace(REALISTIC_2, p_kerb_lines=0.6, p_furniture=0.7)
-""":data:`REALISTIC_2` with kerb lines and the third round's extra street furniture."""
+REALISTIC_FURNISHED = dataclasses.replace(REALISTIC_STREETS, p_kerb_lines=0.6, p_furniture=0.7)
+""":data:`REALISTIC_STREETS` with kerb lines and extra street furniture."""
 
 
 @dataclass(frozen=True)
@@ -365,8 +359,8 @@ def _rgb(values) -> tuple[float, float, float]:
 def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
     """One frame's :class:`Variation` drawn from ``cfg`` (the same draws for the same ``rng``
     state, whatever options are on)."""
-    u = rng.random(len(_PROBABILITIES))
-    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_PROBABILITIES)}
+    u = rng.random(len(_SCENE_PROBABILITIES))
+    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_SCENE_PROBABILITIES)}
     r = rng.random(18)  # always drawn, so one option's draws do not depend on another's
 
     def pick(i: int, low_high: tuple[float, float]) -> float:
@@ -401,18 +395,20 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
     kw["bare_trees"] = fires["p_bare_trees"]
     if fires["p_lens"]:
         kw["lens_k1"] = pick(16, cfg.lens_k1)
-    kw.update(_draw_second_round(cfg, rng))
+    kw.update(_draw_later_options(cfg, rng))
     return Variation(**kw)
 
 
-def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
+def _draw_later_options(cfg: RealismConfig, rng: np.random.Generator) -> dict:
     """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels,
     street furniture, road texture, posters, limbs and the crown label's cover (options left at
     0 draw nothing: the earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
-    if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
-        u = rng.random(len(_PROBABILITIES_2))
-        fires = {n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_PROBABILITIES_2)}
+    if any(getattr(cfg, name) > 0 for name in _TWIG_KERB_OVERCAST_PROBABILITIES):
+        u = rng.random(len(_TWIG_KERB_OVERCAST_PROBABILITIES))
+        fires = {
+            n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_TWIG_KERB_OVERCAST_PROBABILITIES)
+        }
         r = rng.random(8)
         if fires["p_twigs"]:
             lo, hi = cfg.twig_density
@@ -430,27 +426,27 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
             kw["sun"] = (360.0 * float(r[6]), 50.0, 0.15 + 0.25 * float(r[7]))
             kw["shadows"] = False
     if cfg.p_kerb_lines > 0:
-        u3 = rng.random(2)
-        if u3[0] < cfg.p_kerb_lines:
-            kw["kerb_lines"] = float(0.45 + 0.5 * u3[1])  # worn to fresh paint
+        u_lines = rng.random(2)
+        if u_lines[0] < cfg.p_kerb_lines:
+            kw["kerb_lines"] = float(0.45 + 0.5 * u_lines[1])  # worn to fresh paint
     if cfg.p_furniture > 0:
-        u4 = rng.random(2)
-        if u4[0] < cfg.p_furniture:
+        u_furniture = rng.random(2)
+        if u_furniture[0] < cfg.p_furniture:
             lo, hi = cfg.furniture_spacing_m
-            kw["furniture_spacing"] = float(lo + (hi - lo) * u4[1])
+            kw["furniture_spacing"] = float(lo + (hi - lo) * u_furniture[1])
             # style options: no draws of their own (the other draws stay as they were)
             kw["furniture_kerb_share"] = float(cfg.furniture_kerb_share)
             kw["furniture_plain_plates"] = bool(cfg.furniture_plain_plates)
     if cfg.p_road_texture > 0:
-        u5 = rng.random(2)
-        if u5[0] < cfg.p_road_texture:
+        u_texture = rng.random(2)
+        if u_texture[0] < cfg.p_road_texture:
             lo, hi = cfg.road_texture
-            kw["road_texture"] = float(lo + (hi - lo) * u5[1])
+            kw["road_texture"] = float(lo + (hi - lo) * u_texture[1])
     if cfg.p_posters > 0:
-        u6 = rng.random(2)
-        if u6[0] < cfg.p_posters:
+        u_posters = rng.random(2)
+        if u_posters[0] < cfg.p_posters:
             lo, hi = cfg.poster_share
-            kw["poster_share"] = float(lo + (hi - lo) * u6[1])
+            kw["poster_share"] = float(lo + (hi - lo) * u_posters[1])
     if cfg.p_limbs > 0:
         kw["limbs"] = bool(rng.random() < cfg.p_limbs)
     if cfg.crown_label_cover > 0:  # a label rule: no draw of its own
