@@ -125,7 +125,6 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -133,7 +132,7 @@ from scipy.spatial import cKDTree
 
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend import features as ft
-from slam_bridge.frontend.base import KeyframeObservations
+from slam_bridge.frontend.base import KeyframeObservations, MapView
 from slam_bridge.frontend.frames import FrameSequence, check_intrinsics
 from slam_bridge.frontend.keyframes import DistanceFn, KeyframeRule
 from slam_bridge.frontend.motion import GlobalMotion
@@ -142,9 +141,6 @@ from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.frontend.tracks_config import ImageTracksConfig
 from slam_bridge.geometry.camera import project
 from slam_bridge.geometry.multiview import PnPResult, pnp
-
-if TYPE_CHECKING:
-    from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
 
@@ -241,7 +237,7 @@ class ImageTracks:
         self.stats: dict[str, int] = defaultdict(int)
 
     # ------------------------------------------------------------------------------ protocol
-    def next_keyframe(self, slam_map: Map | None) -> KeyframeObservations | None:
+    def next_keyframe(self, slam_map: MapView | None) -> KeyframeObservations | None:
         """Track frames up to the next keyframe and return its observations.
 
         Args:
@@ -447,7 +443,7 @@ class ImageTracks:
         flow = np.linalg.norm(tr.uv - tr.uv_kf, axis=1)
         return alive / self._n_kf, float(np.median(flow)), alive
 
-    def _drop_rejected(self, slam_map: Map) -> None:
+    def _drop_rejected(self, slam_map: MapView) -> None:
         """Drop the tracks whose observation in our last keyframe the loop rejected as outliers.
 
         When the loop deactivated more than half of that keyframe's observations, it gave up the
@@ -471,7 +467,7 @@ class ImageTracks:
         t: float,
         rgb: np.ndarray,
         gray: np.ndarray,
-        slam_map: Map | None,
+        slam_map: MapView | None,
         reason: str,
     ) -> KeyframeObservations:
         t0 = time.process_time()
@@ -557,7 +553,7 @@ class ImageTracks:
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
 
-    def _end_old_tracks(self, slam_map: Map | None) -> None:
+    def _end_old_tracks(self, slam_map: MapView | None) -> None:
         """End the tracks ``max_track_keyframes`` or more keyframes after their reference, once
         the map tracks them (``min_map_points`` of them triangulated): a start (no map yet, a
         new segment) needs its reference keyframe's tracks for as long as it takes."""
@@ -602,7 +598,7 @@ class ImageTracks:
         self._memory.retire(tr.ids[~keep])
         tr.keep(keep)
 
-    def _map_check(self, slam_map: Map) -> tuple[np.ndarray, np.ndarray] | None:
+    def _map_check(self, slam_map: MapView) -> tuple[np.ndarray, np.ndarray] | None:
         """Stage 9: PnP on the tracks of triangulated points, dropping those it rejects.
 
         Returns:
@@ -618,7 +614,7 @@ class ImageTracks:
         self._drop(keep, "map_rejected")
         return res.R_wc, res.t_wc
 
-    def _triangulated_tracks(self, slam_map: Map) -> np.ndarray:
+    def _triangulated_tracks(self, slam_map: MapView) -> np.ndarray:
         """Indices of the live tracks whose point the map has triangulated."""
         ids = self._tracks.ids
         sel = np.flatnonzero(ids < slam_map.num_points)
@@ -645,7 +641,7 @@ class ImageTracks:
             return None
 
     def _add_tracks(
-        self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: Map | None
+        self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: MapView | None
     ) -> None:
         """Stages 10-14: candidates, re-observation, top-up, centring, descriptors."""
         cfg, tr = self.config, self._tracks
@@ -759,7 +755,7 @@ class ImageTracks:
         self._next_id += n
         return ids
 
-    def _verify(self, slam_map: Map, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def _verify(self, slam_map: MapView, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """``(R,)`` bool: re-observations consistent with the keyframe's pose: the map check's
         pose when there is one, else the pose that PnP estimates from them and the tracked
         triangulated points (whose outliers are then dropped too)."""
