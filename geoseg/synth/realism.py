@@ -5,74 +5,14 @@ A :class:`RealismConfig` holds probabilities and ranges; :func:`draw_variation` 
 :class:`Variation` from it (one per training frame, from a seeded generator), and
 :meth:`geoseg.synth.renderer.Renderer.render` takes that variation. Every option is off by
 default (``RealismConfig()`` draws the identity variation, and ``render(..., variation=None)``
-renders exactly as before); :data:`REALISTIC` turns them all on.
+renders exactly as before); :data:`REALISTIC` turns the scene options on.
 
-Pure appearance options (the rendered colours change, the labels, depth, normals and instance
-ids do not):
-
-- ``p_shopfront`` / ``shopfront_share``: a share of the facades get a shop-front ground floor:
-  a facade-wide fascia board in a bold colour with letter-like marks, large display windows
-  with coloured goods behind the glass, pilasters, a stall riser and, on some, a striped awning
-  painted on the wall; all of it labelled building (real shop fronts and signs are);
-- ``p_paint`` / ``paint_share``: a share of the facades are repainted a random colour (any hue,
-  low to medium saturation, dark to white) and may switch wall material; some get a dark
-  drainpipe (a thin vertical stripe that is building, not object);
-- ``p_vehicle_colour`` / ``vehicle_colour_share``: a share of the vehicles get a new colour
-  (mostly the white, silver, grey and black of real traffic, some saturated hues);
-- ``p_ground``: the tone of the asphalt, the colour and tone of the paving and the brightness
-  of the road markings change (sidewalks as grey as the road included);
-- ``p_light``: the sun's direction and strength, the sky light and the haze change;
-- ``p_sky``: the sky's colours change (clear blue to flat white and grey) and clouds appear
-  (``cloud_cover``);
-- ``p_shadows``: cast shadows (a second ray cast, ~20 % slower per frame that draws them);
-- ``p_twigs`` / ``twig_density``: bare crowns get a haze of fine twigs, finer than a pixel:
-  each crown surface a ray passes through covers ``twig_density`` of what lies behind with a
-  dull grey-brown (a leafless tree reads as a textured veil against the sky, not as sparse
-  dots); behind limbs (``p_limbs``) the haze is a twig mass instead, as dense on average,
-  denser across a crown's middle than at its rim and speckled twig by twig;
-- ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
-  sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
-  joints, tone per slab and dirt, where the default paving is plain tiles;
-- ``p_road_texture`` / ``road_texture``: the asphalt's mottling, grit and repair patches are
-  toned down (to flat at 0) around the frame's median asphalt tone, markings kept (real
-  asphalt at 320x240 is smoother than the rendered one: texture must not be what tells road
-  from pavement);
-- ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
-  single white or yellow line), on some street sides, worn to a varying brightness;
-- ``p_posters`` / ``poster_share``: a share of the facades get a poster hoarding over their
-  ground floor: boards covered with posters of bold colour blocks, pale backgrounds and dark
-  marks (the look of the city's advertising panels, which are ``object``), labelled building
-  as real datasets label hoardings and shop signs;
-- ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
-  sun, in daylight conditions (grey skies beside grey facades: the sky class must be learnt
-  from more than its colour).
-
-Label option (the image, depth and normals do not change; the labels do):
-
-- ``bare_crown_label``: every pixel whose ray meets a bare crown first is ``vegetation``, the
-  crown's whole silhouette, as real datasets label a leafless tree (CamVid's ``Tree`` covers
-  the sky between the branches); off, such a pixel takes the label of what its ray reaches
-  between the branches. It acts wherever crowns are bare (``p_bare_trees``, ``winter``).
-  ``crown_label_cover`` narrows it: a crown pixel is ``vegetation`` where a branch stops its
-  ray, where the sky shows through, or where the fine twigs and thin limbs cover at least that
-  share of it; where a facade, a vehicle or the ground shows through a thin part, that labels
-  it (a map point tracked there lies on the facade).
-
-Options that change the geometry, with labels that follow it (rendered from the same rays):
-
-- ``p_bare_trees``: the tree crowns are leafless (rays pass between the branches and get the
-  label of what lies behind, as in the ``winter`` condition) under any light;
-- ``p_limbs``: leafless crowns are drawn as a stem, limbs, branches and twigs
-  (:mod:`geoseg.synth.bare_crowns`) instead of a sparse voxel pattern on the crown's surfaces:
-  lines against the sky, as a real winter tree, where the default reads as a speckled ball. It
-  acts wherever crowns are bare (``p_bare_trees``, ``winter``);
-- ``p_furniture`` / ``furniture_spacing_m``: extra street furniture near the camera (sign
-  posts with plates, traffic lights, lamp posts, bollards, utility cabinets), mostly at the
-  kerb (``furniture_kerb_share``), labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
-  ``furniture_plain_plates`` paints their plates plain colours (image only);
-- ``p_lens`` / ``lens_k1``: radial lens distortion, ``x_u = x_d (1 + k1 r_d^2)`` in normalised
-  image coordinates (``k1 > 0``: barrel, straight lines bow outwards). Such a frame is not a
-  pinhole image: its ``K`` is the undistorted camera's.
+Most options change only the rendered colours (shop fronts, paint, vehicle colours, ground,
+light, sky, shadows, twigs, kerbs, road texture, kerb lines, posters, overcast skies);
+``bare_crown_label`` and ``crown_label_cover`` change only the labels; ``p_bare_trees``,
+``p_limbs``, ``p_furniture`` and ``p_lens`` change the geometry, with labels that follow it.
+What each option does and how it labels: ``docs/real_images.md`` ("Synthetic data that
+transfers").
 """
 
 from __future__ import annotations
