@@ -53,7 +53,7 @@ database image. Measured:
 Weights: ``--trunk``, ``--reloc``, ``--relpose`` (defaults: the shipped ``geoseg/weights/seg``,
 ``.../reloc``, ``.../relpose``, else ``runs/seg`` etc.); the word ``random`` asks for random
 weights. With the default ``--relpose``, its distances are gated with the shipped near head
-``relpose_near`` (:class:`geoseg.reloc.localizer.GatedRelPoseHead`, ``--near-gate-m``), as in
+``relpose_near`` (:class:`geoseg.reloc.networks.GatedRelPoseHead`, ``--near-gate-m``), as in
 ``geoseg localize``; ``--relpose-near none`` measures the relative-pose head alone. A missing one is replaced by random weights, and then the results JSON is
 **refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
 
@@ -250,7 +250,7 @@ def load_models(args: argparse.Namespace) -> tuple[Any, torch.nn.Module, Any, li
         near_path = _default(None, "relpose_near")
     args.near_gate_used = None
     if near_path is not None and str(near_path) != "none":
-        from geoseg.reloc.localizer import NEAR_GATE_M, GatedRelPoseHead
+        from geoseg.reloc.networks import NEAR_GATE_M, GatedRelPoseHead
 
         gate = NEAR_GATE_M if args.near_gate_m is None else args.near_gate_m
         relpose = GatedRelPoseHead(relpose, _load_head(near_path, "relpose").eval(), near_m=gate)
@@ -584,7 +584,8 @@ def bench_localizer(db, f_db, emb_db, f_q, emb_q, head, args) -> Any:
     """The library's :class:`geoseg.reloc.localizer.Localizer` over the bench's features: queries are
     row indices into ``f_q``/``emb_q``; GPS window, top ``--rerank-k`` re-ranked by predicted
     distance, position from the best ``--top-k`` (the settings of ``geoseg localize``)."""
-    from geoseg.reloc.localizer import Localizer, LocalizerConfig, head_relative_poses
+    from geoseg.reloc.localizer import Localizer, LocalizerConfig
+    from geoseg.reloc.networks import head_relative_poses
     from geoseg.reloc.retrieval import RetrievalIndex
 
     def relative_pose(idx: np.ndarray, q: int) -> list:

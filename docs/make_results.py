@@ -355,7 +355,7 @@ ABOUT: dict[str, str] = {
     "`position_error_at_base_poses` figures use winter queries taken exactly at the base poses "
     "(`geoseg.reloc.localizer.Localizer`, GPS window; `_sequence`: the route filter, no GPS). The "
     "relative poses are the shipped head's, its distance gated with the near head "
-    "(`relpose_near`, `geoseg.reloc.localizer.GatedRelPoseHead`).",
+    "(`relpose_near`, `geoseg.reloc.networks.GatedRelPoseHead`).",
     "inference_speed": "Network sizes, CPU time (onnxruntime vs the LRASPP baseline, side by "
     "side in one run), int8 quantisation, and GPU latency (`gpu_*`, on a lent H100).",
     "render_speed": "Frames per second of the synthetic world's ray-casting renderer.",

@@ -1,52 +1,16 @@
 """Dirichlet false-positive filter for building pixels (thesis §4.2.2-4.2.3, eqs. 4.3-4.9).
 
-The network's per-pixel softmax vectors ``P`` of *true* building pixels are modelled by a
-Dirichlet distribution ``D(alpha)``. A pixel whose argmax is "building" but whose Dirichlet
-density is low is a false positive and is dropped (fig. 4.7): the filter looks at the whole
-shape of the distribution, not only at its argmax.
-
-Fit (eqs. 4.4-4.8). With ``m`` training vectors and ``ln t_i = sum_q ln q_i`` (the sum over the
-samples of the log of their ``i``-th probability; the thesis's ``t_i = prod_q q_i``), the
-negative log-likelihood plus the thesis's exponential barrier is
-
-    C(alpha) = m ln B(alpha) + sum_i (1 - alpha_i) ln t_i + lambda sum_i exp(-alpha_i)   (4.7)
-    dC/dalpha_l = m (psi(alpha_l) - psi(sum_i alpha_i)) - ln t_l - lambda exp(-alpha_l)    (4.8)
-
-with ``B`` the multivariate Beta function and ``psi`` the digamma function. It is minimised with
-SciPy's L-BFGS-B and the analytic gradient. The sufficient statistics ``ln t`` are computed once
-(chunked), so the optimiser never touches the samples again: 2e6 pixels fit in ~1 s on a shared
-2-core CPU, mostly input validation and logarithms (:meth:`DirichletFilter.fit_statistics` fits
-from statistics accumulated over many images). For conditioning, L-BFGS-B minimises ``C / m`` (same minimiser); the bounds
-``alpha_i >= ALPHA_MIN`` keep every iterate inside the digamma's domain, and the barrier term is
-kept as in the thesis (its default weight ``lam = 1`` is negligible against ``m`` large). The
-start point is the method-of-moments estimate (deterministic; the thesis used random restarts).
-
-Probabilities are clipped to ``[eps, 1]`` and renormalised before any logarithm (default
-``eps = 1e-30``, :data:`DEFAULT_EPS`): float32 softmax outputs can underflow to exactly 0 and
-``ln 0`` would make the statistics infinite. The floor sits a little above float32's smallest
-normal number (~1.2e-38): softmax values down to there still carry information (their logs are
-linear in the logits), and a coarse floor biases small concentrations: on 1e5 samples with
-``alpha_i = 0.1``, ``eps = 1e-10`` over-estimates ``alpha_i`` by 17 %, ``eps = 1e-20`` by 1.6 %,
-``eps = 1e-30`` by < 1 %. Fit and scoring use the same floor, so it is part of the saved model.
-The threshold ``t_D`` is stored as a log-density.
-
-3D rule (§4.2.3, eq. 4.9): a map point observed in several keyframes gets the mean ``P_Z`` of its
-distributions; it is a building point iff ``D(P_Z) > t_D`` and its weight is ``W_q = D(P_Z)``.
-:meth:`DirichletFilter.classify_points` returns the flag and ``W_q`` as the thesis defines it (the
-density itself, not normalised; it is unbounded when some ``alpha_i < 1``), plus the
-log-density and, once a threshold has been calibrated, a normalised weight in ``[0, 1]`` (the
-fraction of held-out true-building pixels whose density is lower).
-
-:class:`MaxProbabilityFilter` is the baseline with the same API: its score is the building
-probability itself, so both filters can be compared at the same false-rejection rate.
-
-Spatial window (our addition; ``window = 1`` is the thesis's per-pixel filter): both filters
-can score the mean of the probability vectors over a ``window x window`` box around each
-pixel (:meth:`~_ScoreFilter.smooth`) instead of the pixel's own vector, while the argmax that
-defines the building pixels stays per pixel. It is the image-space analogue of the 3D rule's
-mean over a point's observations: the naive CNN's false positives sit mostly in thin bands
-(road and vehicles just under a facade), where the neighbourhood's mean still leans to the
-other class. Fit, calibration and scoring must then all see smoothed vectors.
+The network's per-pixel softmax vectors of *true* building pixels are modelled by a Dirichlet
+distribution ``D(alpha)``; a pixel whose argmax is "building" but whose density is low is a false
+positive and is dropped (fig. 4.7). :class:`DirichletFilter` fits ``alpha`` by L-BFGS-B on
+sufficient statistics (eqs. 4.4-4.8; :meth:`DirichletFilter.fit_statistics` from statistics
+accumulated over many images), clips probabilities at ``eps`` (:data:`DEFAULT_EPS`, part of the
+saved model) before any logarithm, stores the threshold ``t_D`` as a log-density and applies the
+3D rule of eq. 4.9 to map points (:meth:`DirichletFilter.classify_points`).
+:class:`MaxProbabilityFilter` is the baseline with the same API. Both may score the mean vector
+over a ``window x window`` box (our addition; ``window = 1`` is the thesis's filter). The fit's
+details, the choice of ``eps`` (measured) and the reason for the window: ``docs/networks.md``
+("The Dirichlet false-positive filter").
 """
 
 from __future__ import annotations

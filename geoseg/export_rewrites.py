@@ -1,36 +1,18 @@
 """Export-time rewrites of the ENet blocks into the forms onnxruntime runs fast on the CPU.
 
-onnxruntime's CPU provider runs convolutions, max pooling, nearest upsampling, ``Add``/``Mul`` of
-equal shapes and ``Relu`` in a blocked channel layout (NCHWc, 16 channels per block with AVX-512)
-and inserts a layout conversion (``ReorderInput``/``ReorderOutput``, a full copy) around every
-other node. The plain ENet graph converts back and forth around each PReLU (``Neg``, per-channel
-``Mul``, ``Sub``), each channel zero-padding (``Pad``) and each unpooling (``ScatterND`` with the
-indices of a slow ``MaxPool``-with-indices kernel), and its transposed convolutions run as a GEMM
-plus a single-threaded col2im. The rewrites keep the computation and change its form:
+onnxruntime's CPU provider runs convolutions, pooling, nearest upsampling, equal-shape
+``Add``/``Mul`` and ``Relu`` in a blocked channel layout (NCHWc) and copies the tensor in and out
+of it around every other node; the plain ENet graph does so around each PReLU, channel padding
+and unpooling, and runs its transposed convolutions single-threaded. The rewrites keep the
+computation and change its form: PReLU as depthwise 1x1 convolutions, the initial block and the
+downsampling padding as convolutions, max-unpooling as ``nearest_upsample(main) * mask`` with a
+*switch mask* instead of pooling indices, transposed convolutions as sub-pixel convolutions, pixel
+shuffles as ``fold`` (ONNX ``Col2Im``). Each rewrite and what it bought:
+``docs/onnx_operators.md``.
 
-- **PReLU** as ``x + (1 - a) relu(-x)`` with the two per-channel scalings written as depthwise
-  1x1 convolutions (one with a fused ``Relu``, one with the addition fused): two NCHWc nodes.
-- **Initial block**: the concatenation of the 13-filter convolution and the 3-channel max pool
-  becomes a 16-filter convolution plus a 1x1 convolution placing the pooled channels, with the
-  batch norm folded into both.
-- **Downsampling**: the channel zero-padding of the pooled branch is a 1x1 convolution by
-  ``[I; 0]``; instead of pooling indices the block returns a *switch mask* `(B, C, H, W)`: 1 at the
-  first maximum of each 2x2 window (row-major order, torch's tie rule), 0 elsewhere. The window's
-  four values come from a stride-2 depthwise convolution by one-hot kernels (in the blocked
-  layout, where strided slices are not), the first maximum from ``ArgMax``.
-- **Upsampling**: max-unpooling is ``nearest_upsample(main) * mask``; the extension's 3x3
-  stride-2 transposed convolution (+ batch norm + ReLU) is its sub-pixel form, a 2x2 convolution
-  with four times the channels followed by a pixel shuffle.
-- **Pixel shuffles** (masks and sub-pixel convolutions) are ``fold`` (ONNX ``Col2Im``) with 2x2
-  blocks at stride 2; onnxruntime's ``DepthToSpace`` is a generic transpose, ~10x slower.
-
-Outputs equal the original module's up to float rounding (batch norms folded, ``x + (1 - a)(-x)``
-for ``a x``), so a near-tie in a max-pooling window can move a switch: compare by argmax agreement
-and mean errors, as for any export. Side by side on this project's 2-core CPU (640x480, batch 1,
-2 threads), the joint network's onnxruntime time is about halved (``joint_ort`` vs
-``joint_ort_plain`` in ``bench/inference_speed.py``).
-
-The rewritten modules fold the batch-norm running statistics: they are for inference only.
+Outputs equal the original module's up to float rounding (batch norms folded), so a near-tie in a
+max-pooling window can move a switch: compare by argmax agreement and mean errors, as for any
+export. The rewritten modules fold the batch-norm running statistics: they are for inference only.
 """
 
 from __future__ import annotations

@@ -1,36 +1,28 @@
 """The trained weights shipped inside the package, ``geoseg/weights/<name>/``.
 
 Each folder is a copy of a ``geoseg train`` run directory reduced to what inference and the
-benchmarks read (:data:`SHIPPED_FILES`): ``model.pt`` (torch checkpoint), ``model.onnx``,
-``model_card.json`` / ``.md`` (data, config, command, metrics, wall time), ``metrics.json`` /
-``.csv`` and ``config.yaml``; the Dirichlet folder holds ``dirichlet.json`` and
-``max_probability.json`` instead of a network. ``python -m training.ship RUN NAME`` copies a run
-there; the model card's ``command`` reproduces it (``python -m training.average`` for averaged
-weights, whose card names their sources).
+benchmarks read (:data:`SHIPPED_FILES`): ``model.pt``, ``model.onnx``, ``model_card.json`` /
+``.md`` (data, config, command, metrics, wall time), ``metrics.json`` / ``.csv`` and
+``config.yaml``; the Dirichlet folders hold ``dirichlet.json`` and ``max_probability.json``
+instead of a network. ``python -m training.ship RUN NAME`` copies a run there; the model card's
+``command`` reproduces it (``python -m training.average`` for averaged weights).
 
-Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes), ``seg_real`` (the same network for real
-street photographs: fine-tuned from ``seg`` on the randomised city at 320x240 then at 480x360,
-``configs/seg_real.yaml`` and ``configs/seg_real_480.yaml``, its weights averaged with those of
-the same stage two on cities with parked cars, ``configs/seg_real_parked.yaml``, and that
-average with a tenth of ``seg``, :mod:`training.average`; docs/real_images.md), ``normals``
-(the joint labels + normals network: the ``seg`` trunk and label head with a trained normals
-head), ``normals_real`` (the same for real photographs: the ``seg_real`` trunk and label
-head with a normals head trained on the randomised city, ``configs/normals_real.yaml``),
+Names (:data:`PRETRAINED`): ``seg`` (ENet, 8 classes) and ``seg_real`` (the same for real street
+photographs: fine-tuned on the randomised city and weight-averaged, docs/real_images.md);
+``normals`` and ``normals_real`` (the joint labels + normals networks on those trunks);
 ``naive`` (the 2015 patch CNN), ``dirichlet`` (its false-positive filter), ``naive_real`` and
-``dirichlet_real`` (the same for real photographs: ``configs/naive_real.yaml``,
-``configs/dirichlet_real.yaml``), ``dirichlet_real_synth`` (``naive_real``'s filter for rendered
-frames of the synthetic city, ``configs/dirichlet_real_synth.yaml``), ``reloc`` and ``relpose``
-(the relocalisation heads, when shipped) and ``relpose_near`` (the relative-pose head for views of
-one place, :class:`geoseg.reloc.localizer.GatedRelPoseHead`).
+``dirichlet_real`` (the same for real photographs), ``dirichlet_real_synth`` (``naive_real``'s
+filter for rendered frames); ``reloc`` and ``relpose`` (the relocalisation heads, when shipped)
+and ``relpose_near`` (the relative-pose head for views of one place,
+:class:`geoseg.reloc.networks.GatedRelPoseHead`). Each card names its config.
 
-``street`` (the joint labels + normals network for real street photographs, trained on real
-labelled frames: ``configs/street_seg.yaml`` then ``configs/street.yaml``) is *not* inside the
-package: its labels come from CamVid, whose terms allow research use and reproduction by
-benchmarks but not weights shipped in the package. ``python -m training.ship runs/street street
---user`` installs a run of it into the user weights folder (:data:`USER_WEIGHTS_DIR`), where
-every function here finds it by name, as it finds the package's. :func:`real_photo_network`
-names the network for real photographs that commands use by default: ``street`` when installed,
-else ``normals_real``.
+``street`` (the joint network for real street photographs, trained on CamVid's labels:
+``configs/street_seg.yaml`` then ``configs/street.yaml``) is *not* inside the package: CamVid's
+terms allow research use and reproduction by benchmarks but not weights shipped in the package.
+``python -m training.ship runs/street street --user`` installs a run of it into the user weights
+folder (:data:`USER_WEIGHTS_DIR`), where every function here finds it by name.
+:func:`real_photo_network` names the network for real photographs that commands use by default:
+``street`` when installed, else ``normals_real``.
 """
 
 from __future__ import annotations

@@ -215,17 +215,7 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     if all(p.is_file() for p in outputs) and not cfg.overwrite:
         logger.info("%s: already fitted (overwrite=true redoes it)", out)
         return out
-    if cfg.naive_checkpoint is None:
-        raise GeosegError(
-            "naive_checkpoint: the dirichlet stage needs the trained naive CNN; set it to a naive "
-            "run directory or model file (e.g. --set naive_checkpoint=runs/naive)"
-        )
-    state, ckpt = common.load_state(
-        cfg.naive_checkpoint, expected_model="naive_cnn", option="naive_checkpoint"
-    )
-    model_config = dict(ckpt.get("model_config") or {})
-    model = get_model("naive_cnn", **model_config)
-    model.load_state_dict(state)
+    model = _load_naive(cfg)
     device = dd.resolve_device(cfg.device)
     fit_set = frame_data.build_frame_dataset(cfg.data, cfg.fit_split, augment=False)
     val_set = frame_data.build_frame_dataset(cfg.data, "val", augment=False)
@@ -242,6 +232,53 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     kw = dict(device=device, batch_size=cfg.batch_size, band_rows=cfg.band_rows,
               progress=cfg.progress)  # fmt: skip
 
+    dirichlet, fit_probs, inference_s, fit_s = _fit(cfg, model, fit_set, fit_idx, kw)
+
+    baseline, calib = _calibrate(cfg, model, val_set, kw, dirichlet)
+
+    evaluation = dense_probabilities(
+        model, val_set, range(cfg.calib_frames, need), desc="evaluation", **kw
+    )
+    d_scores, m_scores = score_filters(evaluation, [dirichlet, baseline])
+
+    metrics = _metrics(
+        cfg, command, dirichlet, baseline, d_scores, m_scores, fit_probs, calib, fit_s, inference_s
+    )
+    if dd.is_main_process():
+        dirichlet.save(out / FILTER_FILE)
+        baseline.save(out / BASELINE_FILE)
+        atomic_write(out / METRICS_FILE, json.dumps(_finite(metrics), indent=1, default=str))
+    logger.info(
+        "Dirichlet removes %.1f %% of building false positives (+%.1f %% false rejections); "
+        "max-probability at the same rate removes %.1f %% (+%.1f %%): %s wins",
+        100 * d_scores["fp_removed"],
+        100 * d_scores["extra_false_rejections"],
+        100 * m_scores["fp_removed"],
+        100 * m_scores["extra_false_rejections"],
+        metrics["winner"],
+    )
+    return out
+
+
+def _load_naive(cfg: DirichletConfig) -> Any:
+    """The naive CNN of ``cfg.naive_checkpoint``."""
+    if cfg.naive_checkpoint is None:
+        raise GeosegError(
+            "naive_checkpoint: the dirichlet stage needs the trained naive CNN; set it to a naive "
+            "run directory or model file (e.g. --set naive_checkpoint=runs/naive)"
+        )
+    state, ckpt = common.load_state(
+        cfg.naive_checkpoint, expected_model="naive_cnn", option="naive_checkpoint"
+    )
+    model_config = dict(ckpt.get("model_config") or {})
+    model = get_model("naive_cnn", **model_config)
+    model.load_state_dict(state)
+    return model
+
+
+def _fit(cfg: DirichletConfig, model: Any, fit_set: Any, fit_idx: range, kw: dict) -> tuple:
+    """``(filter, fit pixels (N, K), inference s, fit s)``: the Dirichlet filter fitted on the
+    true building pixels of the fit frames."""
     dirichlet = DirichletFilter(
         lam=cfg.lam, eps=cfg.eps, temperature=cfg.temperature, window=cfg.window
     )
@@ -265,7 +302,14 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     dirichlet.fit(fit_probs.astype(np.float64))
     fit_s = time.perf_counter() - t0
     logger.info("Dirichlet fitted on %d pixels in %.2f s", len(fit_probs), fit_s)
+    return dirichlet, fit_probs, inference_s, fit_s
 
+
+def _calibrate(
+    cfg: DirichletConfig, model: Any, val_set: Any, kw: dict, dirichlet: DirichletFilter
+) -> tuple:
+    """``(baseline, calibration pixels)``: both filters' thresholds set on the calibration
+    frames for ``cfg.false_rejection_rate``."""
     calib_all, calib_accepted = [], []
     for probs, labels in dense_probabilities(
         model, val_set, range(cfg.calib_frames), desc="calibration", **kw
@@ -289,12 +333,22 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
     rate = min(cfg.false_rejection_rate * len(calib_all) / len(calib), 0.999)
     dirichlet.threshold_for_false_rejection(calib, rate)
     baseline.threshold_for_false_rejection(calib, rate)
+    return baseline, calib
 
-    evaluation = dense_probabilities(
-        model, val_set, range(cfg.calib_frames, need), desc="evaluation", **kw
-    )
-    d_scores, m_scores = score_filters(evaluation, [dirichlet, baseline])
 
+def _metrics(
+    cfg: DirichletConfig,
+    command: str | None,
+    dirichlet: DirichletFilter,
+    baseline: MaxProbabilityFilter,
+    d_scores: dict[str, Any],
+    m_scores: dict[str, Any],
+    fit_probs: np.ndarray,
+    calib: np.ndarray,
+    fit_s: float,
+    inference_s: float,
+) -> dict[str, Any]:
+    """The run's ``metrics.json``."""
     metrics: dict[str, Any] = {
         "dirichlet_fp_removed": d_scores["fp_removed"],
         "dirichlet_extra_false_rejections": d_scores["extra_false_rejections"],
@@ -319,20 +373,7 @@ def main(cfg: DirichletConfig, *, command: str | None = None) -> Path:
         "command": command or "python -c 'from training.dirichlet_fit import main; main(cfg)'",
         "config": cfg.as_dict(),
     }
-    if dd.is_main_process():
-        dirichlet.save(out / FILTER_FILE)
-        baseline.save(out / BASELINE_FILE)
-        atomic_write(out / METRICS_FILE, json.dumps(_finite(metrics), indent=1, default=str))
-    logger.info(
-        "Dirichlet removes %.1f %% of building false positives (+%.1f %% false rejections); "
-        "max-probability at the same rate removes %.1f %% (+%.1f %%): %s wins",
-        100 * d_scores["fp_removed"],
-        100 * d_scores["extra_false_rejections"],
-        100 * m_scores["fp_removed"],
-        100 * m_scores["extra_false_rejections"],
-        metrics["winner"],
-    )
-    return out
+    return metrics
 
 
 def _finite(value: Any) -> Any:

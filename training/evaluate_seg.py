@@ -476,25 +476,12 @@ def evaluate(
         GeosegError: no model, ``naive`` without ``dirichlet`` (or the reverse), a model output
             of the wrong shape or without normals.
     """
-    if seg is None and normals is None and naive is None:
-        raise GeosegError("evaluate: give at least one of seg, normals, naive")
-    if (naive is None) != (dirichlet is None):
-        raise GeosegError(
-            "naive/dirichlet: the filter figures need both the naive CNN and the filter"
-        )
-    if dirichlet is not None and dirichlet.threshold is None:
-        raise GeosegError("dirichlet: the filter has no threshold")
-    if maxprob is not None and dirichlet is not None and maxprob.window != dirichlet.window:
-        raise GeosegError(
-            f"maxprob: window {maxprob.window} differs from the Dirichlet filter's "
-            f"{dirichlet.window}; both must score the same smoothed maps"
-        )
+    _check_models(seg, normals, naive, dirichlet, maxprob)
     from geoseg.data.synthetic import HELDOUT_CONDITIONS
     from training.metrics import (
         NormalsMeter,
         building_normals_meter,
         confusion_matrix,
-        segmentation_scores,
     )
 
     if dataset is None:
@@ -553,40 +540,11 @@ def evaluate(
             res_v = naive(images)
             _check_result("naive", res_v, shape)
             cm_naive += confusion_matrix(torch.from_numpy(res_v.labels.astype(np.int64)), labels)
-            for k in range(len(samples)):
-                lab = labels[k].numpy()
-                probs = res_v.probabilities[k].transpose(1, 2, 0)  # (H, W, C)
-                argmax = res_v.labels[k].astype(np.int64)
-                smoothed = dirichlet.smooth(probs)  # what both filters score, smoothed once
-                keep = dirichlet.filter(
-                    smoothed.reshape(-1, smoothed.shape[-1]), argmax.reshape(-1)
-                ).reshape(argmax.shape)
-                keep_maps.append(keep)
-                valid = lab != IGNORE_INDEX
-                pred_b = (argmax == BUILDING)[valid]
-                truth = (lab == BUILDING)[valid]
-                filt["pred"].append(pred_b)
-                filt["keep"].append(keep[valid])
-                filt["truth"].append(truth)
-                p = smoothed[valid]
-                tb_probs.append(p[pred_b & truth])
-                fp_probs.append(p[pred_b & ~truth])
-        for k, i in enumerate(batch_idx):
-            if len(panels) >= cfg.panel_frames:
-                break
-            panels.append(
-                PanelFrame(
-                    index=int(i),
-                    condition=conds[k],
-                    rgb=images[k],
-                    labels_true=labels[k].numpy(),
-                    normals_true=gt_normals[k].numpy(),
-                    labels_pred=None if res_seg is None else res_seg.labels[k],
-                    normals_pred=None if res_n is None else res_n.normals[k],
-                    building_argmax=None if res_v is None else res_v.labels[k] == BUILDING,
-                    building_filtered=keep_maps[k] if keep_maps else None,
-                )
-            )
+            keep_maps = _filter_frames(res_v, labels, dirichlet, filt, tb_probs, fp_probs)
+        panels += _panels(
+            cfg.panel_frames - len(panels), batch_idx, conds, images, labels, gt_normals,
+            res_seg, res_n, res_v, keep_maps,
+        )  # fmt: skip
 
     h, w = shape[1:]
     figures: dict[str, Any] = {
@@ -598,28 +556,132 @@ def evaluate(
         "conditions": ",".join(f"{c}:{n}" for c, n in sorted(conditions.items())),
     }
     if seg is not None:
-        scores = segmentation_scores(cm_all)
-        figures["miou"] = scores.pop("miou")
-        figures["building_iou"] = scores["iou_building"]
-        figures["pixel_acc"] = scores.pop("pixel_acc")
-        figures.update(scores)
-        held_scores = segmentation_scores(cm_held) if int(cm_held.sum()) else {}
-        figures["miou_heldout_condition"] = held_scores.get("miou", math.nan)
-        figures["building_iou_heldout_condition"] = held_scores.get("iou_building", math.nan)
+        figures.update(_segmentation_figures(cm_all, cm_held))
     if normals is not None:
-        b = n_meter_b.compute()
-        a = n_meter_all.compute()
-        for src, prefix, tag in ((b, "building_", "building"), (a, "", "all")):
-            figures[f"normals_{tag}_mean_deg"] = src.get(f"{prefix}angle_mean", math.nan)
-            figures[f"normals_{tag}_median_deg"] = src.get(f"{prefix}angle_median", math.nan)
-            for th in ("11_25", "22_5", "30"):
-                figures[f"normals_{tag}_within_{th}"] = src.get(f"{prefix}within_{th}", math.nan)
-            figures[f"normals_{tag}_pixels"] = int(src.get(f"{prefix}n_pixels", 0))
+        figures.update(_normals_figures(n_meter_b, n_meter_all))
     if naive is not None:
         figures.update(
             _filter_figures(filt, tb_probs, fp_probs, dirichlet, maxprob, cm_naive)  # type: ignore[arg-type]
         )
     return EvalResult(figures=figures, panels=panels)
+
+
+def _panels(
+    n: int,
+    batch_idx: Sequence[int],
+    conds: list[str],
+    images: np.ndarray,
+    labels: torch.Tensor,
+    gt_normals: torch.Tensor,
+    res_seg: SegmentationResult | None,
+    res_n: SegmentationResult | None,
+    res_v: SegmentationResult | None,
+    keep_maps: list[np.ndarray],
+) -> list[PanelFrame]:
+    """The first ``n`` (at most) frames of a batch as picture panels."""
+    panels: list[PanelFrame] = []
+    for k, i in enumerate(batch_idx):
+        if len(panels) >= n:
+            break
+        panels.append(
+            PanelFrame(
+                index=int(i),
+                condition=conds[k],
+                rgb=images[k],
+                labels_true=labels[k].numpy(),
+                normals_true=gt_normals[k].numpy(),
+                labels_pred=None if res_seg is None else res_seg.labels[k],
+                normals_pred=None if res_n is None else res_n.normals[k],
+                building_argmax=None if res_v is None else res_v.labels[k] == BUILDING,
+                building_filtered=keep_maps[k] if keep_maps else None,
+            )
+        )
+    return panels
+
+
+def _check_models(
+    seg: Predictor | None,
+    normals: Predictor | None,
+    naive: Predictor | None,
+    dirichlet: DirichletFilter | None,
+    maxprob: MaxProbabilityFilter | None,
+) -> None:
+    """The checks of :func:`evaluate`'s models (see its Raises)."""
+    if seg is None and normals is None and naive is None:
+        raise GeosegError("evaluate: give at least one of seg, normals, naive")
+    if (naive is None) != (dirichlet is None):
+        raise GeosegError(
+            "naive/dirichlet: the filter figures need both the naive CNN and the filter"
+        )
+    if dirichlet is not None and dirichlet.threshold is None:
+        raise GeosegError("dirichlet: the filter has no threshold")
+    if maxprob is not None and dirichlet is not None and maxprob.window != dirichlet.window:
+        raise GeosegError(
+            f"maxprob: window {maxprob.window} differs from the Dirichlet filter's "
+            f"{dirichlet.window}; both must score the same smoothed maps"
+        )
+
+
+def _filter_frames(
+    res_v: SegmentationResult,
+    labels: torch.Tensor,
+    dirichlet: DirichletFilter,
+    filt: dict[str, list[np.ndarray]],
+    tb_probs: list[np.ndarray],
+    fp_probs: list[np.ndarray],
+) -> list[np.ndarray]:
+    """The Dirichlet filter on a batch of the naive CNN's maps: appends each frame's building
+    pixels to ``filt``, ``tb_probs`` and ``fp_probs``; returns the kept maps ``(H, W)``."""
+    keep_maps: list[np.ndarray] = []
+    for k in range(len(labels)):
+        lab = labels[k].numpy()
+        probs = res_v.probabilities[k].transpose(1, 2, 0)  # (H, W, C)
+        argmax = res_v.labels[k].astype(np.int64)
+        smoothed = dirichlet.smooth(probs)  # what both filters score, smoothed once
+        keep = dirichlet.filter(
+            smoothed.reshape(-1, smoothed.shape[-1]), argmax.reshape(-1)
+        ).reshape(argmax.shape)
+        keep_maps.append(keep)
+        valid = lab != IGNORE_INDEX
+        pred_b = (argmax == BUILDING)[valid]
+        truth = (lab == BUILDING)[valid]
+        filt["pred"].append(pred_b)
+        filt["keep"].append(keep[valid])
+        filt["truth"].append(truth)
+        p = smoothed[valid]
+        tb_probs.append(p[pred_b & truth])
+        fp_probs.append(p[pred_b & ~truth])
+    return keep_maps
+
+
+def _segmentation_figures(cm_all: torch.Tensor, cm_held: torch.Tensor) -> dict[str, Any]:
+    """The label figures of all frames and of the held-out-condition frames."""
+    from training.metrics import segmentation_scores
+
+    out: dict[str, Any] = {}
+    scores = segmentation_scores(cm_all)
+    out["miou"] = scores.pop("miou")
+    out["building_iou"] = scores["iou_building"]
+    out["pixel_acc"] = scores.pop("pixel_acc")
+    out.update(scores)
+    held_scores = segmentation_scores(cm_held) if int(cm_held.sum()) else {}
+    out["miou_heldout_condition"] = held_scores.get("miou", math.nan)
+    out["building_iou_heldout_condition"] = held_scores.get("iou_building", math.nan)
+    return out
+
+
+def _normals_figures(n_meter_b: Any, n_meter_all: Any) -> dict[str, Any]:
+    """The normals figures on building pixels and on all pixels."""
+    out: dict[str, Any] = {}
+    b = n_meter_b.compute()
+    a = n_meter_all.compute()
+    for src, prefix, tag in ((b, "building_", "building"), (a, "", "all")):
+        out[f"normals_{tag}_mean_deg"] = src.get(f"{prefix}angle_mean", math.nan)
+        out[f"normals_{tag}_median_deg"] = src.get(f"{prefix}angle_median", math.nan)
+        for th in ("11_25", "22_5", "30"):
+            out[f"normals_{tag}_within_{th}"] = src.get(f"{prefix}within_{th}", math.nan)
+        out[f"normals_{tag}_pixels"] = int(src.get(f"{prefix}n_pixels", 0))
+    return out
 
 
 def _filter_figures(

@@ -386,69 +386,36 @@ def fit(
     model_name = model_name if model_name is not None else cfg.model
     model_config = dict(model_config if model_config is not None else cfg.model_config)
     last = run_dir / LAST
-    saved: dict[str, Any] | None = None
-    failure: GeosegError | None = None
-    if main:
-        try:
-            saved = start_run(run_dir, resume=cfg.resume, overwrite=cfg.overwrite)
-        except GeosegError as err:
-            failure = err
-    # every process stops when the main one refuses the run directory (no rank left waiting)
-    if float(dd.all_reduce_sum_(torch.tensor([float(failure is not None)]))[0]) > 0:
-        raise failure or GeosegError(f"{run_dir}: the main process refused the run directory")
-    resuming = saved is not None if main else bool(cfg.resume) and last.is_file()
+    saved, resuming = _open_run(cfg, run_dir, main)
 
-    if resuming:
-        set_deterministic(cfg.deterministic)
-    else:
-        seed_everything(cfg.seed, deterministic=cfg.deterministic)
-    if device.type == "cpu":
-        torch.set_num_threads(dd.cpu_threads_per_process(cfg.cpu_threads, cfg.data.num_workers))
-    model.to(device)
-    net = dd.wrap_model(model, device, find_unused_parameters=cfg.find_unused_parameters)
     own_optimizer = optimizer is None and scheduler is None
-    optimizer = optimizer or build_optimizer(model, cfg.optim)
-    steps_per_epoch = len(train_loader)
-    scheduler = scheduler or build_scheduler(
-        optimizer, cfg.schedule, steps_per_epoch=steps_per_epoch, epochs=cfg.epochs
+    net, optimizer, scheduler, scaler = _setup_training(
+        cfg,
+        model,
+        train_loader,
+        device,
+        resuming=resuming,
+        optimizer=optimizer,
+        scheduler=scheduler,
     )
-    scaler = torch.amp.GradScaler("cuda") if cfg.amp and device.type == "cuda" else None
-    if cfg.amp and scaler is None:
-        logger.info("amp requested but the device is %s; training in float32", device)
 
     cfg_dict = _config_dict(cfg)
     start_epoch, global_step, history, best, best_epoch = 0, 0, [], None, None
     gens = loader_generators(train_loader)
     if resuming:
-        ckpt = restore_checkpoint(
+        start_epoch, global_step, history, best, best_epoch = _resume(
+            cfg,
             saved if saved is not None else last,
             model,
-            optimizer=optimizer,
-            scheduler=scheduler,
-            scaler=scaler,
+            optimizer,
+            scheduler,
+            scaler,
             model_name=model_name,
-            map_location=device,
-            path=last,
+            device=device,
+            cfg_dict=cfg_dict,
+            gens=gens,
+            own_optimizer=own_optimizer,
         )
-        old_cfg = ckpt.get("config") or {}
-        check_resume_config(old_cfg, cfg_dict, last)
-        if own_optimizer:
-            apply_optim_config(optimizer, scheduler, cfg.optim, old_cfg.get("optim") or {})
-        start_epoch, global_step = int(ckpt["epoch"]), int(ckpt["global_step"])
-        history, best = list(ckpt.get("history") or []), ckpt.get("best")
-        best_epoch = ckpt.get("best_epoch")
-        saved_gens = list(ckpt.get("generators") or [])
-        if len(saved_gens) == len(gens):
-            restore_generators(gens, saved_gens)
-        else:
-            logger.warning(
-                "%s holds %d loader generator states, the loader has %d: shuffling will differ",
-                last,
-                len(saved_gens),
-                len(gens),
-            )
-        _log_config_changes(old_cfg, cfg_dict, last)
-        logger.info("resumed %s at epoch %d (step %d)", last, start_epoch, global_step)
     if main:
         record_run_files(run_dir)
         _atomic_text(run_dir / "config.yaml", yaml.safe_dump(cfg_dict, sort_keys=False))
@@ -461,31 +428,21 @@ def fit(
         return run_dir
 
     for epoch in range(start_epoch, cfg.epochs):
-        t0 = time.perf_counter()
-        dd.set_epoch(train_loader, epoch)
-        train = train_one_epoch(
+        row = _train_and_validate(
+            cfg,
+            epoch,
             net,
             train_loader,
+            val_loader,
             loss_fn,
+            metric_fn,
             optimizer,
+            scheduler,
+            scaler,
             device=device,
-            scaler=scaler,
-            scheduler=scheduler,
-            progress=cfg.progress,
-            grad_clip=cfg.optim.grad_clip,
-            epoch=epoch + 1,
+            global_step=global_step,
         )
-        global_step += int(train.pop("steps"))
-        n_local = train.pop("n_samples")
-        lr = train.pop("lr")
-        train = dd.all_reduce_mean(train, weight=n_local)
-        row: dict[str, Any] = {"epoch": epoch + 1, "global_step": global_step, "lr": lr}
-        row.update({f"train_{k}": v for k, v in train.items()})
-        last_epoch = epoch + 1 == cfg.epochs
-        if val_loader is not None and ((epoch + 1) % cfg.val_every == 0 or last_epoch):
-            val = evaluate(net, val_loader, metric_fn, device=device, loss_fn=loss_fn)
-            row.update({f"val_{k}": v for k, v in val.items()})
-        row["time_s"] = time.perf_counter() - t0
+        global_step = row["global_step"]
         history.append(row)
         is_best = _better(row.get(cfg.best_metric), best, cfg.best_mode)
         if is_best:
@@ -498,27 +455,170 @@ def fit(
         )
         if main:
             checkpoint = build_checkpoint(
-                model,
-                optimizer=optimizer,
-                scheduler=scheduler,
-                scaler=scaler,
-                epoch=epoch + 1,
-                global_step=global_step,
-                model_name=model_name,
-                model_config=model_config,
-                config=cfg_dict,
-                history=history,
-                best=best,
-                best_epoch=best_epoch,
-                generators=capture_generators(gens),
-                extra=extra,
-            )
-            save_run_checkpoints(checkpoint, run_dir, is_best=is_best)
-            write_history(history, run_dir)
-            if cfg.plots:
-                plot_history(history, run_dir)
+                model, optimizer=optimizer, scheduler=scheduler, scaler=scaler, epoch=epoch + 1,
+                global_step=global_step, model_name=model_name, model_config=model_config,
+                config=cfg_dict, history=history, best=best, best_epoch=best_epoch,
+                generators=capture_generators(gens), extra=extra,
+            )  # fmt: skip
+            _save_epoch(cfg, run_dir, checkpoint, history, is_best=is_best)
         dd.barrier()
     return run_dir
+
+
+def _save_epoch(
+    cfg: TrainConfig, run_dir: Path, checkpoint: dict[str, Any], history: list, *, is_best: bool
+) -> None:
+    """An epoch's end on the main process: ``last.pt`` (and ``best.pt``), the history files
+    and, with ``cfg.plots``, their plots."""
+    save_run_checkpoints(checkpoint, run_dir, is_best=is_best)
+    write_history(history, run_dir)
+    if cfg.plots:
+        plot_history(history, run_dir)
+
+
+def _setup_training(
+    cfg: TrainConfig,
+    model: nn.Module,
+    train_loader: Any,
+    device: torch.device,
+    *,
+    resuming: bool,
+    optimizer: torch.optim.Optimizer | None,
+    scheduler: Any,
+) -> tuple[nn.Module, torch.optim.Optimizer, Any, Any]:
+    """Seeds (a fresh run) or determinism (a resumed one), threads, the model on its device
+    (DDP-wrapped under torchrun), the optimizer, the scheduler and the AMP scaler:
+    ``(net, optimizer, scheduler, scaler)``."""
+    if resuming:
+        set_deterministic(cfg.deterministic)
+    else:
+        seed_everything(cfg.seed, deterministic=cfg.deterministic)
+    if device.type == "cpu":
+        torch.set_num_threads(dd.cpu_threads_per_process(cfg.cpu_threads, cfg.data.num_workers))
+    model.to(device)
+    net = dd.wrap_model(model, device, find_unused_parameters=cfg.find_unused_parameters)
+    optimizer = optimizer or build_optimizer(model, cfg.optim)
+    steps_per_epoch = len(train_loader)
+    scheduler = scheduler or build_scheduler(
+        optimizer, cfg.schedule, steps_per_epoch=steps_per_epoch, epochs=cfg.epochs
+    )
+    scaler = torch.amp.GradScaler("cuda") if cfg.amp and device.type == "cuda" else None
+    if cfg.amp and scaler is None:
+        logger.info("amp requested but the device is %s; training in float32", device)
+    return net, optimizer, scheduler, scaler
+
+
+def _open_run(cfg: TrainConfig, run_dir: Path, main: bool) -> tuple[dict[str, Any] | None, bool]:
+    """``(the checkpoint to resume from or None, whether the run resumes)``: the main process
+    opens the run directory (:func:`training.resume.start_run`); every process stops when it
+    refuses it."""
+    last = run_dir / LAST
+    saved: dict[str, Any] | None = None
+    failure: GeosegError | None = None
+    if main:
+        try:
+            saved = start_run(run_dir, resume=cfg.resume, overwrite=cfg.overwrite)
+        except GeosegError as err:
+            failure = err
+    # every process stops when the main one refuses the run directory (no rank left waiting)
+    if float(dd.all_reduce_sum_(torch.tensor([float(failure is not None)]))[0]) > 0:
+        raise failure or GeosegError(f"{run_dir}: the main process refused the run directory")
+    resuming = saved is not None if main else bool(cfg.resume) and last.is_file()
+    return saved, resuming
+
+
+def _resume(
+    cfg: TrainConfig,
+    source: Any,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    scaler: Any,
+    *,
+    model_name: str | None,
+    device: torch.device,
+    cfg_dict: dict[str, Any],
+    gens: Any,
+    own_optimizer: bool,
+) -> tuple[int, int, list, Any, Any]:
+    """Restore the run's state from ``source`` (``last.pt`` or its loaded content):
+    ``(start epoch, global step, history, best, best epoch)``."""
+    last = Path(cfg.out_dir) / LAST
+    ckpt = restore_checkpoint(
+        source,
+        model,
+        optimizer=optimizer,
+        scheduler=scheduler,
+        scaler=scaler,
+        model_name=model_name,
+        map_location=device,
+        path=last,
+    )
+    old_cfg = ckpt.get("config") or {}
+    check_resume_config(old_cfg, cfg_dict, last)
+    if own_optimizer:
+        apply_optim_config(optimizer, scheduler, cfg.optim, old_cfg.get("optim") or {})
+    start_epoch, global_step = int(ckpt["epoch"]), int(ckpt["global_step"])
+    history, best = list(ckpt.get("history") or []), ckpt.get("best")
+    best_epoch = ckpt.get("best_epoch")
+    saved_gens = list(ckpt.get("generators") or [])
+    if len(saved_gens) == len(gens):
+        restore_generators(gens, saved_gens)
+    else:
+        logger.warning(
+            "%s holds %d loader generator states, the loader has %d: shuffling will differ",
+            last,
+            len(saved_gens),
+            len(gens),
+        )
+    _log_config_changes(old_cfg, cfg_dict, last)
+    logger.info("resumed %s at epoch %d (step %d)", last, start_epoch, global_step)
+    return start_epoch, global_step, history, best, best_epoch
+
+
+def _train_and_validate(
+    cfg: TrainConfig,
+    epoch: int,
+    net: nn.Module,
+    train_loader: Any,
+    val_loader: Any,
+    loss_fn: LossFn,
+    metric_fn: Any,
+    optimizer: torch.optim.Optimizer,
+    scheduler: Any,
+    scaler: Any,
+    *,
+    device: torch.device,
+    global_step: int,
+) -> dict[str, Any]:
+    """One epoch of training (and validation when due): the history row, its ``global_step``
+    advanced by the epoch's steps."""
+    t0 = time.perf_counter()
+    dd.set_epoch(train_loader, epoch)
+    train = train_one_epoch(
+        net,
+        train_loader,
+        loss_fn,
+        optimizer,
+        device=device,
+        scaler=scaler,
+        scheduler=scheduler,
+        progress=cfg.progress,
+        grad_clip=cfg.optim.grad_clip,
+        epoch=epoch + 1,
+    )
+    global_step += int(train.pop("steps"))
+    n_local = train.pop("n_samples")
+    lr = train.pop("lr")
+    train = dd.all_reduce_mean(train, weight=n_local)
+    row: dict[str, Any] = {"epoch": epoch + 1, "global_step": global_step, "lr": lr}
+    row.update({f"train_{k}": v for k, v in train.items()})
+    last_epoch = epoch + 1 == cfg.epochs
+    if val_loader is not None and ((epoch + 1) % cfg.val_every == 0 or last_epoch):
+        val = evaluate(net, val_loader, metric_fn, device=device, loss_fn=loss_fn)
+        row.update({f"val_{k}": v for k, v in val.items()})
+    row["time_s"] = time.perf_counter() - t0
+    return row
 
 
 def _log_config_changes(old: Mapping[str, Any], new: Mapping[str, Any], path: Path) -> None:

@@ -2,40 +2,12 @@
 
 Same data path as :mod:`training.reloc` (shared in :mod:`training.heads`): the trunk of
 ``trunk_checkpoint`` is frozen and its features are computed once per traversal (cached), then
-the head (:func:`geoseg.models.relpose.relpose_head`) trains on feature pairs only.
-
-Pairs (:func:`geoseg.data.pairs.sample_relpose_pairs`): keyframes ``a`` and ``b`` of one route,
-from the same traversal (same condition) or from two traversals (cross-condition), with a
-baseline in ``[min_baseline_m, max_baseline_m]`` and optical axes within ``max_angle_deg``;
-targets ``R_ab`` and the unit direction a -> b in camera a's frame
-(:func:`geoseg.models.relpose.relative_pose_labels`). ``pairs_per_epoch`` fresh pairs are drawn
-every epoch (seeded by ``(seed, epoch)``) and spread evenly over the routes and ordered
-traversal pairs (same and cross condition alike): fresh pairs every epoch fight the overfitting
-that stopped the thesis's network. Loss: eq. 5.2 with weight ``lam`` on the direction term, plus
-``mu`` times the squared log-baseline error when the head predicts distances
-(``model_config.predict_distance``). Such a head also sees ``far_pairs_per_epoch`` pairs with
-baselines beyond ``max_baseline_m`` (up to ``far_max_baseline_m``) that train the distance
-term only: retrieval candidates 10-30 m from the query must read as far to be re-ranked behind
-the near one, while far pairs blur the direction (see configs/relpose.yaml). And
-``unrelated_pairs_per_epoch`` pairs of views at least ``unrelated_min_m`` apart (any
-orientation: other places) teach it a floor: their loss is ``mu (min(0, log d_est - log
-unrelated_floor_m))^2``, zero once the head reads them at least ``unrelated_floor_m`` away, so
-that re-ranking the whole base by predicted distance puts other places behind the query's.
-``turned_pairs_per_epoch`` pairs of nearby views that look elsewhere (axes at least
-``turned_min_angle_deg`` apart: the crossing street, the opposite direction) train the same
-kind of floor, ``turned_floor_m``: in a GPS window the nearest camera may face another street.
-``near_pairs_per_epoch`` pairs of views at most ``near_max_baseline_m`` apart (a query at a base
-image's pose; from the routes' aligned traversals, ``routes.aligned_conditions``) train the
-rotation and the distance, whose target is floored at ``distance_floor_m`` (a zero baseline has
-no logarithm); the direction term is masked below ``direction_min_m``, where it is undefined.
-``init_checkpoint`` starts the head from earlier relative-pose weights (fine-tuning).
-
-Validation: eq. 5.2, and the median / mean rotation and direction errors (degrees; medians from
-a 0.05-degree histogram so that they reduce across processes) on fixed validation pairs; with
-distances, the median relative baseline error ``|d_est / d_gt - 1|``.
-
-``model.pt`` / ``model.onnx`` hold the head alone: ``(feat_a, feat_b)`` ``(B, 128, h, w)`` each
--> ``{"rotation": (B, 3), "direction": (B, 3)}`` (and ``"log_distance": (B,)``).
+the head (:func:`geoseg.models.relpose.relpose_head`) trains on feature pairs only, fresh pairs
+every epoch (:func:`geoseg.data.pairs.sample_relpose_pairs`; with distances also far, unrelated,
+turned and near pairs, each teaching the distance term its own case). Validation: eq. 5.2 and the
+rotation, direction (and relative baseline) errors on fixed pairs. ``model.pt`` /
+``model.onnx`` hold the head alone. The pair kinds and their losses: ``docs/networks.md``
+("Training the relative-pose head").
 
 Usage::
 

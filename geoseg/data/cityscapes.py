@@ -5,54 +5,13 @@ Layout (the official one; only ``leftImg8bit`` and ``gtFine`` are read)::
     <root>/leftImg8bit/<split>/<city>/<name>_leftImg8bit.png     8-bit RGB images
     <root>/gtFine/<split>/<city>/<name>_gtFine_labelIds.png      8-bit label ids (0..33)
 
-Map from Cityscapes ``labelId`` to geoseg classes (:mod:`geoseg.classes`; 255 = ignored by losses
-and metrics):
-
-====  ====================  ==========  =====================================================
-id    Cityscapes name       geoseg      why
-====  ====================  ==========  =====================================================
-0     unlabeled             ignore      void
-1     ego vehicle           ignore      the car's own bonnet: never a scene vehicle
-2     rectification border  ignore      void
-3     out of roi            ignore      void
-4     static                object      street furniture, bins, boxes: like our "object"
-5     dynamic               ignore      carts, animals, strollers: no matching class
-6     ground                ignore      mixed flat areas (traffic islands, yards): ambiguous
-7     road                  road
-8     sidewalk              sidewalk
-9     parking               road        drivable paved surface, part of the road model (DEM)
-10    rail track            ignore      tram tracks in or beside the road: ambiguous
-11    building              building
-12    wall                  building    free-standing masonry walls are vertical planar built
-                                        surfaces that look like facades
-13    fence                 object      thin street furniture, not part of any building model
-14    guard rail            object      street furniture
-15    bridge                building    construction, large vertical/planar built surface
-16    tunnel                building    construction
-17    pole                  object
-18    polegroup             object
-19    traffic light         object
-20    traffic sign          object
-21    vegetation            vegetation
-22    terrain               terrain
-23    sky                   sky
-24    person                ignore      no person class (the synthetic world has none);
-                                        "object" would mislabel them
-25    rider                 ignore      as person
-26    car                   vehicle
-27    truck                 vehicle
-28    bus                   vehicle
-29    caravan               vehicle
-30    trailer               vehicle
-31    train                 vehicle     trams, mostly
-32    motorcycle            vehicle
-33    bicycle               vehicle
--1    license plate         ignore      stored as 255 in 8-bit files (never present in gtFine)
-====  ====================  ==========  =====================================================
-
-Any other value in a ``labelIds`` file is an error. With ``label_format="geoseg"`` the label files
-already hold geoseg ids (0..7, 255). ``label_map`` replaces the table (:mod:`geoseg.data.label_map`),
-e.g. for a dataset in this layout with other classes.
+Each Cityscapes ``labelId`` maps to a geoseg class (:mod:`geoseg.classes`) or to 255, ignored by
+losses and metrics (void, ego vehicle, dynamic, ground, rail track, person, rider, license
+plate); the table with the reason for each entry: ``docs/real_images.md`` ("Cityscapes labels
+and geoseg's classes"). Any other value in a ``labelIds`` file is an error. With
+``label_format="geoseg"`` the label files already hold geoseg ids (0..7, 255). ``label_map``
+replaces the table (:mod:`geoseg.data.label_map`), e.g. for a dataset in this layout with other
+classes.
 """
 
 from __future__ import annotations

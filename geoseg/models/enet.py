@@ -1,46 +1,13 @@
 """ENet (Paszke et al. 2016): bottleneck blocks, the encoder trunk, the decoder head, the network.
 
-Architecture (for ``num_classes=8`` the network has 359,199 parameters, per-channel PReLU and
-bias-free convolutions before batch norm; the paper reports ~0.37 M):
-
-==========  ==============================================  ===========  =============
-layer no.   block                                           output       nonlinearity
-==========  ==============================================  ===========  =============
-1           initial: 3x3/2 conv (13) ∥ 2x2 max pool → 16     16, H/2      PReLU
-2           1.0 downsampling → 64                           64, H/4      PReLU
-3-6         1.1-1.4 regular                                 64, H/4      PReLU
-7           2.0 downsampling → 128                          128, H/8     PReLU
-8-15        2.1-2.8: regular, dil 2, asym 5, dil 4,         128, H/8     PReLU
-            regular, dil 8, asym 5, dil 16
-16-23       3.1-3.8: as 2.1-2.8                             128, H/8     PReLU
-24-26       4.0 upsampling → 64, 4.1-4.2 regular            64, H/4      ReLU
-27-28       5.0 upsampling → 16, 5.1 regular                16, H/2      ReLU
-29          fullconv: 2x2/2 transposed conv → C             C, H         none
-==========  ==============================================  ===========  =============
-
-Bottlenecks project to ``in_channels // 4`` channels, use batch norm, spatial dropout
-(:class:`torch.nn.Dropout2d`) of 0.01 in stage 1 and 0.1 afterwards, and the decoder unpools with
-the max-pooling indices of the matching encoder downsampling block (:class:`torch.nn.MaxUnpool2d`).
-
-The network is split into :class:`ENetTrunk` (layers 1-21, i.e. up to bottleneck 3.6, whose output
-is the "layer-21" feature map used by the joint network and the relocalisation heads) and
-:class:`ENetHead` (layers 22-29: 3.7, 3.8, stage 4, stage 5, fullconv), so that
-:mod:`geoseg.models.joint` can share the trunk and duplicate the head.
-
-Input sizes: the three stride-2 stages need sides that are multiples of 8. Other sizes are padded
-on the bottom and right with *replicate* padding (reflect padding fails on images smaller than the
-pad) and the logits are cropped back to ``(H, W)``. The ``features`` output is the layer-21 map of
-the padded input, ``(B, 128, ceil(H / 8), ceil(W / 8))``.
-
-Training speed on the CPU (profiled with ``torch.profiler``, torch 2.14, 320x240, batch 8; see
-``bench/train_speed.py``): no layer is pathologically slow, so the layers keep their plain torch
-form. Dilated 3x3 convolutions and their backward go through oneDNN like the regular ones (no
-``slow_conv_dilated2d``), asymmetric convolutions, max-unpooling (a gather in backward) and
-``Dropout2d`` are cheap. PReLU's backward costs ~7x its forward (~15 % of a step); the exact
-``torch.where(x >= 0, x, a * x)`` / ``relu(x) - a * relu(-x)`` forms measured no faster. The slow
-steps came from runtime settings instead: two busy-waiting OpenMP threads on a shared 2-core
-machine (the step 4-6x slower than with one thread) and deterministic mode's NaN-fill of every fresh
-tensor (``torch.utils.deterministic.fill_uninitialized_memory``).
+For ``num_classes=8`` the network has 359,199 parameters (the paper reports ~0.37 M). It is split
+into :class:`ENetTrunk` (layers 1-21, up to bottleneck 3.6: the "layer-21" feature map the joint
+network and the relocalisation heads use) and :class:`ENetHead` (layers 22-29), so that
+:mod:`geoseg.models.joint` can share the trunk and duplicate the head. Sides that are not
+multiples of 8 are padded (replicate, bottom and right) and the logits cropped back to
+``(H, W)``; ``features`` is the padded input's layer-21 map, ``(B, 128, ceil(H / 8),
+ceil(W / 8))``. The layer table and the CPU training-speed profile that kept the layers in their
+plain torch form: ``docs/networks.md`` ("ENet").
 """
 
 from __future__ import annotations

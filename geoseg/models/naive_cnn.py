@@ -1,37 +1,12 @@
 """The 2015 "naive" patch classifier of thesis fig. 4.5, with sparse connection tables.
 
-Architecture (Torch7 names from the figure; sizes from Farabet et al. 2013, the network the thesis
-takes its single-scale branch from, since the thesis gives none):
-
-======  ======================================  =======================  ===========
-step    layer                                   connection table         output
-======  ======================================  =======================  ===========
-1       SpatialConvolutionMap 7x7, 3 → 16       full (every input)       16 x 40 x 40
-2-3     ReLU, SpatialMaxPooling 2x2/2                                    16 x 20 x 20
-4       SpatialConvolutionMap 7x7, 16 → 64      random, fan-in 8         64 x 14 x 14
-5-6     ReLU, SpatialMaxPooling 2x2/2                                    64 x 7 x 7
-7       SpatialConvolutionMap 7x7, 64 → 256     random, fan-in 32        256 x 1 x 1
-8       Reshape(256)                                                     256
-9-12    Linear(256, 512), ReLU, Linear(512, 8), LogSoftMax               8
-======  ======================================  =======================  ===========
-
-The input is a ``46 x 46`` patch (:data:`PATCH_SIZE`), the receptive field of the three 7x7
-convolutions and two poolings, so the last convolution outputs a 256-vector. The patch of pixel
-``(y, x)`` covers rows ``y - 23 .. y + 22`` and columns ``x - 23 .. x + 22``; outside the image the
-border is replicated (:func:`extract_patches`).
-
-Connection tables (Torch7 ``SpatialConvolutionMap``): each output map is connected to a subset of
-the input maps. Table ``(out, fan_in)`` lists the input indices of each output: layer 1 is full
-(``nn.tables.full``), layers 4 and 7 are random tables as Torch7's ``nn.tables.random(nin, nout,
-fan_in)``: for each output, ``fan_in`` distinct inputs drawn without replacement, here from a
-``numpy.random.Generator`` seeded by ``table_seed`` (default 0) so that the table is
-reproducible; the tables are saved in the state dict as buffers. Only the connected weights exist
-as parameters (``(out, fan_in, k, k)``); they are scattered into a dense kernel at run time.
-
-Dense prediction (:meth:`NaiveCNN.dense`) is exactly the patch classifier applied at every pixel,
-computed fully convolutionally with the "dilation trick" (equivalent to shift-and-stitch): every
-pooling keeps stride 1 and the layers after the ``k``-th pooling are dilated by ``2**k``; the
-Linear layers become 1x1 convolutions.
+Three 7x7 convolutions (Torch7 ``SpatialConvolutionMap``: each output map connected to a
+subset of the inputs, random tables seeded by ``table_seed`` and saved as buffers) with two
+poolings, then two linear layers, classify the ``46 x 46`` patch (:data:`PATCH_SIZE`) around a
+pixel into the 8 classes; outside the image the border is replicated
+(:func:`extract_patches`). :meth:`NaiveCNN.dense` applies exactly the patch classifier at every
+pixel, fully convolutionally (the dilation trick). The layer table, where the sizes come from and
+the connection tables: ``docs/networks.md`` ("The naive patch CNN").
 """
 
 from __future__ import annotations

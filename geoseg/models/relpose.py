@@ -1,54 +1,16 @@
 """Relative-pose head on two ENet layer-21 feature maps (thesis §5.1.2, figs. 5.6-5.7, eq. 5.2).
 
-Architecture (fig. 5.7, siamese): a shared-weight encoder branch (3x3 stride-2 convolution
-keeping 128 channels, then 3x3 down to ``hidden_channels``) runs on each ``(B, 128, h, w)``
-map; the two branch maps are fused by concatenating ``[a, b, a * b]`` (the elementwise product is
-a cheap local correlation), two 3x3 convolutions mix them, global mean and max pooling are
-concatenated and an MLP regresses 6 numbers: 3 rotation coefficients and 3 translation
-components, the latter L2-normalised into the unit direction.
-
-With ``predict_distance=True`` a seventh output regresses the natural log of the baseline
-``|t_ab|`` in metres (an extension: the thesis's head gives the direction only). In a world of
-known scale (buildings, lanes and the camera height have metric sizes) the image motion between
-two views tells the baseline; with it one base image places the query
-(:func:`geoseg.reloc.retrieval.locate_from_ranged_rays`) where direction rays alone are degenerate
-(bases collinear with the query along a straight street), and among retrieved candidates the
-nearest base can be picked (:func:`geoseg.reloc.retrieval.rerank_by_distance`). Its loss is the squared
-log ratio, scale-free like the angular terms.
-
-With ``correlation_radius = r > 0`` a cost volume joins the fusion: the cosine similarity of
-each cell of ``a`` with the cells of ``b`` displaced by up to ``r`` cells in each direction,
-``(2r + 1)^2`` channels (:func:`correlation_volume`). The product ``a * b`` only compares the
-same cell, so it cannot see where a structure moved; the volume shows the image motion, whose
-pattern (expansion or contraction about the focus of expansion, sideways shift) is what tells
-a forward from a backward baseline and left from right.
-
-Conventions (all explicit, since the thesis leaves them open):
-
-* Relative pose of the pair ``(a, b)``: ``R_ab = R_wc_a^T R_wc_b`` and
-  ``t_ab = R_wc_a^T (t_wc_b - t_wc_a)``, so that ``X_a = R_ab X_b + t_ab`` (camera-to-world
-  poses ``X_w = R_wc X_c + t_wc``, thesis eq. 1.3). ``t_dir_ab = t_ab / |t_ab|`` is the unit
-  direction from camera ``a``'s centre towards camera ``b``'s centre **expressed in camera
-  a's frame** (:func:`relative_pose_labels`). With ``a`` = a georeferenced base image and
-  ``b`` = the query this is exactly the ray that :func:`geoseg.reloc.retrieval.absolute_position`
-  casts from the base camera.
-* Rotation coefficients: the head outputs the rotation vector ``w`` (axis times angle) with
-  the usual hat ``[w]x = [[0, -w3, w2], [w3, 0, -w1], [-w2, w1, 0]]``, ``R = exp([w]x)``.
-  The thesis's so(3) basis (eq. 1.44) writes
-  ``sum a_i G_i = [[0, a1, -a2], [-a1, 0, a3], [a2, -a3, 0]]``, which is the usual hat of
-  ``w = (-a3, -a2, -a1)`` (the thesis calls it the cross-product matrix of ``a``, which holds
-  only up to this sign/ordering). :func:`to_thesis_coefficients` /
-  :func:`from_thesis_coefficients` convert; ``a^T a = w^T w``, so eq. 5.2 is the same in both.
-* Loss (eq. 5.2): ``lam (1 - T_est^T T_gt) + alpha^T alpha`` (plus
-  ``mu (log d_est - log |t_ab|)^2`` for the distance output) with
-  ``alpha = log(R_gt^T R_est)^vee``, i.e. the error is a right (body-frame) perturbation,
-  ``R_est = R_gt exp([alpha]x)``; ``alpha^T alpha`` is the squared geodesic angle between the two
-  rotations (the same for the left error ``R_est R_gt^T``). :func:`so3_exp` / :func:`so3_log`
-  use Taylor branches near the identity (and a separate branch near pi), so gradients are
-  finite at exactly zero rotation.
-
-Export: convolutions, batch norm, ``mean``/``amax`` pooling, ``F.normalize``; no checks while
-tracing/exporting; dynamic batch and ``h``/``w``.
+A siamese encoder runs on each ``(B, 128, h, w)`` map, the two are fused (``[a, b, a * b]``,
+plus a cost volume with ``correlation_radius > 0``, :func:`correlation_volume`) and an MLP
+regresses a rotation vector and a unit direction (and, with ``predict_distance=True``, the log
+of the baseline in metres, an extension of the thesis). Conventions: ``R_ab = R_wc_a^T R_wc_b``,
+``t_dir_ab`` the unit direction from camera ``a``'s centre to ``b``'s in camera ``a``'s frame
+(:func:`relative_pose_labels`; the ray :func:`geoseg.reloc.retrieval.absolute_position` casts
+from a base camera), ``R = exp([w]x)`` (:func:`to_thesis_coefficients` /
+:func:`from_thesis_coefficients` convert to the thesis's basis); the loss is eq. 5.2 with a
+right rotation error. Exportable (dynamic batch and ``h``/``w``). The architecture, the
+conventions in full and the reasons for the distance output and the cost volume:
+``docs/networks.md`` ("The relative-pose head").
 """
 
 from __future__ import annotations

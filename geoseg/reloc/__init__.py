@@ -9,6 +9,8 @@
   consecutive queries) instead of image by image.
 * :mod:`~geoseg.reloc.essential_baseline`: the classical two-view baseline (features and an
   essential matrix) the learned relative pose is compared with.
+* :mod:`~geoseg.reloc.networks`: the networks on images: the trunk and heads loaded, the
+  embedding (eq. 5.1) and the relative poses of the relative-pose head (eq. 5.2).
 * :mod:`~geoseg.reloc.localizer`: the library entry, :class:`~geoseg.reloc.localizer.Localizer`,
   chaining these for a list of query images (what ``geoseg localize`` runs).
 

@@ -3,46 +3,29 @@
 Layout of a base directory::
 
     BASE_DIR/
-      poses.csv          one row per image (below)
+      poses.csv          one row per image: image, timestamp, tx, ty, tz, r00 .. r22
       camera.json        optional intrinsics: {"K": [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]} or
                          {"fx": ..., "fy": ..., "cx": ..., "cy": ...}, and the image size
                          they hold for: "image_size": [W, H] (or "width", "height")
       <images>           PNG/JPEG/... files, anywhere under BASE_DIR (sub-folders allowed)
       cache/             written by ImageBase.embeddings: embeddings_<name>.npz
 
-``poses.csv`` columns (header required, any order, extra columns ignored):
+``poses.csv`` (header required, any order, extra columns ignored): ``image`` relative to
+``BASE_DIR`` (POSIX separators), ``timestamp`` (seconds, may be empty), the camera centre
+``t_wc`` (metres, world frame) and the camera-to-world rotation ``R_wc`` row by row, optional
+``lat, lon`` (kept for display). :func:`load_image_base` validates everything up front and raises
+:class:`~geoseg.errors.GeosegError` naming the problem. Intrinsics hold for one image size:
+every base image must have the size ``camera.json`` gives, and :func:`check_image_size` is the
+guard wherever an image meets a camera matrix (a resized image with the original ``K`` gives
+confidently wrong poses).
 
-* ``image``: the image path relative to ``BASE_DIR`` (POSIX separators);
-* ``timestamp``: seconds (may be empty: NaN);
-* ``tx, ty, tz``: the camera centre ``t_wc`` in the world frame (metres; x east, y north,
-  z up, docs/architecture.md);
-* ``r00, r01, r02, r10, ..., r22``: the camera-to-world rotation ``R_wc`` row by row
-  (``X_w = R_wc X_c + t_wc``, OpenCV camera frame);
-* optional ``lat, lon``: WGS84 degrees, kept for display (the GPS window works on ``tx, ty``).
-
-:func:`load_image_base` validates everything up front (missing ``poses.csv``, missing columns,
-non-numeric values, non-rotations, rows without an image file, image files without a row, an
-empty base) and raises :class:`~geoseg.errors.GeosegError` naming the problem.
-
-Intrinsics hold for one image size: every base image must have the size ``camera.json`` gives
-(checked as images are loaded), and :func:`check_image_size` is the guard wherever an image
-meets a camera matrix (e.g. a query in ``geoseg localize``): a resized image with the original
-``K`` gives confidently wrong poses.
-
-Embeddings are injected: ``embed_fn(images) -> (B, D)`` maps a list of ``B`` RGB uint8
-``(H, W, 3)`` images to their embeddings; an optional ``name`` attribute enables the on-disk
-cache. Provided here:
-
-* :class:`ThumbnailEmbedder`: a **placeholder baseline, not the learned embedding**: the image
-  in grey, area-averaged to a small thumbnail (pure NumPy), zero-mean and unit L2 norm. It
-  lets ``geoseg localize --embedding thumbnail`` run without trained weights (tests) and matches near-duplicates
-  well, but it has no invariance to season, illumination or viewpoint.
-* :func:`raw_layer21_embedder`: the §5.1.1 baseline over anything that returns layer-21
-  ``features`` (e.g. :class:`geoseg.infer.Segmenter`);
-* :class:`HeadEmbedder`: layer-21 features through a trained embedding head
-  (:func:`geoseg.models.reloc.reloc_head`): the learned embedding of eq. 5.1;
-* :func:`layer21_features`: image -> ``(C, h, w)`` features, for the relative-pose head and
-  :class:`geoseg.data.pairs.TripletDataset`.
+Embeddings are injected: ``embed_fn(images) -> (B, D)`` maps ``B`` RGB uint8 ``(H, W, 3)``
+images to their embeddings; an optional ``name`` attribute enables the on-disk cache. Provided
+here: :class:`ThumbnailEmbedder` (a grey thumbnail: a **placeholder, not the learned
+embedding**, for tests; it finds near-duplicates only), :func:`raw_layer21_embedder` (the
+§5.1.1 baseline), :class:`HeadEmbedder` (the learned embedding of eq. 5.1) and
+:func:`layer21_features` (image -> ``(C, h, w)`` features, for the relative-pose head and
+:class:`geoseg.data.pairs.TripletDataset`).
 """
 
 from __future__ import annotations

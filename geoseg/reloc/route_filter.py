@@ -1,38 +1,19 @@
 """Sequence localisation along a georeferenced image base: a discrete Bayes filter (HMM).
 
-Single-image retrieval (:class:`geoseg.reloc.retrieval.RetrievalIndex`) ranks each query on its own. A
-vehicle does not teleport: its queries come in order, a known distance apart (odometry, or the
-SLAM's own trajectory), along a route the base was recorded on. Across seasons and in streets
-of repeated facades one image is often ambiguous while a run of them is not; this is the idea of
-sequence-based place recognition (SeqSLAM, Milford & Wyeth 2012) in its probabilistic form, a
-hidden Markov model over base images (Hansen & Browning 2014). It is not in the thesis (its
-§5.2 lists temporal context as a perspective); the single-image figures stay measured beside it.
-
-Model, for queries ``t = 0..T-1`` and base images ``b = 0..M-1``:
-
-* **State**: the base image the vehicle is at (nearest along the base route).
-* **Route**: the base images ordered by their timestamps, with the arc length ``s_b`` along
-  that path; consecutive images farther apart than ``gap_m`` start a new segment (another
-  traversal, a hole in the base).
-* **Motion** between queries ``t-1`` and ``t``, which lie ``delta_t`` metres apart: the vehicle
-  moves along its segment, ``K_t(b -> b') ∝ exp(-(s_b' - s_b - delta_t)² / (2 sigma_t²))`` with
-  ``sigma_t = step_sigma_m + step_sigma_rel * delta_t``; with probability ``off_route``, and
-  with the Gaussian's probability of driving past an end of the segment, it may be anywhere
-  (uniform): the vehicle left the base's route, or the filter must recover from a wrong lock.
-* **Observation**: the appearance likelihood ``exp(-d(q_t, b) / tau)`` of the embedding
-  distance (the softmax of eq. 5.1 is over ``-d``), ``tau`` a fixed share of the drive's median
-  query-base distance by default (so any embedding, learned, raw layer-21 or a thumbnail, gets
-  the same relative confidence), times an optional GPS term: a hard
-  window (base images farther than ``radius_m`` from the fix get zero, as the thesis's GPS
-  neighbourhood) and/or a Gaussian of the fix's distance (``gps_sigma_m``).
+Single-image retrieval (:class:`geoseg.reloc.retrieval.RetrievalIndex`) ranks each query on its
+own; a vehicle's queries come in order, a known distance apart, along a route the base was
+recorded on, and a run of them is often unambiguous where one image is not (sequence-based place
+recognition, SeqSLAM, in its probabilistic form, Hansen & Browning 2014; not in the thesis). The
+state is the base image the vehicle is at along the base's route (ordered by timestamps, split
+into segments at gaps); the motion model moves it the driven distance along its segment, with a
+chance to leave the route; the observation is the appearance likelihood of the embedding
+distance, times an optional GPS window or Gaussian. The model in full: ``docs/route_filter.md``.
 
 :meth:`RouteFilter.filter` returns the causal posterior ``p(b_t | q_0..q_t)`` (what a vehicle
 knows at query ``t``); :meth:`RouteFilter.smooth` the forward-backward posterior
 ``p(b_t | q_0..q_{T-1})`` of a recorded drive. The queries are assumed to drive the base route
-in its recorded direction (a camera driven the other way sees other facades).
-
-Cost: ``O(T * M * w)`` with ``w`` the base images within the motion band (a few), so bases of
-10^5 images stay cheap; the ``(T, M)`` distance and posterior matrices are dense.
+in its recorded direction. Cost: ``O(T * M * w)`` with ``w`` the base images within the motion
+band (a few); the ``(T, M)`` distance and posterior matrices are dense.
 """
 
 from __future__ import annotations

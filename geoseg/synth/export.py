@@ -278,25 +278,9 @@ def render_sequence(
     """
     from tqdm import tqdm
 
-    from geoseg.synth.conditions import get_condition
-
     gis = gis or GisConfig()
     seed = int(config.seed if seed is None else seed)
-    get_condition(condition)  # unknown names fail before any work
-    if rig not in ("car", "tram"):
-        raise GeosegError(f"rig: expected 'car' or 'tram', got {rig!r}")
-    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
-        raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
-    check_fps(fps)
-    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
-        raise GeosegError(f"workers: expected an integer in [1, {MAX_WORKERS}], got {workers!r}")
-    if workers > 1 and render_fn is not None:
-        raise GeosegError("workers: a render_fn of your own renders in this process only")
-    if len(image_size) != 2 or not all(
-        isinstance(v, int | np.integer) and not isinstance(v, bool) for v in image_size
-    ):
-        raise GeosegError(f"image_size: expected (W, H) integers, got {image_size!r}")
-    parse_size(f"{image_size[0]}x{image_size[1]}")  # the same bounds as --size
+    _check_arguments(condition, rig, frames, fps, workers, render_fn, image_size)
     legacy = _legacy_render_files(Path(out_dir))
     out_dir = prepare_output_dir(
         out_dir,
@@ -361,12 +345,64 @@ def render_sequence(
     bar.close()
 
     files = write_sequence_products(out_dir, world, traj, products, gis, condition=condition)
+    _write_pictures(out_dir, preview_rows, sorted(preview_idx), world, traj, products, request)
+    atomic_write(out_dir / "README.txt", readme_text(request), fsync=False)
+    files += ["preview.png", "map.png", "README.txt"]
+    record_outputs(out_dir, files + ["meta.json"])
+    meta = _meta(request, files, world, products)
+    atomic_write(meta_path, json.dumps(meta, indent=1))
+    logger.info("wrote %d frames and GIS products to %s", frames, out_dir)
+    return out_dir
+
+
+def _check_arguments(
+    condition: str,
+    rig: str,
+    frames: Any,
+    fps: float,
+    workers: Any,
+    render_fn: RenderFn | None,
+    image_size: Any,
+) -> None:
+    """The checks of :func:`render_sequence`'s arguments, before any work."""
+    from geoseg.synth.conditions import get_condition
+
+    get_condition(condition)  # unknown names fail before any work
+    if rig not in ("car", "tram"):
+        raise GeosegError(f"rig: expected 'car' or 'tram', got {rig!r}")
+    if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+        raise GeosegError(f"frames: expected an integer >= 1, got {frames!r}")
+    check_fps(fps)
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
+        raise GeosegError(f"workers: expected an integer in [1, {MAX_WORKERS}], got {workers!r}")
+    if workers > 1 and render_fn is not None:
+        raise GeosegError("workers: a render_fn of your own renders in this process only")
+    if len(image_size) != 2 or not all(
+        isinstance(v, int | np.integer) and not isinstance(v, bool) for v in image_size
+    ):
+        raise GeosegError(f"image_size: expected (W, H) integers, got {image_size!r}")
+    parse_size(f"{image_size[0]}x{image_size[1]}")  # the same bounds as --size
+
+
+def _write_pictures(
+    out_dir: Path,
+    preview_rows: list,
+    preview_idx: list[int],
+    world: Any,
+    traj: Any,
+    products: Any,
+    request: dict[str, Any],
+) -> None:
+    """``preview.png`` (the preview frames' tiles) and ``map.png`` (world, GIS products,
+    trajectory, GPS)."""
+    rig, condition, frames = request["rig"], request["condition"], request["frames"]
+    image_size, seed = request["image_size"], request["seed"]
     from geoseg.synth.maps import contact_sheet, plot_map
 
     contact_sheet(
         preview_rows,
         out_dir / "preview.png",
-        row_labels=[f"frame {i}" for i in sorted(preview_idx)],
+        row_labels=[f"frame {i}" for i in preview_idx],
         col_labels=["rgb", "labels", "depth", "normals"],
         title=f"{rig} / {condition}, {frames} frames {image_size[0]}x{image_size[1]}",
     )
@@ -380,12 +416,13 @@ def render_sequence(
         gps={rig: products.gps},
         title=f"seed {seed}: world, GIS model, DEM, trajectory, GPS",
     )
-    atomic_write(out_dir / "README.txt", readme_text(request), fsync=False)
-    files += ["preview.png", "map.png", "README.txt"]
-    record_outputs(out_dir, files + ["meta.json"])
+
+
+def _meta(request: dict[str, Any], files: list[str], world: Any, products: Any) -> dict[str, Any]:
+    """The render's ``meta.json``: the request, the files, a summary of the GIS products."""
     meta = {
         "request": request,
-        "frames_written": frames,
+        "frames_written": request["frames"],
         "classes": list(CLASS_NAMES),
         "conventions": CONVENTIONS,
         "files": sorted(files) + ["rgb/", "labels/", "labels_color/", "geometry/"],
@@ -401,9 +438,7 @@ def render_sequence(
         },
         "versions": _versions(),
     }
-    atomic_write(meta_path, json.dumps(meta, indent=1))
-    logger.info("wrote %d frames and GIS products to %s", frames, out_dir)
-    return out_dir
+    return meta
 
 
 def _render_and_write(out_dir: Path, render: RenderFn, index, K, R_wc, t_wc, time_s, preview):

@@ -5,74 +5,14 @@ A :class:`RealismConfig` holds probabilities and ranges; :func:`draw_variation` 
 :class:`Variation` from it (one per training frame, from a seeded generator), and
 :meth:`geoseg.synth.renderer.Renderer.render` takes that variation. Every option is off by
 default (``RealismConfig()`` draws the identity variation, and ``render(..., variation=None)``
-renders exactly as before); :data:`REALISTIC` turns them all on.
+renders exactly as before); :data:`REALISTIC` turns the scene options on.
 
-Pure appearance options (the rendered colours change, the labels, depth, normals and instance
-ids do not):
-
-- ``p_shopfront`` / ``shopfront_share``: a share of the facades get a shop-front ground floor:
-  a facade-wide fascia board in a bold colour with letter-like marks, large display windows
-  with coloured goods behind the glass, pilasters, a stall riser and, on some, a striped awning
-  painted on the wall; all of it labelled building (real shop fronts and signs are);
-- ``p_paint`` / ``paint_share``: a share of the facades are repainted a random colour (any hue,
-  low to medium saturation, dark to white) and may switch wall material; some get a dark
-  drainpipe (a thin vertical stripe that is building, not object);
-- ``p_vehicle_colour`` / ``vehicle_colour_share``: a share of the vehicles get a new colour
-  (mostly the white, silver, grey and black of real traffic, some saturated hues);
-- ``p_ground``: the tone of the asphalt, the colour and tone of the paving and the brightness
-  of the road markings change (sidewalks as grey as the road included);
-- ``p_light``: the sun's direction and strength, the sky light and the haze change;
-- ``p_sky``: the sky's colours change (clear blue to flat white and grey) and clouds appear
-  (``cloud_cover``);
-- ``p_shadows``: cast shadows (a second ray cast, ~20 % slower per frame that draws them);
-- ``p_twigs`` / ``twig_density``: bare crowns get a haze of fine twigs, finer than a pixel:
-  each crown surface a ray passes through covers ``twig_density`` of what lies behind with a
-  dull grey-brown (a leafless tree reads as a textured veil against the sky, not as sparse
-  dots); behind limbs (``p_limbs``) the haze is a twig mass instead, as dense on average,
-  denser across a crown's middle than at its rim and speckled twig by twig;
-- ``p_kerb`` / ``slab_m``: a kerb with a shaded face and a light top stone between road and
-  sidewalk, a darker gutter on the road beside it, and paving slabs (edge ``slab_m``) with dark
-  joints, tone per slab and dirt, where the default paving is plain tiles;
-- ``p_road_texture`` / ``road_texture``: the asphalt's mottling, grit and repair patches are
-  toned down (to flat at 0) around the frame's median asphalt tone, markings kept (real
-  asphalt at 320x240 is smoother than the rendered one: texture must not be what tells road
-  from pavement);
-- ``p_kerb_lines``: painted lines along the kerbs (double yellow, as on British streets, or a
-  single white or yellow line), on some street sides, worn to a varying brightness;
-- ``p_posters`` / ``poster_share``: a share of the facades get a poster hoarding over their
-  ground floor: boards covered with posters of bold colour blocks, pale backgrounds and dark
-  marks (the look of the city's advertising panels, which are ``object``), labelled building
-  as real datasets label hoardings and shop signs;
-- ``p_overcast``: a flat grey overcast sky (grey zenith and horizon, dense clouds) and a weak
-  sun, in daylight conditions (grey skies beside grey facades: the sky class must be learnt
-  from more than its colour).
-
-Label option (the image, depth and normals do not change; the labels do):
-
-- ``bare_crown_label``: every pixel whose ray meets a bare crown first is ``vegetation``, the
-  crown's whole silhouette, as real datasets label a leafless tree (CamVid's ``Tree`` covers
-  the sky between the branches); off, such a pixel takes the label of what its ray reaches
-  between the branches. It acts wherever crowns are bare (``p_bare_trees``, ``winter``).
-  ``crown_label_cover`` narrows it: a crown pixel is ``vegetation`` where a branch stops its
-  ray, where the sky shows through, or where the fine twigs and thin limbs cover at least that
-  share of it; where a facade, a vehicle or the ground shows through a thin part, that labels
-  it (a map point tracked there lies on the facade).
-
-Options that change the geometry, with labels that follow it (rendered from the same rays):
-
-- ``p_bare_trees``: the tree crowns are leafless (rays pass between the branches and get the
-  label of what lies behind, as in the ``winter`` condition) under any light;
-- ``p_limbs``: leafless crowns are drawn as a stem, limbs, branches and twigs
-  (:mod:`geoseg.synth.bare_crowns`) instead of a sparse voxel pattern on the crown's surfaces:
-  lines against the sky, as a real winter tree, where the default reads as a speckled ball. It
-  acts wherever crowns are bare (``p_bare_trees``, ``winter``);
-- ``p_furniture`` / ``furniture_spacing_m``: extra street furniture near the camera (sign
-  posts with plates, traffic lights, lamp posts, bollards, utility cabinets), mostly at the
-  kerb (``furniture_kerb_share``), labelled ``object`` (:mod:`geoseg.synth.street_furniture`);
-  ``furniture_plain_plates`` paints their plates plain colours (image only);
-- ``p_lens`` / ``lens_k1``: radial lens distortion, ``x_u = x_d (1 + k1 r_d^2)`` in normalised
-  image coordinates (``k1 > 0``: barrel, straight lines bow outwards). Such a frame is not a
-  pinhole image: its ``K`` is the undistorted camera's.
+Most options change only the rendered colours (shop fronts, paint, vehicle colours, ground,
+light, sky, shadows, twigs, kerbs, road texture, kerb lines, posters, overcast skies);
+``bare_crown_label`` and ``crown_label_cover`` change only the labels; ``p_bare_trees``,
+``p_limbs``, ``p_furniture`` and ``p_lens`` change the geometry, with labels that follow it.
+What each option does and how it labels: ``docs/real_images.md`` ("Synthetic data that
+transfers").
 """
 
 from __future__ import annotations
@@ -87,7 +27,11 @@ from geoseg.config import check_range
 from geoseg.errors import ConfigError
 from geoseg.synth.conditions import Condition
 
-_PROBABILITIES = (
+# The order of the draws (the random stream of every variation depends on it): first one uniform
+# per scene option, together; then, when any is on, the twig, kerb and overcast options'
+# together; then each of the later options on its own, in this order, when it is on. An option
+# added later draws after these, so the variations drawn before it stay as they were.
+_SCENE_PROBABILITIES = (
     "p_shopfront",
     "p_paint",
     "p_vehicle_colour",
@@ -98,20 +42,9 @@ _PROBABILITIES = (
     "p_bare_trees",
     "p_lens",
 )
-# drawn after the options above (their draws, and so the older variations, stay as they were)
-_PROBABILITIES_2 = ("p_twigs", "p_kerb", "p_overcast")
-_PROBABILITIES_3 = ("p_kerb_lines",)  # (and these after those)
-_PROBABILITIES_4 = ("p_furniture", "p_road_texture")  # (and these after those, in this order)
-_PROBABILITIES_5 = ("p_posters",)  # (and this after those)
-_PROBABILITIES_6 = ("p_limbs",)  # (and this last)
-_ALL = (
-    _PROBABILITIES
-    + _PROBABILITIES_2
-    + _PROBABILITIES_3
-    + _PROBABILITIES_4
-    + _PROBABILITIES_5
-    + _PROBABILITIES_6
-)
+_TWIG_KERB_OVERCAST_PROBABILITIES = ("p_twigs", "p_kerb", "p_overcast")
+_SEPARATE_PROBABILITIES = ("p_kerb_lines", "p_furniture", "p_road_texture", "p_posters", "p_limbs")
+_ALL = _SCENE_PROBABILITIES + _TWIG_KERB_OVERCAST_PROBABILITIES + _SEPARATE_PROBABILITIES
 
 
 @dataclass
@@ -247,9 +180,10 @@ REALISTIC = RealismConfig(
     p_bare_trees=0.15,
     p_lens=0.3,
 )
-"""Every variation of the first round on (configs: copy its values)."""
+"""The scene options on: facades, vehicles, ground, light, sky, shadows, bare trees, lens
+(configs: copy its values)."""
 
-REALISTIC_2 = dataclasses.replace(
+REALISTIC_STREETS = dataclasses.replace(
     REALISTIC,
     p_bare_trees=0.4,
     p_twigs=0.8,
@@ -257,11 +191,11 @@ REALISTIC_2 = dataclasses.replace(
     p_overcast=0.25,
     bare_crown_label=True,
 )
-""":data:`REALISTIC` with the second round on: more bare trees, labelled as real datasets
-label them, twig haze, kerbs and slab paving, overcast skies."""
+""":data:`REALISTIC` with more bare trees, labelled as real datasets label them, twig haze,
+kerbs and slab paving, overcast skies."""
 
-REALISTIC_3 = dataclasses.replace(REALISTIC_2, p_kerb_lines=0.6, p_furniture=0.7)
-""":data:`REALISTIC_2` with kerb lines and the third round's extra street furniture."""
+REALISTIC_FURNISHED = dataclasses.replace(REALISTIC_STREETS, p_kerb_lines=0.6, p_furniture=0.7)
+""":data:`REALISTIC_STREETS` with kerb lines and extra street furniture."""
 
 
 @dataclass(frozen=True)
@@ -365,8 +299,8 @@ def _rgb(values) -> tuple[float, float, float]:
 def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
     """One frame's :class:`Variation` drawn from ``cfg`` (the same draws for the same ``rng``
     state, whatever options are on)."""
-    u = rng.random(len(_PROBABILITIES))
-    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_PROBABILITIES)}
+    u = rng.random(len(_SCENE_PROBABILITIES))
+    fires = {name: bool(u[i] < getattr(cfg, name)) for i, name in enumerate(_SCENE_PROBABILITIES)}
     r = rng.random(18)  # always drawn, so one option's draws do not depend on another's
 
     def pick(i: int, low_high: tuple[float, float]) -> float:
@@ -401,18 +335,20 @@ def draw_variation(cfg: RealismConfig, rng: np.random.Generator) -> Variation:
     kw["bare_trees"] = fires["p_bare_trees"]
     if fires["p_lens"]:
         kw["lens_k1"] = pick(16, cfg.lens_k1)
-    kw.update(_draw_second_round(cfg, rng))
+    kw.update(_draw_later_options(cfg, rng))
     return Variation(**kw)
 
 
-def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
+def _draw_later_options(cfg: RealismConfig, rng: np.random.Generator) -> dict:
     """The :class:`Variation` fields of twigs, kerbs, overcast skies, kerb lines, crown labels,
     street furniture, road texture, posters, limbs and the crown label's cover (options left at
     0 draw nothing: the earlier options' draws stay as they were)."""
     kw: dict = {"bare_crown_label": cfg.bare_crown_label}
-    if any(getattr(cfg, name) > 0 for name in _PROBABILITIES_2):
-        u = rng.random(len(_PROBABILITIES_2))
-        fires = {n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_PROBABILITIES_2)}
+    if any(getattr(cfg, name) > 0 for name in _TWIG_KERB_OVERCAST_PROBABILITIES):
+        u = rng.random(len(_TWIG_KERB_OVERCAST_PROBABILITIES))
+        fires = {
+            n: bool(u[i] < getattr(cfg, n)) for i, n in enumerate(_TWIG_KERB_OVERCAST_PROBABILITIES)
+        }
         r = rng.random(8)
         if fires["p_twigs"]:
             lo, hi = cfg.twig_density
@@ -430,27 +366,27 @@ def _draw_second_round(cfg: RealismConfig, rng: np.random.Generator) -> dict:
             kw["sun"] = (360.0 * float(r[6]), 50.0, 0.15 + 0.25 * float(r[7]))
             kw["shadows"] = False
     if cfg.p_kerb_lines > 0:
-        u3 = rng.random(2)
-        if u3[0] < cfg.p_kerb_lines:
-            kw["kerb_lines"] = float(0.45 + 0.5 * u3[1])  # worn to fresh paint
+        u_lines = rng.random(2)
+        if u_lines[0] < cfg.p_kerb_lines:
+            kw["kerb_lines"] = float(0.45 + 0.5 * u_lines[1])  # worn to fresh paint
     if cfg.p_furniture > 0:
-        u4 = rng.random(2)
-        if u4[0] < cfg.p_furniture:
+        u_furniture = rng.random(2)
+        if u_furniture[0] < cfg.p_furniture:
             lo, hi = cfg.furniture_spacing_m
-            kw["furniture_spacing"] = float(lo + (hi - lo) * u4[1])
+            kw["furniture_spacing"] = float(lo + (hi - lo) * u_furniture[1])
             # style options: no draws of their own (the other draws stay as they were)
             kw["furniture_kerb_share"] = float(cfg.furniture_kerb_share)
             kw["furniture_plain_plates"] = bool(cfg.furniture_plain_plates)
     if cfg.p_road_texture > 0:
-        u5 = rng.random(2)
-        if u5[0] < cfg.p_road_texture:
+        u_texture = rng.random(2)
+        if u_texture[0] < cfg.p_road_texture:
             lo, hi = cfg.road_texture
-            kw["road_texture"] = float(lo + (hi - lo) * u5[1])
+            kw["road_texture"] = float(lo + (hi - lo) * u_texture[1])
     if cfg.p_posters > 0:
-        u6 = rng.random(2)
-        if u6[0] < cfg.p_posters:
+        u_posters = rng.random(2)
+        if u_posters[0] < cfg.p_posters:
             lo, hi = cfg.poster_share
-            kw["poster_share"] = float(lo + (hi - lo) * u6[1])
+            kw["poster_share"] = float(lo + (hi - lo) * u_posters[1])
     if cfg.p_limbs > 0:
         kw["limbs"] = bool(rng.random() < cfg.p_limbs)
     if cfg.crown_label_cover > 0:  # a label rule: no draw of its own

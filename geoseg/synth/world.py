@@ -1,34 +1,12 @@
 """The procedural city: streets, terrain, buildings, trees, vehicles and street furniture.
 
 A :class:`World` is built from a :class:`WorldConfig` by :func:`build_world`, deterministically:
-the same seed and config give a bit-identical city, another seed another city.
-
-Frames and units: world frame metric, right-handed, z up (x east, y north), metres.
-
-Layout:
-
-- **Street network**: a jittered grid of junctions, ``(blocks_x + 1) x (blocks_y + 1)`` nodes,
-  linked to their 4 neighbours; a share of the inner links is removed (every junction keeps at
-  least 2 streets and the network stays connected, so it always holds loops); a share of the
-  streets bends sideways (a half sine), the others are straight. Each street is a
-  :class:`Street` (centreline polyline, carriageway width, sidewalk width).
-- **Terrain**: a smooth heightfield (a sum of 3 plane waves) with grades of a few per cent,
-  :meth:`World.terrain_height`. The ground mesh is one triangulated heightfield (spacing
-  ``terrain.mesh_spacing``, within ~1 cm of the true surface); roads, sidewalks and plain terrain
-  are the same surface, told apart per point by :meth:`World.ground_class` (distance to the
-  nearest centreline), so curved kerbs are exact at any resolution. Sidewalks are flush with the
-  road (no raised kerb).
-- **Buildings**: rectangular 2.5D lots along both sides of every street (convex, CCW
-  footprints), extruded from the terrain (``base_z`` = terrain height at the lowest corner;
-  walls reach 1 m below it in the mesh so that no gap shows on slopes) to ``base_z + height``.
-- **Carriageway**: two driving lanes (``WorldConfig.lane_offset`` from the centreline) and a
-  parking strip along each kerb (``parking_width``); lane markings, parking bays and zebra
-  crossings are painted by the renderer's textures.
-- **Occluders** (their density comes from the preset unless set explicitly): trees on the
-  sidewalks near the kerb (trunk + crown), parked vehicles in the parking strips, moving
-  vehicles in the lanes (their position depends on time, see :meth:`World.vehicle_poses`),
-  street lamps, traffic signs near junctions, bus shelters and advertising panels on the
-  sidewalks.
+the same seed and config give a bit-identical city, another seed another city. World frame
+metric, right-handed, z up (x east, y north), metres. A city is a jittered street grid with loops
+and bends, a smooth sloped terrain whose one surface holds roads, sidewalks and plain ground
+(told apart per point by :meth:`World.ground_class`), 2.5D buildings along the streets, two lanes
+and parking strips per street, and occluders (trees, parked and moving vehicles, street
+furniture); the layout in full: ``docs/synthetic_city.md``.
 
 Instance ids (written by the renderer): facades ``0 .. F-1`` (the :class:`FacadeTable` row),
 roofs ``F + building index``, the ground ``F + B``, then one id per tree, static vehicle and

@@ -27,6 +27,7 @@ from geoseg.synth.world_records import (
 
 if TYPE_CHECKING:  # the world imports this module to build itself
     from geoseg.synth.world import World
+    from geoseg.synth.world_config import WorldConfig
 
 
 def _build_streets(world: World, rng: np.random.Generator) -> None:
@@ -234,141 +235,211 @@ def _polygon_samples(poly: np.ndarray, step: float) -> np.ndarray:
     )
 
 
+# Body colours of the vehicles, RGB in [0, 1].
+_VEHICLE_PALETTE = np.array(
+    [
+        [0.75, 0.75, 0.78],
+        [0.12, 0.12, 0.14],
+        [0.55, 0.08, 0.08],
+        [0.10, 0.22, 0.50],
+        [0.90, 0.90, 0.88],
+        [0.35, 0.37, 0.40],
+        [0.15, 0.35, 0.20],
+        [0.80, 0.60, 0.15],
+    ]
+)
+
+# (kind, xy (2,), heading) of a piece of street furniture
+_Furniture = tuple[str, np.ndarray, float]
+
+
+def _tangent_heading(t: np.ndarray) -> float:
+    return float(np.arctan2(t[1], t[0]))
+
+
 def _build_occluders(world: World, rng: np.random.Generator) -> None:
-    """Place trees, vehicles and street furniture (stored as records; meshed later)."""
+    """Place trees, vehicles and street furniture (stored as records; meshed later).
+
+    The placements draw from ``rng`` street by street, in a fixed order (per side: trees, parked
+    vehicles, shelters and panels; then lamps, signs, moving vehicles): the order is part of
+    the city a seed gives."""
     cfg = world.config
-    half = cfg.street_width / 2
-    sw = cfg.sidewalk_width
-    clear = half + sw + 2.0
+    clear = cfg.street_width / 2 + cfg.sidewalk_width + 2.0
     trees: list[Tree] = []
     vehicles: list[Vehicle] = []
-    furniture: list[tuple[str, np.ndarray, float]] = []  # (kind, xy, heading)
-    tree_spacing = cfg.occluder("tree_spacing")
-    palette = np.array(
-        [
-            [0.75, 0.75, 0.78],
-            [0.12, 0.12, 0.14],
-            [0.55, 0.08, 0.08],
-            [0.10, 0.22, 0.50],
-            [0.90, 0.90, 0.88],
-            [0.35, 0.37, 0.40],
-            [0.15, 0.35, 0.20],
-            [0.80, 0.60, 0.15],
-        ]
-    )
-
-    def tangent_heading(t: np.ndarray) -> float:
-        return float(np.arctan2(t[1], t[0]))
-
+    furniture: list[_Furniture] = []
     for si, street in enumerate(world.streets):
-        length = street.length
-        usable = length - 2 * clear
+        usable = street.length - 2 * clear
         if usable <= 2.0:
             continue
         for side in (1.0, -1.0):
-            # trees near the kerb
-            if rng.random() < cfg.occluder("tree_street_share"):
-                n = int(usable // tree_spacing) + 1
-                s_all = clear + (np.arange(n) + rng.uniform(0.2, 0.8)) * (usable / n)
-                pts, tans = street.point_at(s_all)
-                for p, t in zip(pts, tans):
-                    if rng.random() < 0.08:
-                        continue  # a missing tree
-                    left = np.array([-t[1], t[0]]) * side
-                    xy = p + left * (half + min(1.0, sw * 0.35)) + rng.normal(0, 0.1, 2)
-                    trunk_h = rng.uniform(2.6, 3.6)
-                    rh = rng.uniform(2.0, 3.2)
-                    rv = rng.uniform(2.2, 3.4)
-                    z = float(world.terrain.height(xy[None])[0])
-                    centre = np.array([xy[0], xy[1], z + trunk_h + 0.75 * rv])
-                    trees.append(
-                        Tree(
-                            -1,
-                            np.array([xy[0], xy[1], z]),
-                            rng.uniform(0.14, 0.24),
-                            trunk_h,
-                            centre,
-                            np.array([rh, rh * rng.uniform(0.85, 1.15), rv]),
-                        )
-                    )
-            # parked vehicles along the kerb (in the carriageway)
-            slots = np.arange(clear + 3.0, length - clear - 3.0, 6.2)
-            if len(slots) and cfg.parking_width > 0:
-                pts, tans = street.point_at(slots)
-                for p, t in zip(pts, tans):
-                    if rng.random() >= cfg.occluder("parked_share"):
-                        continue
-                    left = np.array([-t[1], t[0]]) * side
-                    kind = rng.random()
-                    length_v, width_v, height_v = (
-                        (rng.uniform(3.9, 4.7), rng.uniform(1.7, 1.85), rng.uniform(1.4, 1.55))
-                        if kind < 0.85
-                        else (rng.uniform(5.0, 6.2), 2.0, rng.uniform(2.2, 2.6))
-                    )
-                    kerb_gap = max(cfg.parking_width - width_v, 0.0) / 2 + 0.1
-                    xy = p + left * (half - width_v / 2 - kerb_gap) + t * rng.normal(0, 0.3)
-                    heading = tangent_heading(t) + (0.0 if side < 0 else np.pi)
-                    vehicles.append(
-                        Vehicle(
-                            -1,
-                            xy,
-                            heading,
-                            length_v,
-                            width_v,
-                            height_v,
-                            palette[int(rng.integers(len(palette)))].copy(),
-                        )
-                    )
-            # bus shelter / advertising panel at the back of the sidewalk
-            for kind, share in (("shelter", "shelter_share"), ("panel", "panel_share")):
-                if rng.random() < cfg.occluder(share) and usable > 12.0:
-                    s = rng.uniform(clear + 4.0, length - clear - 4.0)
-                    (p,), (t,) = street.point_at(np.array([s]))
-                    left = np.array([-t[1], t[0]]) * side
-                    depth_off = half + sw - (1.0 if kind == "shelter" else 0.6)
-                    heading = tangent_heading(t) + (0.0 if side > 0 else np.pi)
-                    furniture.append((kind, p + left * depth_off, heading))
-        # street lamps, alternating sides
-        lamp_spacing = cfg.occluder("lamp_spacing")
-        n = int(usable // lamp_spacing) + 1
-        s_all = clear + (np.arange(n) + 0.5) * (usable / n)
-        pts, tans = street.point_at(s_all)
-        for i, (p, t) in enumerate(zip(pts, tans)):
-            side = 1.0 if i % 2 == 0 else -1.0
-            left = np.array([-t[1], t[0]]) * side
-            furniture.append(("lamp", p + left * (half + 0.45), tangent_heading(-left)))
-        # traffic signs at the street ends (right-hand side when arriving at a junction)
-        for end in (0, 1):
-            if rng.random() < cfg.occluder("sign_share"):
-                s = clear - 0.5 if end == 0 else length - clear + 0.5
-                (p,), (t,) = street.point_at(np.array([s]))
-                side = 1.0 if end == 0 else -1.0
-                left = np.array([-t[1], t[0]]) * side
-                furniture.append(("sign", p + left * (half + 0.5), tangent_heading(t * -side)))
-        # moving vehicles in the lanes
-        n_moving = rng.poisson(cfg.occluder("moving_per_100m") * length / 100.0)
-        for _ in range(n_moving):
-            direction = rng.choice([-1.0, 1.0])
-            speed = direction * rng.uniform(6.0, 12.0)
-            s0 = rng.uniform(clear, length - clear)
-            lane = -direction * cfg.lane_offset
-            length_v = rng.uniform(3.9, 4.7)
-            vehicles.append(
-                Vehicle(
-                    -1,
-                    np.zeros(2),
-                    0.0,
-                    length_v,
-                    1.8,
-                    rng.uniform(1.4, 1.55),
-                    palette[int(rng.integers(len(palette)))].copy(),
-                    True,
-                    si,
-                    lane,
-                    s0,
-                    speed,
-                )
-            )
+            trees += _kerb_trees(world, street, side, clear, usable, rng)
+            vehicles += _parked_vehicles(cfg, street, side, clear, rng)
+            furniture += _sidewalk_furniture(cfg, street, side, clear, usable, rng)
+        furniture += _lamps(cfg, street, clear, usable)
+        furniture += _signs(cfg, street, clear, rng)
+        vehicles += _moving_vehicles(cfg, street, si, clear, rng)
     world.trees = trees
     world.vehicles = vehicles
     world.furniture = furniture
+
+
+def _kerb_trees(
+    world: World, street: Street, side: float, clear: float, usable: float, rng: np.random.Generator
+) -> list[Tree]:
+    """Trees near the kerb on one side of ``street`` (on a share of the street sides)."""
+    cfg = world.config
+    half = cfg.street_width / 2
+    sw = cfg.sidewalk_width
+    trees: list[Tree] = []
+    if rng.random() < cfg.occluder("tree_street_share"):
+        n = int(usable // cfg.occluder("tree_spacing")) + 1
+        s_all = clear + (np.arange(n) + rng.uniform(0.2, 0.8)) * (usable / n)
+        pts, tans = street.point_at(s_all)
+        for p, t in zip(pts, tans):
+            if rng.random() < 0.08:
+                continue  # a missing tree
+            left = np.array([-t[1], t[0]]) * side
+            xy = p + left * (half + min(1.0, sw * 0.35)) + rng.normal(0, 0.1, 2)
+            trunk_h = rng.uniform(2.6, 3.6)
+            rh = rng.uniform(2.0, 3.2)
+            rv = rng.uniform(2.2, 3.4)
+            z = float(world.terrain.height(xy[None])[0])
+            centre = np.array([xy[0], xy[1], z + trunk_h + 0.75 * rv])
+            trees.append(
+                Tree(
+                    -1,
+                    np.array([xy[0], xy[1], z]),
+                    rng.uniform(0.14, 0.24),
+                    trunk_h,
+                    centre,
+                    np.array([rh, rh * rng.uniform(0.85, 1.15), rv]),
+                )
+            )
+    return trees
+
+
+def _parked_vehicles(
+    cfg: WorldConfig, street: Street, side: float, clear: float, rng: np.random.Generator
+) -> list[Vehicle]:
+    """Vehicles parked along the kerb on one side of ``street`` (in the carriageway)."""
+    half = cfg.street_width / 2
+    length = street.length
+    vehicles: list[Vehicle] = []
+    slots = np.arange(clear + 3.0, length - clear - 3.0, 6.2)
+    if len(slots) and cfg.parking_width > 0:
+        pts, tans = street.point_at(slots)
+        for p, t in zip(pts, tans):
+            if rng.random() >= cfg.occluder("parked_share"):
+                continue
+            left = np.array([-t[1], t[0]]) * side
+            kind = rng.random()
+            length_v, width_v, height_v = (
+                (rng.uniform(3.9, 4.7), rng.uniform(1.7, 1.85), rng.uniform(1.4, 1.55))
+                if kind < 0.85
+                else (rng.uniform(5.0, 6.2), 2.0, rng.uniform(2.2, 2.6))
+            )
+            kerb_gap = max(cfg.parking_width - width_v, 0.0) / 2 + 0.1
+            xy = p + left * (half - width_v / 2 - kerb_gap) + t * rng.normal(0, 0.3)
+            heading = _tangent_heading(t) + (0.0 if side < 0 else np.pi)
+            vehicles.append(
+                Vehicle(
+                    -1,
+                    xy,
+                    heading,
+                    length_v,
+                    width_v,
+                    height_v,
+                    _VEHICLE_PALETTE[int(rng.integers(len(_VEHICLE_PALETTE)))].copy(),
+                )
+            )
+    return vehicles
+
+
+def _sidewalk_furniture(
+    cfg: WorldConfig,
+    street: Street,
+    side: float,
+    clear: float,
+    usable: float,
+    rng: np.random.Generator,
+) -> list[_Furniture]:
+    """A bus shelter and an advertising panel at the back of the sidewalk on one side of
+    ``street`` (each on a share of the street sides)."""
+    half = cfg.street_width / 2
+    sw = cfg.sidewalk_width
+    length = street.length
+    furniture: list[_Furniture] = []
+    for kind, share in (("shelter", "shelter_share"), ("panel", "panel_share")):
+        if rng.random() < cfg.occluder(share) and usable > 12.0:
+            s = rng.uniform(clear + 4.0, length - clear - 4.0)
+            (p,), (t,) = street.point_at(np.array([s]))
+            left = np.array([-t[1], t[0]]) * side
+            depth_off = half + sw - (1.0 if kind == "shelter" else 0.6)
+            heading = _tangent_heading(t) + (0.0 if side > 0 else np.pi)
+            furniture.append((kind, p + left * depth_off, heading))
+    return furniture
+
+
+def _lamps(cfg: WorldConfig, street: Street, clear: float, usable: float) -> list[_Furniture]:
+    """Street lamps along ``street``, alternating sides (no random draw)."""
+    half = cfg.street_width / 2
+    furniture: list[_Furniture] = []
+    lamp_spacing = cfg.occluder("lamp_spacing")
+    n = int(usable // lamp_spacing) + 1
+    s_all = clear + (np.arange(n) + 0.5) * (usable / n)
+    pts, tans = street.point_at(s_all)
+    for i, (p, t) in enumerate(zip(pts, tans)):
+        side = 1.0 if i % 2 == 0 else -1.0
+        left = np.array([-t[1], t[0]]) * side
+        furniture.append(("lamp", p + left * (half + 0.45), _tangent_heading(-left)))
+    return furniture
+
+
+def _signs(
+    cfg: WorldConfig, street: Street, clear: float, rng: np.random.Generator
+) -> list[_Furniture]:
+    """Traffic signs at the ends of ``street`` (right-hand side when arriving at a junction)."""
+    half = cfg.street_width / 2
+    length = street.length
+    furniture: list[_Furniture] = []
+    for end in (0, 1):
+        if rng.random() < cfg.occluder("sign_share"):
+            s = clear - 0.5 if end == 0 else length - clear + 0.5
+            (p,), (t,) = street.point_at(np.array([s]))
+            side = 1.0 if end == 0 else -1.0
+            left = np.array([-t[1], t[0]]) * side
+            furniture.append(("sign", p + left * (half + 0.5), _tangent_heading(t * -side)))
+    return furniture
+
+
+def _moving_vehicles(
+    cfg: WorldConfig, street: Street, si: int, clear: float, rng: np.random.Generator
+) -> list[Vehicle]:
+    """Vehicles driving in the lanes of ``street`` (index ``si``)."""
+    length = street.length
+    vehicles: list[Vehicle] = []
+    n_moving = rng.poisson(cfg.occluder("moving_per_100m") * length / 100.0)
+    for _ in range(n_moving):
+        direction = rng.choice([-1.0, 1.0])
+        speed = direction * rng.uniform(6.0, 12.0)
+        s0 = rng.uniform(clear, length - clear)
+        lane = -direction * cfg.lane_offset
+        length_v = rng.uniform(3.9, 4.7)
+        vehicles.append(
+            Vehicle(
+                -1,
+                np.zeros(2),
+                0.0,
+                length_v,
+                1.8,
+                rng.uniform(1.4, 1.55),
+                _VEHICLE_PALETTE[int(rng.integers(len(_VEHICLE_PALETTE)))].copy(),
+                True,
+                si,
+                lane,
+                s0,
+                speed,
+            )
+        )
+    return vehicles

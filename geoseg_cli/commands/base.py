@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     base = load_image_base(out)
     print(f"image base {out}: {len(base)} images")
     if not args.no_embed:
-        from geoseg.reloc.localizer import load_trunk, make_embedder
+        from geoseg.reloc.networks import load_trunk, make_embedder
 
         trunk = None if args.embedding == "thumbnail" else load_trunk(None, args.device)
         embedder, name, _ = make_embedder(args.embedding, trunk, device=args.device)

@@ -32,6 +32,16 @@ logger = logging.getLogger(__name__)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
+    _add_inputs(parser)
+    _add_networks(parser)
+    _add_ranking(parser)
+    _add_matching(parser)
+    _add_sequence(parser)
+    _add_run(parser)
+
+
+def _add_inputs(parser: argparse.ArgumentParser) -> None:
+    """The queries, the base, the queries' GPS and the number of matches."""
     parser.add_argument("queries", nargs="+", type=Path, metavar="QUERY_IMAGE", help="query images")
     parser.add_argument(
         "--base",
@@ -44,6 +54,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--radius", type=float, help="GPS window radius in metres (needs --gps)")
     parser.add_argument("--k", type=int, default=3, help="matches per query (default 3)")
+
+
+def _add_networks(parser: argparse.ArgumentParser) -> None:
+    """The embedding, the relative poses and the networks' weights and input size."""
     parser.add_argument(
         "--embedding",
         choices=["learned", "layer21", "thumbnail"],
@@ -77,6 +91,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="resize every image to WxH before the networks (default 320x240, the shipped "
         "networks' size); 'none' keeps the images' size",
     )
+
+
+def _add_ranking(parser: argparse.ArgumentParser) -> None:
+    """Re-ranking and the absolute position."""
     parser.add_argument(
         "--gps-sigma",
         type=float,
@@ -113,6 +131,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="ranged rays that must agree for the position to come from them; otherwise the "
         "best match's position (default 2; 1: always the rays' fit)",
     )
+
+
+def _add_matching(parser: argparse.ArgumentParser) -> None:
+    """Options of the raw-feature embedding and of the essential-matrix baseline."""
     parser.add_argument(
         "--pool",
         type=int,
@@ -129,6 +151,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--focal", type=float, help="focal length in pixels when the base has no camera.json"
     )
+
+
+def _add_sequence(parser: argparse.ArgumentParser) -> None:
+    """The queries as one drive (the route filter)."""
     parser.add_argument(
         "--sequence",
         choices=["filter", "smooth"],
@@ -148,6 +174,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "the median query-base distance, chosen for the shipped embedding head on the "
         "validation city)",
     )
+
+
+def _add_run(parser: argparse.ArgumentParser) -> None:
+    """Device, cache and output."""
     parser.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="torch device")
     parser.add_argument(
         "--no-cache", action="store_true", help="do not read/write cached embeddings"

@@ -1,41 +1,14 @@
 """The factor protocol: what a residual family hands to the normal-equations assembler.
 
 A **factor family** (reprojection, GPS, DEM, odometry, building, pose-graph DPC/MPC, ...) is any
-object with two methods (see :class:`Factor`):
-
-* ``evaluate(state) -> FactorBlock``: all its residuals and analytic Jacobians, vectorised;
-* ``cost(state) -> float``: ``sum_m rho(||r_m||^2)`` over its valid rows (may skip Jacobians).
-
-Optionally ``num_residuals`` (the number of scalar residuals, without evaluating: the barrier
-counts them once per fusion) and ``cost_and_invalid(state) -> (float, int)`` (cost and number
-of invalid rows):
-:class:`slam_bridge.ba.solvers.lm.BAObjective` uses it, when present, to refuse steps that create
-new invalid rows (points crossing behind their camera).
-
-``state`` is a :class:`slam_bridge.ba.state.BAState`. The family owns its data (observations,
-measurement, covariance) and whitens its residuals itself (``r = sqrt_info (h(x) - z)``), so the
-assembler sees only unit-covariance residuals.
-
-A :class:`FactorBlock` holds ``M`` residual **rows**, each a ``k``-vector (``k = 2`` for a
-reprojection, 3 for a GPS fix, 6 for a DPC term, ...). Row ``m`` involves
-
-* ``a`` cameras (``a`` fixed per block: 0 for a point-only term such as the building
-  point-to-plane distance, 1 for reprojection/GPS/DEM, 2 for pose-graph terms):
-  ``cameras[m, :]`` are indices into the state's cameras (**all** cameras, fixed or not), and
-  ``J_cameras[m, s]`` is ``d r_m / d delta_camera`` ``(k, 6)`` for the camera in slot ``s``,
-  where the camera increment is ``[dw, dT]`` applied as ``R_wc <- exp(hat(dw)) R_wc``,
-  ``t_wc <- t_wc + dT`` (:meth:`BAState.retract`);
-* at most one point: ``points[m]`` (index into all state points) and ``J_points[m]`` ``(k, 3)``
-  for the additive point increment; ``points``/``J_points`` are ``None`` for camera-only terms.
-
-The factor does **not** drop fixed cameras/points: the assembler removes their columns using the
-state masks (``camera_fixed``, ``point_fixed``). Rows with ``valid[m] == False`` (e.g. a point
-behind its camera, z_c <= eps) contribute nothing to the cost nor to the normal equations; the
-count is reported (``FactorBlock.n_invalid``) so solvers can refuse steps that create new ones.
-
-The robust kernel of the block (``kernel``, default trivial) is applied by the assembler: the
-cost is ``sum_m rho(s_m)``, ``s_m = ||r_m||^2`` and the Jacobian products are weighted by
-``rho'(s_m)`` (IRLS).
+object with ``evaluate(state) -> FactorBlock`` (all its whitened residuals and analytic
+Jacobians, vectorised) and ``cost(state) -> float`` (see :class:`Factor`); optionally
+``num_residuals`` and ``cost_and_invalid(state) -> (float, int)``. A :class:`FactorBlock` holds
+``M`` residual rows of ``k`` values, each involving a fixed number of cameras (indices into all
+cameras, Jacobians for the increment of :meth:`slam_bridge.ba.state.BAState.retract`) and at most
+one point. The assembler drops fixed cameras and points, skips invalid rows (counted in
+``n_invalid``) and applies the block's robust kernel (IRLS). The full contract:
+``docs/solvers.md`` ("The factor protocol").
 """
 
 from __future__ import annotations

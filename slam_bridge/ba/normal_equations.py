@@ -1,43 +1,14 @@
 """The block normal equations of the bundle adjustment (thesis eqs. 1.25-1.28).
 
-The state (:class:`slam_bridge.ba.state.BAState`) and its increments are in
-:mod:`slam_bridge.ba.state`.
-
-**Normal equations** (:func:`assemble`). For factor rows ``r_m`` (whitened, see
-:mod:`slam_bridge.ba.factor`) with robust weights ``w_m = rho'(||r_m||^2)``::
-
-    H = sum_m w_m J_m^T J_m,   g = sum_m w_m J_m^T r_m,   cost = sum_m rho(||r_m||^2)
-
-so ``g`` is half the gradient of ``cost`` and ``H`` half its Gauss-Newton Hessian: the
-Gauss-Newton step ``H d = -g`` minimises the local model of ``cost``. ``H`` is kept in blocks
-(eq. 1.28, fig. 3.3)::
-
-    H = [[U + U_offdiag, W], [W^T, V]]
-
-* ``U (Cf, 6, 6)``: block diagonal camera part;
-* ``pairs (Q, 2)`` / ``U_pairs (Q, 6, 6)``: camera-camera off-diagonal blocks ``H[i, j]``
-  (``i < j`` free camera indices; ``H[j, i] = H[i, j]^T``), produced **only** by rows that involve
-  two cameras (pose-graph, odometry terms) — reprojection rows never create them, so the
-  fig. 3.3 structure stays visible;
-* ``W (N, 6, 3)`` with ``W_cameras (N,)``, ``W_points (N,)`` (free indices): one camera-point
-  block per (row, camera slot) whose camera and point are both free — duplicates of a pair are
-  allowed (they add up);
-* ``V (Pf, 3, 3)``: block diagonal point part;
-* ``g_c (Cf, 6)``, ``g_p (Pf, 3)``.
-
-Everything is vectorised over rows, no Python loop per observation: per-block sums are either
-one GEMM per camera/point over its rows laid out in a padded, cached layout (rows with one
-camera and one point, i.e. reprojections) or per-row batched ``matmul`` followed by a cached
-sparse 0/1 matrix product (segment sum). When ``numba`` is installed
-(:data:`slam_bridge.ba.compiled.USE_NUMBA`), rows with one camera, one point and ``k = 2``
-(reprojections) are accumulated by one compiled pass instead (``U``, ``V`` and the gradients
-summed in place, ``W`` written per row): the NumPy path needs ~10 passes over the rows and
-their temporaries. A family may also offer a private
-``_normal_equations(state, cmap, pmap, Cf, Pf)`` that returns its blocks directly (the
-reprojection, DPC, MPC and single-camera families do, without the generic path's per-row
-passes), optionally followed by its off-diagonal camera blocks ``(pairs, U_pairs)``
-(:func:`pair_normal_equations`); it is used only with numba.
-Both paths give the same blocks up to rounding.
+:func:`assemble` sums the whitened, robustly weighted rows of the factor families
+(:mod:`slam_bridge.ba.factor`) into ``H = [[U + U_offdiag, W], [W^T, V]]`` and the gradient
+``g`` (half the gradient and half the Gauss-Newton Hessian of the cost), in blocks: camera
+diagonal ``U (Cf, 6, 6)``, camera pairs ``(pairs (Q, 2), U_pairs (Q, 6, 6))`` from rows with
+two cameras only, camera-point ``W (N, 6, 3)``, point diagonal ``V (Pf, 3, 3)``, ``g_c (Cf, 6)``,
+``g_p (Pf, 3)``. Vectorised over rows (cached padded layouts and segment sums), or, with
+``numba``, compiled passes and a family's own ``_normal_equations``; both give the same blocks
+up to rounding. The state and its increments: :mod:`slam_bridge.ba.state`. The equations and
+the layouts: ``docs/solvers.md`` ("The block normal equations").
 """
 
 from __future__ import annotations

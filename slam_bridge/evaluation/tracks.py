@@ -1,35 +1,17 @@
 """Ground-truth evaluation of keyframe tracks (a front end's output) with rendered depth.
 
-The *true error* of an observation: each point id's **reference** is its first observation
-(keyframe order), at pixel ``uv0`` of frame ``f0``. The point is back-projected with the rendered
-z-depth of ``f0`` and its true pose, ``X_w = R_wc[f0] z K^-1 (u0, v0, 1) + t_wc[f0]``, and
-projected with the true pose of every later observation's frame; the error is the distance in
-pixels between that projection and the observed pixel. The depth at ``uv0`` comes from its 2x2
-pixel neighbourhood (pixel centres at integers):
+The *true error* of an observation: each point id's first observation (its reference) is
+back-projected with the rendered depth and the true pose of its frame, and projected with the
+true pose of every later observation's frame; the error is the distance in pixels to the observed
+pixel. Depth edges and the sky are handled apart (several depth candidates, the smallest error;
+points at infinity), and a point on a moving vehicle counts as static, so its later observations
+are bad, as they are for the SLAM.
 
-* **surface**: all four depths valid and within ``edge_tolerance`` (relative) of each other: one
-  candidate, the bilinear interpolation of the *inverse* depth (exact on a plane);
-* **edge**: the four disagree (a depth discontinuity: silhouettes, T-junctions): seven
-  candidates, the four neighbours' depths, the nearest and the farthest depth within
-  ``EDGE_RADIUS`` (2) pixels and infinity, and the error is the smallest (a corner on a
-  silhouette belongs to either side, within a pixel or two of the reference pixel; a track that
-  slides along the edge fits none and counts as bad);
-* **sky**: depth 0 (the renderer's sky) is a point at infinity: it reprojects through the
-  rotations only; an all-sky 2x2 neighbourhood is treated as an edge (a roof corner against the
-  sky is detected a pixel off the roof).
-
-A point on a moving vehicle is reprojected as if static, so its later observations are bad, as
-they are for the SLAM. References themselves have error 0 and are left out of the shares.
-
-:func:`evaluate_tracks` gives per-observation errors and a summary: ``bad_share`` (non-reference
-observations with error above ``threshold_px``), error percentiles, the reference kinds, tracks
-per keyframe, track lengths (keyframes per point), and re-observations (an observation whose point
-was missing from the previous keyframe). It also gives ``bad_share_consistency``: the share of
-non-reference observations farther than ``threshold_px`` from the projection of the static point
-that fits all the point's observations best at the true poses (linear triangulation + Gauss-Newton,
-:func:`slam_bridge.geometry.multiview.triangulate`): what would pull the SLAM's poses away from the
-truth, blind to a drift along the epipolar lines (a wrong depth), which ``bad_share`` sees; with two
-observations only the distance to the epipolar line counts.
+:func:`evaluate_tracks` gives per-observation errors and a summary: ``bad_share`` (errors above
+``threshold_px``), ``bad_share_consistency`` (the distance to the best static point at the true
+poses: what would pull the SLAM away from the truth, blind to a drift along the epipolar lines),
+error percentiles, reference kinds, tracks per keyframe, track lengths and re-observations. The
+rules in full: ``docs/frontend.md`` ("Measuring the tracks against the truth").
 
 :class:`RenderTruth` reads the truth from a ``geoseg render`` folder (``poses.csv``,
 ``camera.json``, ``geometry/NNNNNN.npz``); :class:`TruthMap` keeps a map at the truth while a

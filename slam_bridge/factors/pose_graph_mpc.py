@@ -1,42 +1,15 @@
 """MPC: multi-view (epipolar) pose-graph constraints of the hybrid window (thesis §3.5.0.2).
 
 For two successive keyframes ``i`` and ``j = i + 1`` of the pose-graph window and their 2D
-correspondences ``(x_k, x'_k)`` (pixels, ``x_k`` in image ``i``, ``x'_k`` in image ``j``), the
-residual is the signed distance, in pixels, from ``x_k`` to the epipolar line ``F x'_k`` (eqs. 3.17-3.18)::
-
-    psi_k = x_k^T F x'_k / ||P F x'_k||,     P = diag(1, 1, 0),
-    F = K_i^-T [L]_x R K_j^-1,  R = R_i^T R_j,  L = R_i^T (T_j - T_i)      (eq. C.3)
-
-with ``R_i = R_wc[i]`` and ``T_i = t_wc[i]`` (camera-to-world, ``X_w = R_i X_c + T_i``). The
-pose-graph term of camera pair ``(i, j)`` is ``xi = sum_k psi_k^2`` (eq. 3.18).
-
-Analytic Jacobian (appendix C, eqs. C.6-C.22, rederived in world-frame form): write the epipolar
-line in normalised coordinates of camera ``i`` as ``ell = R_i^T (Delta x n)`` with
-``Delta = T_j - T_i`` and ``n = R_j K_j^-1 x'`` (the ray of ``x'`` in world axes), so
-``F x' = K_i^-T ell``. With the increment convention of the core (``R <- exp(hat(dw)) R``,
-``T <- T + dT``)::
-
-    d ell / d dw_i = R_i^T [ell_w]_x          (ell_w = Delta x n; eqs. C.12, C.15)
-    d ell / d dT_i = R_i^T [n]_x              (eq. C.19, camera i)
-    d ell / d dw_j = -R_i^T [Delta]_x [n]_x   (eq. C.16)
-    d ell / d dT_j = -R_i^T [n]_x             (eq. C.19, camera j)
-
-and, with ``l = K_i^-T ell``, ``u = x^T l``, ``v = ||P l||`` (eqs. C.8, C.20-C.22)::
-
-    d psi = (x^T / v - u (P l)^T / v^3) K_i^-T d ell = g_w . d ell_w,
-    g_w = R_i K_i^-1 (x / v - u P l / v^3),
-
-so every block is a cross product (``g^T [a]_x = (g x a)^T``), vectorised over correspondences.
-With ``numba`` (:data:`slam_bridge.ba.compiled.USE_NUMBA`) the factor computes the same formulas in
-one compiled pass that gathers the cameras by index, and hands the assembler its per-pair
-normal-equation blocks directly (:meth:`MPCFactor._normal_equations`);
-:func:`epipolar_residuals` is their NumPy reference.
-
-The residual is invariant to the scale of ``Delta`` (the GPS fixes the scale, thesis §1.4
-footnote 5). It is undefined when the two optical centres coincide (``Delta = 0``, ``F = 0``) or
-when ``x'`` lies on the epipole (``P F x' = 0``): the first raises :class:`MPCDegenerateError`,
-the second flags the row invalid (it then counts in neither the cost nor the normal equations,
-like a point behind a camera in the reprojection factor).
+correspondences ``(x_k, x'_k)``, the residual ``psi_k`` is the signed distance in pixels from
+``x_k`` to the epipolar line ``F x'_k`` (eqs. 3.17-3.18, C.3); the pair's term is
+``xi = sum_k psi_k^2``. The Jacobians are analytic (appendix C, rederived in world-frame form:
+every block a cross product, vectorised over correspondences); with ``numba``
+(:data:`slam_bridge.ba.compiled.USE_NUMBA`) one compiled pass computes the same formulas and
+hands the assembler its normal-equation blocks (:meth:`MPCFactor._normal_equations`), of which
+:func:`epipolar_residuals` is the NumPy reference. The residual is invariant to the scale of the
+baseline; coincident optical centres raise :class:`MPCDegenerateError`, a correspondence on the
+epipole makes its row invalid. The derivation: ``docs/solvers.md`` ("MPC").
 """
 
 from __future__ import annotations

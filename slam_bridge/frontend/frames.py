@@ -12,25 +12,14 @@ from a monochrome camera, ``(H, W)`` uint8 grayscale (:class:`FrameSequence`). T
         [timestamps.csv]             poses.csv            (frame, timestamp, ...)
 
   Images (``.png``, ``.jpg``, ``.jpeg``, any case) sit in ``folder/rgb/`` when that folder holds
-  any, else directly in ``folder``; they are sorted by name and read lazily, one per access.
-  ``camera.json`` holds ``K`` (3x3) and ``image_size`` ``[W, H]`` (or ``width`` and ``height``;
-  optionally ``fps``); it is looked for in ``folder`` unless a path is given. A folder whose
-  first image has one channel is a monochrome camera's: its frames are read as ``(H, W)``
-  grayscale (no colour copy is made for the front end, which works on intensities).
-  Timestamps come from the first source found:
-
-  1. a ``timestamps.csv`` (in ``folder``, or the path given) with columns ``image,timestamp``
-     (``image``: the file name, with or without its extension) or ``frame,timestamp``
-     (``frame``: the integer in the file name when every image name is an integer, such as
-     ``000012.png``, else the 0-based position in name order), one row per image;
-  2. ``poses.csv`` of a ``geoseg render`` folder (columns ``frame``, ``timestamp``);
-  3. ``fps`` in ``camera.json``: ``t = index / fps``.
-
-  Every problem is a :class:`~slam_bridge.errors.SlamError` naming the file: no images, an
-  unreadable image, an image whose size differs from ``camera.json`` (the first image is checked
-  when the folder is opened, the others as they are read), a ``camera.json`` without a valid
-  ``K`` or ``image_size``, no timestamp source, timestamps that are not finite and strictly
-  increasing, a timestamps file whose rows do not match the images one to one.
+  any, else directly in ``folder``; they are sorted by name and read lazily (one channel: a
+  monochrome camera, read as grayscale). ``camera.json`` holds ``K`` (3x3) and ``image_size``
+  ``[W, H]`` (or ``width`` and ``height``; optionally ``fps``). Timestamps come from the first
+  source found: a ``timestamps.csv`` (``image,timestamp`` or ``frame,timestamp``, one row per
+  image), the ``poses.csv`` of a render folder, or ``fps`` (``t = index / fps``). Every problem
+  (no or unreadable images, sizes that differ from ``camera.json``, a bad ``camera.json``, no
+  timestamps, timestamps not strictly increasing or not one per image) is a
+  :class:`~slam_bridge.errors.SlamError` naming the file.
 * :class:`slam_bridge.frontend.kitti.KittiSequence`: a KITTI odometry sequence as it is on
   disk (``image_0/`` or ``image_2/``, ``calib.txt``, ``times.txt``).
 * :class:`FrameList`: frames already in memory (or made on demand by a callable), for programs

@@ -1,120 +1,17 @@
 """The visual front end: corners tracked through a frame sequence, delivered as keyframe tracks.
 
 :class:`ImageTracks` implements :class:`slam_bridge.frontend.base.ObservationSource` over a
-:class:`slam_bridge.frontend.frames.FrameSequence` (OpenCV throughout, grayscale).
+:class:`slam_bridge.frontend.frames.FrameSequence` (OpenCV throughout, grayscale). Every frame is
+normalised photometrically, tracked by pyramidal Lucas-Kanade (re-tracked from a homography after
+a sharp turn) and checked epipolarly; at each keyframe (:mod:`slam_bridge.frontend.keyframes`)
+the live tracks are checked (aperture, local flow, alignment to their reference patch, the map's
+PnP pose) and new corners, re-observed map points and descriptors are added. Each step, its
+settings and the measurements behind them: ``docs/frontend.md``.
 
-Every frame:
-
-1. **photometric normalisation**: a global gamma lookup table maps the median grey level to
-   ``gamma_target`` (dusk and night frames get contrast that the detector and the tracker can
-   use); the gamma follows a running median and is quantised, so consecutive frames almost
-   always share one table and Lucas-Kanade's brightness constancy holds. With
-   ``equalize_clip``, contrast-limited histogram equalisation (CLAHE over
-   ``equalize_tiles`` x ``equalize_tiles`` tiles) instead;
-2. **tracking**: pyramidal Lucas-Kanade (``cv2.calcOpticalFlowPyrLK``) from the previous frame,
-   started at a constant-velocity prediction (each track's last displacement; new tracks take
-   the mean of their grid cell, else the median of all), then tracked back: a track survives when
-   both passes converge, the back-tracked point lands within ``fb_threshold_px`` of its start and
-   it stays ``border_px`` inside the image. **Recovery**: when fewer than ``recover_share`` of
-   the established tracks (tracked through a frame before) survive, the prediction failed (a
-   sharp turn: tens of degrees within a frame): the frame's homography is estimated from ORB
-   matches (:mod:`slam_bridge.frontend.motion`) and the lost tracks are tracked again from
-   it; when that finds ``recover_keyframe_tracks`` or more, the frame is a keyframe (``turn``);
-3. **epipolar check** (``epipolar`` = ``frame`` or ``both``): ``cv2.findEssentialMat`` (MAGSAC++
-   by default) between the previous and the current positions drops the tracks it rejects;
-   skipped (nothing dropped) with fewer than ``min_epipolar_tracks`` tracks, a median
-   displacement under ``min_epipolar_motion_px`` (no motion, no model) or a model with under 30 %
-   inliers.
-
-After each frame, the keyframe rule (:mod:`slam_bridge.frontend.keyframes`: distance driven,
-share and number of the last keyframe's tracks still tracked, recovered turns) decides. At a
-keyframe, the live tracks are checked, in order:
-
-4. **epipolar check against the last keyframe** (``epipolar`` = ``keyframe`` or ``both``): the
-   displacement accumulated since the last keyframe shows moving vehicles and slow slides;
-5. **aperture**: a track whose window became an edge (structure-tensor eigenvalue ratio under
-   ``min_eigen_ratio``) slides along it: dropped;
-6. **local flow**: a track whose displacement since the last keyframe differs from the median of
-   its ``flow_neighbours`` nearest tracks by more than ``flow_abs_px + flow_rel * |median|`` is
-   stuck or has jumped (repeated texture): dropped; a track whose neighbours lie farther than
-   ``flow_radius_px`` (median) is not judged by them: where tracks are sparse (open ground)
-   they sit on other surfaces at other depths and move otherwise (measured on car_dense's open
-   stretch: of the tracks the check dropped with neighbours over 60 px away, 13 % were off by
-   more than 2 px, against 9 % of those it kept: it dropped good tracks where they are scarce);
-7. **deformation** (off by default): the local linear map of each track's neighbourhood since
-   the last keyframe (least squares over its neighbours) is accumulated since the track's birth;
-   once its singular values leave ``exp(+-max_deformation)`` or their ratio exceeds
-   ``exp(max_shear)``, LK's translation model no longer holds and the track drifts: it is
-   **renewed** (a new id from here, re-centred). It lowers the share of observations more than
-   2 px from their true depth-referenced projection, but the shorter tracks cost the SLAM more
-   than the drift does (measured with ``geoseg slam run`` on a 300 m car and a 200 m tram drive:
-   renewal at ``max_shear = 0.4`` took the bad share from 0.09 / 0.10 to 0.06 / 0.02 and the
-   error from 0.21 / 0.18 m to 0.28 / 1.07 m, with tracking failures; the drift left is along
-   the epipolar lines, a slightly wrong depth of a consistent point);
-8. **alignment** (``align``): every track that started at an earlier keyframe is moved to where
-   the patch around its pixel in that keyframe (its *reference*), warped by the track's local
-   linear map since then (the least-squares map of its neighbours' displacements), matches the
-   image best (:mod:`slam_bridge.frontend.patch_alignment`: translation and brightness, a
-   ``2 align_half_window + 1`` window, accepted when it moves the track at most
-   ``align_max_shift_px`` with a correlation of at least ``align_min_zncc``; otherwise the
-   track is left where LK put it). The frame-to-frame drift then does not accumulate over a
-   track's life (measured in ``docs/lessons.md``). The accumulated warp does, as
-   the view changes: once the map tracks them, a track ends (its point retired)
-   ``max_track_keyframes`` keyframes after its reference (``too_old``);
-9. **map check** (``map_check``, when the map has at least ``min_map_points`` triangulated
-   points among the tracks): the pose from PnP (:func:`slam_bridge.geometry.multiview.pnp`, RANSAC +
-   refinement) on those tracks; the tracks it does not explain within
-   ``map_check_threshold_px`` are dropped. The pose is kept in :attr:`ImageTracks.pose_estimate`.
-
-Then new observations:
-
-10. **candidates**: Shi-Tomasi corners (``cv2.goodFeaturesToTrack``) ``min_distance_px`` from
-   each other and from the live tracks, with the eigenvalue ratio of step 5;
-11. **re-observation** (``reobserve``, :mod:`slam_bridge.frontend.reobservation`): the map's
-    triangulated points of the current segment that no track follows and no check dropped
-    (*retired* points) are projected with the map-check pose (search radius
-    ``match_radius_pnp_px``) or, without it, with :meth:`slam_bridge.slam.map.Map.predict_pose`
-    (radius ``match_radius_px``). Those that one of the last ``reacquire_keyframes`` keyframes
-    saw are **re-acquired** by LK from that keyframe's image, started at the projection
-    (forward-backward checked, within the radius); the others are **matched** by their stored ORB
-    descriptor to the candidates within the radius (Hamming <= ``max_descriptor_distance``,
-    ratio test ``match_ratio``, one point per candidate). Both are verified against the
-    map-check pose, or by a PnP of their own with the tracked points, within
-    ``map_check_threshold_px``, and then tracked on with the point's old id;
-12. **top-up**: the other candidates, strongest first, fill the grid (``grid`` cells,
-    ``max_tracks / cells`` tracks each, then what is left of ``max_tracks`` up to twice that);
-13. **centring**: new and re-observed tracks start at the fixed point of LK under a change of
-    scale (:func:`slam_bridge.frontend.features.centre`), so that they do not drift while the
-    vehicle approaches their surface;
-14. **descriptors**: upright ORB for the new tracks and (``refresh_descriptors``) every live
-    track: a lost point is then matched by its latest appearance.
-
-New corners go preferably where corners survive: a grid cell's quota is scaled by the recent
-first-frame survival of its new tracks (``adaptive_grid``; the near road of a forward camera,
-aliased or too fast, loses most of them), and corners that do not survive their first frame do
-not count in the keyframe rule's tracked share.
-
-Before tracking on, :meth:`ImageTracks.next_keyframe` drops the tracks whose observation in the
-previous keyframe the loop rejected (``Map.obs_active`` False; unless it deactivated most of the
-keyframe: that gives up the keyframe, not its points).
-
-The first frame is the first keyframe; :meth:`ImageTracks.next_keyframe` returns None once the
-frames are exhausted (the frames after the last keyframe are not delivered). A keyframe left
-without any track (a blank frame) is not delivered: the next frame is a keyframe instead.
-
-Pixel lengths of the config (``min_distance_px``, ``border_px``, ``match_radius*_px``,
-``flow_abs_px``, the keyframe parallax) are given at ``reference_width`` and scaled by
-``W / reference_width``; accuracies (``fb_threshold_px``, ``ransac_threshold_px``,
-``map_check_threshold_px``) and the LK window are in pixels of the images as they are.
-
-Segments: keyframes of different map segments share no point. When the loop starts a segment it
-calls :meth:`ImageTracks.start_segment`, which gives every live track a fresh id (returning the
-new ids of the ids it is given) and limits re-observation to points born after it.
-
-The CPU time of each stage is accumulated in :attr:`ImageTracks.timings` (see
-:meth:`ImageTracks.timing_report`) and the effect of each check in :attr:`ImageTracks.stats`.
-Deterministic: the same frames, config and map give the same keyframes (``seed`` fixes
-OpenCV's RANSAC).
+Pixel lengths of the config are given at ``reference_width`` and scaled to the images; the CPU
+time of each stage is in :attr:`ImageTracks.timings`, the effect of each check in
+:attr:`ImageTracks.stats`. Deterministic: the same frames, config and map give the same keyframes
+(``seed`` fixes OpenCV's RANSAC).
 """
 
 from __future__ import annotations
@@ -125,7 +22,6 @@ import time
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -133,7 +29,7 @@ from scipy.spatial import cKDTree
 
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend import features as ft
-from slam_bridge.frontend.base import KeyframeObservations
+from slam_bridge.frontend.base import KeyframeObservations, MapView
 from slam_bridge.frontend.frames import FrameSequence, check_intrinsics
 from slam_bridge.frontend.keyframes import DistanceFn, KeyframeRule
 from slam_bridge.frontend.motion import GlobalMotion
@@ -142,9 +38,6 @@ from slam_bridge.frontend.reobservation import PointMemory
 from slam_bridge.frontend.tracks_config import ImageTracksConfig
 from slam_bridge.geometry.camera import project
 from slam_bridge.geometry.multiview import PnPResult, pnp
-
-if TYPE_CHECKING:
-    from slam_bridge.slam.map import Map
 
 logger = logging.getLogger(__name__)
 
@@ -241,7 +134,7 @@ class ImageTracks:
         self.stats: dict[str, int] = defaultdict(int)
 
     # ------------------------------------------------------------------------------ protocol
-    def next_keyframe(self, slam_map: Map | None) -> KeyframeObservations | None:
+    def next_keyframe(self, slam_map: MapView | None) -> KeyframeObservations | None:
         """Track frames up to the next keyframe and return its observations.
 
         Args:
@@ -447,7 +340,7 @@ class ImageTracks:
         flow = np.linalg.norm(tr.uv - tr.uv_kf, axis=1)
         return alive / self._n_kf, float(np.median(flow)), alive
 
-    def _drop_rejected(self, slam_map: Map) -> None:
+    def _drop_rejected(self, slam_map: MapView) -> None:
         """Drop the tracks whose observation in our last keyframe the loop rejected as outliers.
 
         When the loop deactivated more than half of that keyframe's observations, it gave up the
@@ -471,7 +364,7 @@ class ImageTracks:
         t: float,
         rgb: np.ndarray,
         gray: np.ndarray,
-        slam_map: Map | None,
+        slam_map: MapView | None,
         reason: str,
     ) -> KeyframeObservations:
         t0 = time.process_time()
@@ -557,7 +450,7 @@ class ImageTracks:
             tr.keep(keep)
             self.stats["renewed"] += int(r.size)
 
-    def _end_old_tracks(self, slam_map: Map | None) -> None:
+    def _end_old_tracks(self, slam_map: MapView | None) -> None:
         """End the tracks ``max_track_keyframes`` or more keyframes after their reference, once
         the map tracks them (``min_map_points`` of them triangulated): a start (no map yet, a
         new segment) needs its reference keyframe's tracks for as long as it takes."""
@@ -602,7 +495,7 @@ class ImageTracks:
         self._memory.retire(tr.ids[~keep])
         tr.keep(keep)
 
-    def _map_check(self, slam_map: Map) -> tuple[np.ndarray, np.ndarray] | None:
+    def _map_check(self, slam_map: MapView) -> tuple[np.ndarray, np.ndarray] | None:
         """Stage 9: PnP on the tracks of triangulated points, dropping those it rejects.
 
         Returns:
@@ -618,7 +511,7 @@ class ImageTracks:
         self._drop(keep, "map_rejected")
         return res.R_wc, res.t_wc
 
-    def _triangulated_tracks(self, slam_map: Map) -> np.ndarray:
+    def _triangulated_tracks(self, slam_map: MapView) -> np.ndarray:
         """Indices of the live tracks whose point the map has triangulated."""
         ids = self._tracks.ids
         sel = np.flatnonzero(ids < slam_map.num_points)
@@ -645,7 +538,7 @@ class ImageTracks:
             return None
 
     def _add_tracks(
-        self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: Map | None
+        self, t: float, gray: np.ndarray, grads: ft.Gradients, slam_map: MapView | None
     ) -> None:
         """Stages 10-14: candidates, re-observation, top-up, centring, descriptors."""
         cfg, tr = self.config, self._tracks
@@ -759,7 +652,7 @@ class ImageTracks:
         self._next_id += n
         return ids
 
-    def _verify(self, slam_map: Map, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def _verify(self, slam_map: MapView, X_w: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """``(R,)`` bool: re-observations consistent with the keyframe's pose: the map check's
         pose when there is one, else the pose that PnP estimates from them and the tracked
         triangulated points (whose outliers are then dropped too)."""

@@ -30,7 +30,7 @@ from slam_bridge.geometry.camera import project
 if TYPE_CHECKING:
     from collections.abc import Callable
 
-    from slam_bridge.slam.map import Map
+    from slam_bridge.frontend.base import MapView
 
 __all__ = ["PointMemory", "Projected"]
 
@@ -101,7 +101,7 @@ class PointMemory:
 
     def projected(
         self,
-        slam_map: Map,
+        slam_map: MapView,
         pose: tuple[np.ndarray, np.ndarray],
         K: np.ndarray,
         live: np.ndarray,

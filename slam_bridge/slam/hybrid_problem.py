@@ -403,58 +403,9 @@ def build_hybrid_problem(
     K = np.asarray(K, dtype=np.float64)
     K_state = K if K.ndim == 2 else K[camera_ids]
     o = win.observations
-    junction = np.isin(obs_cameras[o], win.pose_graph_cameras)
-    if cfg.pose_graph_row_sigma is None or not np.any(junction):
-        families = [(o, cfg.reprojection_sigma, "reprojection")]
-    else:  # the pose-graph cameras' rows as their own family, with their own sigma
-        families = [
-            (o[~junction], cfg.reprojection_sigma, "reprojection"),
-            (o[junction], cfg.pose_graph_row_sigma, "reprojection_pose_graph"),
-        ]
-    vision: list[Factor] = [
-        ReprojectionFactor(
-            K_state,
-            np.array([cam_of[int(c)] for c in obs_cameras[rows]], dtype=np.int64),
-            pt_of[obs_points[rows]],
-            uv[rows],
-            sigma=sigma,
-            kernel=cfg.reprojection_kernel,
-            kernel_scale=(
-                None
-                if cfg.reprojection_kernel_scale is None
-                else cfg.reprojection_kernel_scale / sigma
-            ),
-            name=name,
-        )
-        for rows, sigma, name in families
-    ]
+    vision = _reprojection_factors(cfg, win, K_state, cam_of, pt_of, obs_cameras, obs_points, uv)
     if win.pose_graph_pairs.shape[0]:
-        pairs_state = np.array(
-            [[cam_of[int(a)], cam_of[int(b)]] for a, b in win.pose_graph_pairs], dtype=np.int64
-        )
-        if np.any(
-            np.linalg.norm(state.t_wc[pairs_state[:, 1]] - state.t_wc[pairs_state[:, 0]], axis=1)
-            < 1e-9
-        ):
-            raise WindowError(
-                "pose-graph window: two successive keyframes share one optical centre (all "
-                "cameras at one position?)"
-            )
-        if cfg.pose_graph == "dpc":
-            vision.append(DPCFactor.from_state(state, pairs_state, D=cfg.D))
-        else:
-            mpc, fallback = _mpc_factor(
-                win, pairs_state, K_state, obs_cameras, obs_points, uv, cfg, state
-            )
-            if mpc is not None:
-                vision.append(mpc)
-            if fallback.shape[0]:  # documented departure: DPC link where MPC has too few matches
-                logger.info(
-                    "MPC: %d pose-graph pair(s) with fewer than %d shared points use a DPC link",
-                    fallback.shape[0],
-                    cfg.mpc_min_correspondences,
-                )
-                vision.append(DPCFactor.from_state(state, fallback, D=cfg.D))
+        vision += _pose_graph_factors(cfg, win, state, K_state, cam_of, obs_cameras, obs_points, uv)
     logger.debug(
         "hybrid window: l=%d n=%d, %d fixed cameras, %d points, %d observations, %d pg pairs",
         win.l,
@@ -473,6 +424,91 @@ def build_hybrid_problem(
         latest_camera=camera_ids.size - 1,
         dropped_points=dropped,
     )
+
+
+def _reprojection_factors(
+    cfg: HybridWindowConfig,
+    win: HybridWindow,
+    K_state: np.ndarray,
+    cam_of: dict[int, int],
+    pt_of: np.ndarray,
+    obs_cameras: np.ndarray,
+    obs_points: np.ndarray,
+    uv: np.ndarray,
+) -> list[Factor]:
+    """The window's reprojection rows, the pose-graph cameras' apart when they have their own
+    sigma (``pose_graph_row_sigma``)."""
+    o = win.observations
+    junction = np.isin(obs_cameras[o], win.pose_graph_cameras)
+    if cfg.pose_graph_row_sigma is None or not np.any(junction):
+        families = [(o, cfg.reprojection_sigma, "reprojection")]
+    else:  # the pose-graph cameras' rows as their own family, with their own sigma
+        families = [
+            (o[~junction], cfg.reprojection_sigma, "reprojection"),
+            (o[junction], cfg.pose_graph_row_sigma, "reprojection_pose_graph"),
+        ]
+    return [
+        ReprojectionFactor(
+            K_state,
+            np.array([cam_of[int(c)] for c in obs_cameras[rows]], dtype=np.int64),
+            pt_of[obs_points[rows]],
+            uv[rows],
+            sigma=sigma,
+            kernel=cfg.reprojection_kernel,
+            kernel_scale=(
+                None
+                if cfg.reprojection_kernel_scale is None
+                else cfg.reprojection_kernel_scale / sigma
+            ),
+            name=name,
+        )
+        for rows, sigma, name in families
+    ]
+
+
+def _pose_graph_factors(
+    cfg: HybridWindowConfig,
+    win: HybridWindow,
+    state: BAState,
+    K_state: np.ndarray,
+    cam_of: dict[int, int],
+    obs_cameras: np.ndarray,
+    obs_points: np.ndarray,
+    uv: np.ndarray,
+) -> list[Factor]:
+    """The pose-graph terms of the window's successive pairs: DPC, or MPC with a DPC link for
+    the pairs with too few shared points.
+
+    Raises:
+        WindowError: two successive keyframes share one optical centre.
+    """
+    out: list[Factor] = []
+    pairs_state = np.array(
+        [[cam_of[int(a)], cam_of[int(b)]] for a, b in win.pose_graph_pairs], dtype=np.int64
+    )
+    if np.any(
+        np.linalg.norm(state.t_wc[pairs_state[:, 1]] - state.t_wc[pairs_state[:, 0]], axis=1) < 1e-9
+    ):
+        raise WindowError(
+            "pose-graph window: two successive keyframes share one optical centre (all "
+            "cameras at one position?)"
+        )
+    if cfg.pose_graph == "dpc":
+        out.append(DPCFactor.from_state(state, pairs_state, D=cfg.D))
+    else:
+        mpc, fallback = _mpc_factor(
+            win, pairs_state, K_state, obs_cameras, obs_points, uv, cfg, state
+        )
+        if mpc is not None:
+            out.append(mpc)
+        if fallback.shape[0]:  # documented departure: DPC link where MPC has too few matches
+            logger.info(
+                "MPC: %d pose-graph pair(s) with fewer than %d shared points use a DPC link",
+                fallback.shape[0],
+                cfg.mpc_min_correspondences,
+            )
+            out.append(DPCFactor.from_state(state, fallback, D=cfg.D))
+    return out
 
 
 def _drop_points_behind(

@@ -4,33 +4,27 @@
 its images, an optional wheel odometry, an optional GPS and an optional DEM:
 
 1. **Two views.** The first keyframe ``a`` is the reference; each next keyframe ``b`` is tried
-   in turn: the essential matrix of their common tracks (MAGSAC++, ``cv2.findEssentialMat``) and
-   ``cv2.recoverPose`` give the relative pose up to scale
-   (:func:`slam_bridge.geometry.multiview.two_view_init`); it is accepted when at least
-   ``min_matches`` tracks are inliers and at least ``min_points`` of them triangulate with
-   enough parallax. Tracks the essential matrix rejects lose those observations; keyframes
-   between ``a`` and ``b`` take interpolated poses and no observation. After ``max_tries``
-   failures (or at once when the reference has too few tracks left) the newest keyframe
-   becomes the reference; the keyframes given up keep no pose at the start of a run, and the
-   motion model's prediction (dead reckoning) after a lost tracking.
-2. **Metric scale**: the distance driven between ``a`` and ``b`` by the wheel odometry. Without
-   odometry the baseline is 1 and the scale comes from the GPS (step 3), the GPS displacement
-   over tens of metres (one baseline of ~2 m between two noisy fixes would not do).
+   in turn (the essential matrix of their common tracks and ``cv2.recoverPose``,
+   :func:`slam_bridge.geometry.multiview.two_view_init`) until at least ``min_matches`` tracks
+   are inliers and ``min_points`` of them triangulate with enough parallax. Rejected tracks lose
+   those observations; keyframes between ``a`` and ``b`` take interpolated poses. After
+   ``max_tries`` failures (or at once when the reference has too few tracks left) the newest
+   keyframe becomes the reference; the keyframes given up keep no pose at the start of a run,
+   and the motion model's prediction after a lost tracking.
+2. **Metric scale**: the distance the wheel odometry drove between ``a`` and ``b``; without
+   odometry the baseline is 1 and the GPS displacement over tens of metres gives the scale.
 3. **Georeferencing** (:meth:`TwoViewStart.georeference`, after each keyframe until it holds):
    once the segment has GPS fixes at ``min_fixes`` keyframes spread over ``min_distance_m``,
-   a similarity ``X_w = s R X_local + T`` maps the optical centres at the fixes' own times
-   (interpolated between the keyframes around each fix) onto the fixes (x, y from the GPS; z from the DEM under the fix plus the camera height, or the camera
-   height alone without a DEM) and the cameras' up axis (their ``-y``, level with the road for a
-   vehicle camera) onto the world's ``+z`` (:func:`fit_similarity`: this pins the roll about a
-   straight start, which positions alone leave free). The GPS antenna's offset from the camera
-   (``antenna_c``) is taken into account. With odometry the scale stays the odometry's.
-   The whole map moves into the world frame; from then on the fusion's constraint providers
-   keep it there.
+   :func:`fit_similarity` maps the optical centres at the fixes' times onto the fixes (z from
+   the DEM plus the camera height, the antenna offset ``antenna_c`` accounted for) and the
+   cameras' up axis onto the world's ``+z`` (pinning the roll about a straight start, which
+   positions alone leave free); with odometry the scale stays the odometry's. The whole map
+   moves into the world frame, where the fusion's constraint providers keep it.
 
 After a lost tracking (:meth:`TwoViewStart.restart`) a new segment starts at the lost keyframe,
-placed where the previous segment's motion predicts it (*re-anchored*: no jump, and the GPS
-fusion then pulls it onto the fixes), with the scale of the odometry or of the previous
-segment's speed, and is initialised by two views again.
+placed where the previous segment's motion predicts it (*re-anchored*: no jump; the GPS fusion
+then pulls it onto the fixes), with the scale of the odometry or of the previous segment's
+speed, and is initialised by two views again.
 """
 
 from __future__ import annotations

@@ -269,7 +269,7 @@ class _ConstantHead:
 def test_gated_head_takes_the_near_heads_distance_below_the_gate_only() -> None:
     import torch
 
-    from geoseg.reloc.localizer import GatedRelPoseHead, head_relative_poses
+    from geoseg.reloc.networks import GatedRelPoseHead, head_relative_poses
 
     far = _ConstantHead(0.0, [3.0, 4.0, 5.0])
     near = _ConstantHead(0.01, [0.1, 0.29, 0.31])
@@ -287,7 +287,7 @@ def test_gated_head_takes_the_near_heads_distance_below_the_gate_only() -> None:
 
 
 def test_gated_head_refuses_heads_without_distances_and_bad_gates() -> None:
-    from geoseg.reloc.localizer import GatedRelPoseHead
+    from geoseg.reloc.networks import GatedRelPoseHead
 
     head = _ConstantHead(0.0, [1.0])
     with pytest.raises(GeosegError, match="near: .*distances"):
@@ -301,7 +301,7 @@ def test_gated_head_refuses_heads_without_distances_and_bad_gates() -> None:
 
 def test_shipped_localizer_gates_the_distance_with_the_near_head(tmp_path: Path) -> None:
     from geoseg.pretrained import pretrained_file
-    from geoseg.reloc.localizer import NEAR_GATE_M, GatedRelPoseHead
+    from geoseg.reloc.networks import NEAR_GATE_M, GatedRelPoseHead
 
     images, _, _ = _render_like(tmp_path / "render")
     base = build_image_base(tmp_path / "render", tmp_path / "base")

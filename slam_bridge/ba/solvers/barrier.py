@@ -1,64 +1,13 @@
 """Barrier-term fusion (Lhuillier; thesis eq. 2.3, appendix B), solved with Sherman-Morrison.
 
-Objective (eq. 2.3)::
-
-    f(X) = gamma / (t - zeta(X)) + sum_i C_i(X),      t = t_ratio * zeta(X*)  (t_ratio = 1.05)
-
-where ``zeta`` is the vision error, the summed cost of the *vision* factor families (reprojection
-errors, plus the pose-graph terms of the hybrid window, eq. 3.4) and ``C_i`` the cost of the
-*constraint* families (GPS, DEM, odometry, building...). Every family's cost is
-``sum_m rho(||r_m||^2)`` (:mod:`slam_bridge.ba.factor`; plain ``r^T r``, eq. B.1, with the
-trivial kernel). The optimisation starts at ``X*``, the minimiser of ``zeta`` (the caller runs
-the unconstrained k-BA first).
-
-**Derivatives** (eqs. B.2-B.6). With the core's normal equations (:func:`assemble` gives
-``g = J^T r`` and ``H = J^T J``, i.e. half the gradient and half the Gauss-Newton Hessian of a
-cost), ``grad zeta = 2 g_v`` and ``H_zeta ~= 2 H_v``. Let ``s = t - zeta``::
-
-    grad f = gamma/s^2 grad zeta + sum grad C_i                                 (B.3, B.5)
-    H_f    = gamma/s^2 H_zeta + 2 gamma/s^3 grad zeta grad zeta^T + sum H_C_i    (B.4, B.6)
-           = 2 gamma/s^2 (J_r^T J_r + 1/s J_zeta^T J_zeta) + sum H_C_i           (J_zeta = 2 r^T J_r)
-
-(our derivation agrees with eq. B.4, whose typeset form carries a stray factor ``a``; only the
-``H_zeta ~= 2 J_r^T J_r`` term is Gauss-Newton, the rank-1 term is exact, which the tests check
-on residuals linear in the parameters).
-
-We solve the Newton system of ``f / 2`` (same step)::
-
-    (H~ + u u^T) dX = -g_f,   H~ = gamma/s^2 H_v + H_c + lambda D,   g_f = gamma/s^2 g_v + g_c,
-    u = 2 sqrt(gamma / s^3) g_v                                                  (B.14)
-
-``H~`` has the sparse BA structure (the constraints only add diagonal blocks, appendix B.3, or
-point blocks), so with Sherman-Morrison (B.15) and **one** Schur factorisation of ``H~``
-(:class:`slam_bridge.ba.solvers.schur.SchurFactorization`) we solve ``H~ a = -g_f`` (B.16) and
-``H~ b = u`` (B.17) and take ``dX = a - b (u^T a) / (1 + u^T b)``. The only dense coupling is the
-rank-1 ``u u^T``.
-
-**Levenberg-Marquardt**: ``lambda D`` damps ``H~`` only (``D`` = the Schur solver's damping mode).
-A trial step is **rejected** and ``lambda`` raised when ``zeta(X + dX) >= t`` (infeasible: never
-accepted), when ``zeta`` or ``f`` is not finite, when it creates new invalid rows (points behind
-cameras), or when ``f`` does not decrease; otherwise it is accepted and ``lambda`` lowered.
-
-**Shortened steps** (``max_backtracks``, not in the thesis). The Newton model of the barrier is
-linear in ``zeta`` (``gamma / s^2`` times its change), so it does not see the wall at ``zeta = t``:
-from ``X*`` the first step typically crosses the barrier several times over, and raising
-``lambda`` cures it slowly (the damping turns the step toward translations the points cannot
-follow, and ``zeta`` first grows with ``lambda``). Since ``grad zeta = 0`` at ``X*``, ``zeta``
-grows about quadratically along the step: half of it is feasible. So an infeasible trial is
-first retried halved (up to ``max_backtracks`` times; each retry costs one evaluation of the
-costs, no factorisation), and only then rejected. What this changed on the chapter-3 runs is
-recorded in ``docs/lessons.md``.
-
-**gamma.** The thesis does not fix it. By default ``gamma = gamma_rel * (t - zeta*) * C(X*)``:
-the barrier starts at ``gamma_rel`` times the constraint cost, so the result does not depend on
-the units of the constraints; pass ``gamma`` to fix it. Smaller ``gamma`` lets ``zeta`` get
-closer to ``t`` (a stronger fusion).
-
-**zeta(X*) = 0** (noise-free data, so ``t = 1.05 * 0 = 0``): the feasible set ``zeta < t`` would
-be empty. We use ``t = max(t_ratio * zeta*, zeta* + min_slack)``, with ``min_slack =
-min_slack_per_residual * (number of scalar vision residuals)`` (default ``1e-4``, i.e. an RMS
-of 0.01 px per reprojection coordinate), and log a warning when the floor is active: the fusion may then move
-the reconstruction only along directions the vision barely sees.
+Minimises ``f(X) = gamma / (t - zeta(X)) + sum_i C_i(X)`` from ``X*``, the minimiser of the
+vision error ``zeta`` (the caller runs the unconstrained k-BA first), with ``t = t_ratio *
+zeta(X*)`` (``t_ratio`` 1.05; a floor ``min_slack`` when ``zeta(X*)`` is 0) and ``gamma`` scaled
+to the constraint cost by default (``gamma_rel``). Each Newton step is the rank-1 update of a
+sparse BA system, solved with one Schur factorisation (:mod:`slam_bridge.ba.solvers.schur`) and
+Sherman-Morrison; Levenberg-Marquardt damping refuses infeasible or worse steps, and an
+infeasible trial is first retried halved (``max_backtracks``). The derivation, the step rules and
+the reasons for them: ``docs/solvers.md`` ("Barrier-term fusion").
 """
 
 from __future__ import annotations

@@ -1,51 +1,15 @@
 """The reduced camera system (thesis eqs. 1.28-1.32), solved by Cholesky.
 
-For the block system (see :mod:`slam_bridge.ba.normal_equations`)::
-
-    [[A, W], [W^T, V]] [dc; dp] = [b_c; b_p],   A = U (+ U_offdiag) (+ damping)
-
-the points are eliminated (eq. 1.29)::
-
-    S dc = b_c - W V^-1 b_p,   S = A - W V^-1 W^T            (6 Cf x 6 Cf, dense)
-    dp  = V^-1 (b_p - W^T dc)                                 (eq. 1.30)
-
-With ``V_p = L_p L_p^T`` (closed-form 3x3 Cholesky) and ``Z_e = W_e L_p^-T`` for every
-camera-point block ``e`` of point ``p``, ``W V^-1 W^T = sum_p sum_{e, e' in p} Z_e Z_e'^T``; the
-right-hand side and the back-substitution only need ``Z`` and ``L^-1`` as well.
-
-The sum is computed by point *chunks* (a supernodal trick): points are sorted by earliest, then
-latest camera, and cut in chunks of ``CHUNK_POINTS``; in a keyframe window a chunk touches only
-``L`` cameras (about its points' longest track plus their spread of first cameras,
-:func:`_chunk_structure`), so its blocks ``Z_e^T`` are laid out densely in a ``(3 chunk, 6L)``
-matrix ``A`` and a GEMM ``A^T A`` gives all the chunk's camera-pair sums (one batched GEMM per
-value of ``L``); the ``(L, L)`` block grids are added into ``S`` with one sparse segment sum.
-The layout depends only on the sparsity pattern and is cached. There is no Python loop per point or per observation; any
-other pattern stays correct (``L`` just grows). ``S`` is factorised with
-``scipy.linalg.cho_factor``, or, when it is block-banded enough (a point's cameras span at most
-``b`` successive free cameras and ``6 Cf >= BANDED_RATIO * (6 b + 6)``), with the banded
-``scipy.linalg.cholesky_banded``, ``O(Cf b^2)`` instead of ``O(Cf^3)``. When ``S`` is not
-banded enough but its first cameras form a chain coupled only to their neighbours (the
-pose-graph window of a hybrid, fig. 3.3) that the other cameras reach only through its last
-ones, the chain is factorised apart, banded, and only the rest densely (:class:`_ChainSplit`;
-not used below a chain of a third of the cameras, where the extra LAPACK calls cost what the
-smaller dense part saves; timings in ``docs/lessons.md``).
-:class:`SchurFactorization` keeps the factor so that several right-hand sides can be solved with
-one factorisation (the barrier solver needs two per step, eqs. B.14-B.17).
-
-With ``numba`` (:data:`slam_bridge.ba.compiled.USE_NUMBA`) compiled kernels compute ``L_p^-1``,
-write ``Z^T`` straight into the padded chunk layout (buffers kept with the cached structure),
-scatter the chunk sums into ``S`` and do the right-hand side and the back-substitution per block
-(with ``W`` and ``V^-1``, no ``Z`` kept); the GEMMs and the Cholesky stay in BLAS/LAPACK. Same
-results as the NumPy path up to rounding.
-
-**Damping** (used by Levenberg-Marquardt), ``lambda >= 0``:
-
-* ``"additive"``: ``H + lambda I`` (Levenberg);
-* ``"marquardt"``: ``H + lambda diag(H)`` (Marquardt; the diagonal is clipped below at
-  ``1e-12`` so that unobserved directions still get damped).
-
-The camera covariance (eq. 1.32) is ``C_a = S^-1`` of the undamped system; :func:`camera_covariance`
-returns its diagonal blocks.
+The points are eliminated from the block normal equations (:mod:`slam_bridge.ba.normal_equations`,
+``S = A - W V^-1 W^T``), ``S`` is summed by point chunks with one batched GEMM per chunk size
+and factorised densely, banded, or with a banded pose-graph chain split off (:class:`_ChainSplit`);
+:class:`SchurFactorization` keeps the factor for several right-hand sides (the barrier solver
+needs two per step). Damping ``"additive"`` (``H + lambda I``) or ``"marquardt"``
+(``H + lambda diag(H)``, the diagonal clipped below at ``1e-12``); :func:`camera_covariance`
+gives the diagonal blocks of ``S^-1`` (eq. 1.32). With ``numba``
+(:data:`slam_bridge.ba.compiled.USE_NUMBA`) compiled kernels do the per-block work, with the same
+results up to rounding. The elimination, the chunk layout and the choice of factorisation:
+``docs/solvers.md`` ("The reduced camera system").
 """
 
 from __future__ import annotations

@@ -330,12 +330,16 @@ def test_clean_share_renders_some_samples_plain_and_transforms_them_apart():
 
 
 def test_clean_samples_keep_the_crown_labels_unless_told_not_to():
-    from geoseg.synth.realism import REALISTIC_2, Variation
+    from geoseg.synth.realism import REALISTIC_STREETS, Variation
 
     frames = 8
-    kept = SyntheticDataset(_config(frames=frames, realism=REALISTIC_2, clean_share=0.5), size=SIZE)
+    kept = SyntheticDataset(
+        _config(frames=frames, realism=REALISTIC_STREETS, clean_share=0.5), size=SIZE
+    )
     plain_labels = SyntheticDataset(
-        _config(frames=frames, realism=REALISTIC_2, clean_share=0.5, clean_keeps_labels=False),
+        _config(
+            frames=frames, realism=REALISTIC_STREETS, clean_share=0.5, clean_keeps_labels=False
+        ),
         size=SIZE,
     )
     plain = SyntheticDataset(_config(frames=frames), size=SIZE)

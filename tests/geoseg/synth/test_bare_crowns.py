@@ -24,7 +24,13 @@ from geoseg.synth.bare_crowns import (
     veil,
 )
 from geoseg.synth.conditions import get_condition
-from geoseg.synth.realism import REALISTIC_3, RealismConfig, Variation, cache_fields, draw_variation
+from geoseg.synth.realism import (
+    REALISTIC_FURNISHED,
+    RealismConfig,
+    Variation,
+    cache_fields,
+    draw_variation,
+)
 from geoseg.synth.world_meshes import SurfaceKind
 from geoseg.synth.world_records import Tree
 
@@ -240,9 +246,9 @@ def test_limbs_with_the_crown_label_keep_the_leafy_labels(crown_scene):
 
 
 def test_limbs_are_drawn_last_and_stay_out_of_the_cache_key_when_off():
-    on = dataclasses.replace(REALISTIC_3, p_limbs=1.0)
+    on = dataclasses.replace(REALISTIC_FURNISHED, p_limbs=1.0)
     for seed in range(10):
-        a = draw_variation(REALISTIC_3, np.random.default_rng(seed))
+        a = draw_variation(REALISTIC_FURNISHED, np.random.default_rng(seed))
         b = draw_variation(on, np.random.default_rng(seed))
         assert not a.limbs and b.limbs
         assert dataclasses.replace(b, limbs=False) == a
@@ -297,7 +303,7 @@ def test_the_crown_label_cover_needs_the_crown_label_and_is_drawn_last():
         RealismConfig(crown_label_cover=0.5)
     with pytest.raises(ConfigError, match="crown_label_cover"):
         RealismConfig(bare_crown_label=True, crown_label_cover=1.5)
-    before = dataclasses.replace(REALISTIC_3, p_limbs=0.8)
+    before = dataclasses.replace(REALISTIC_FURNISHED, p_limbs=0.8)
     after = dataclasses.replace(before, crown_label_cover=0.5)
     for seed in range(5):
         a = draw_variation(before, np.random.default_rng(seed))

@@ -13,7 +13,7 @@ from geoseg.errors import ConfigError
 from geoseg.synth.conditions import get_condition
 from geoseg.synth.realism import (
     REALISTIC,
-    REALISTIC_2,
+    REALISTIC_STREETS,
     RealismConfig,
     Variation,
     draw_variation,
@@ -138,7 +138,7 @@ def test_second_round_options_keep_the_first_rounds_draws():
         c = draw_variation(dataclasses.replace(both, p_kerb_lines=0.0), np.random.default_rng(seed))
         assert dataclasses.replace(b, kerb_lines=0.0) == c
     assert RealismConfig(bare_crown_label=True).enabled
-    assert REALISTIC_2.enabled and REALISTIC_2.bare_crown_label
+    assert REALISTIC_STREETS.enabled and REALISTIC_STREETS.bare_crown_label
 
 
 def test_overcast_draws_a_flat_grey_sky_and_a_weak_sun():
@@ -243,12 +243,12 @@ def test_lens_distortion_finds_every_moving_vehicle_pixel(tiny_world, monkeypatc
 
 
 def test_posters_are_drawn_last_and_stay_out_of_the_cache_key_when_off():
-    from geoseg.synth.realism import REALISTIC_3, cache_fields
+    from geoseg.synth.realism import REALISTIC_FURNISHED, cache_fields
 
     for seed in range(10):
-        a = draw_variation(REALISTIC_3, np.random.default_rng(seed))
+        a = draw_variation(REALISTIC_FURNISHED, np.random.default_rng(seed))
         b = draw_variation(
-            dataclasses.replace(REALISTIC_3, p_posters=1.0), np.random.default_rng(seed)
+            dataclasses.replace(REALISTIC_FURNISHED, p_posters=1.0), np.random.default_rng(seed)
         )
         assert a.poster_share == 0 and 0.1 <= b.poster_share <= 0.4
         assert dataclasses.replace(b, poster_share=0.0) == a

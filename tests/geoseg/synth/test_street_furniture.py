@@ -13,8 +13,8 @@ from geoseg.classes import OBJECT
 from geoseg.data.synthetic import SyntheticConfig, SyntheticDataset
 from geoseg.errors import ConfigError
 from geoseg.synth.realism import (
-    REALISTIC_2,
-    REALISTIC_3,
+    REALISTIC_FURNISHED,
+    REALISTIC_STREETS,
     RealismConfig,
     Variation,
     cache_fields,
@@ -97,19 +97,19 @@ def test_pole_albedo_keeps_the_citys_own_poles():
 
 def test_furniture_draw_is_last_and_off_by_default():
     for seed in range(10):
-        a = draw_variation(REALISTIC_2, np.random.default_rng(seed))
+        a = draw_variation(REALISTIC_STREETS, np.random.default_rng(seed))
         b = draw_variation(
-            dataclasses.replace(REALISTIC_2, p_furniture=1.0), np.random.default_rng(seed)
+            dataclasses.replace(REALISTIC_STREETS, p_furniture=1.0), np.random.default_rng(seed)
         )
         assert a.furniture_spacing == 0 and 4.0 <= b.furniture_spacing <= 12.0
         assert dataclasses.replace(b, furniture_spacing=0.0) == a
         # the road texture is drawn after the furniture: its draws stay
-        both = dataclasses.replace(REALISTIC_2, p_furniture=1.0, p_road_texture=1.0)
+        both = dataclasses.replace(REALISTIC_STREETS, p_furniture=1.0, p_road_texture=1.0)
         c = draw_variation(both, np.random.default_rng(seed))
         assert 0.1 <= c.road_texture <= 0.8 and a.road_texture == b.road_texture == 1.0
         assert dataclasses.replace(c, road_texture=1.0) == b
     assert not RealismConfig().enabled and RealismConfig(p_furniture=0.5).enabled
-    assert REALISTIC_3.p_furniture > 0 and REALISTIC_3.p_kerb_lines > 0
+    assert REALISTIC_FURNISHED.p_furniture > 0 and REALISTIC_FURNISHED.p_kerb_lines > 0
 
 
 def test_furniture_stays_out_of_the_cache_key_at_its_default():
@@ -122,11 +122,11 @@ def test_furniture_stays_out_of_the_cache_key_at_its_default():
     }
     keys = {}
     for p in (0.0, 1.0):
-        realism = dataclasses.replace(REALISTIC_2, p_furniture=p)
+        realism = dataclasses.replace(REALISTIC_STREETS, p_furniture=p)
         ds = SyntheticDataset(SyntheticConfig(frames=4, realism=realism), size=(24, 32))
         keys[p] = [ds.cache_key(ds.spec(i)) for i in range(4)]
     assert all(a != b for a, b in zip(keys[0.0], keys[1.0]))
-    ds = SyntheticDataset(SyntheticConfig(frames=4, realism=REALISTIC_2), size=(24, 32))
+    ds = SyntheticDataset(SyntheticConfig(frames=4, realism=REALISTIC_STREETS), size=(24, 32))
     assert [ds.cache_key(ds.spec(i)) for i in range(4)] == keys[0.0]
 
 
@@ -208,7 +208,7 @@ def test_kerb_share_moves_the_items_not_their_draws(tiny_world):
 
 def test_furniture_style_options_ride_on_the_furniture_draw():
     for seed in range(10):
-        on = dataclasses.replace(REALISTIC_2, p_furniture=1.0)
+        on = dataclasses.replace(REALISTIC_STREETS, p_furniture=1.0)
         styled = dataclasses.replace(on, furniture_kerb_share=1.0, furniture_plain_plates=True)
         a = draw_variation(on, np.random.default_rng(seed))
         b = draw_variation(styled, np.random.default_rng(seed))
@@ -218,7 +218,7 @@ def test_furniture_style_options_ride_on_the_furniture_draw():
         # without furniture the style options draw nothing and stay at their defaults
         off = dataclasses.replace(styled, p_furniture=0.0)
         c = draw_variation(off, np.random.default_rng(seed))
-        assert c == draw_variation(REALISTIC_2, np.random.default_rng(seed))
+        assert c == draw_variation(REALISTIC_STREETS, np.random.default_rng(seed))
     assert cache_fields(Variation(furniture_spacing=6.0, furniture_kerb_share=1.0)) == {
         "furniture_spacing": 6.0,
         "furniture_kerb_share": 1.0,
