@@ -42,6 +42,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument("--odometry", type=Path, help="wheel odometry CSV (timestamp, speed_mps)")
     run_p.add_argument("--dem", type=Path, help="road DEM CSV (x0, y0, z0, x1, y1, z1)")
     run_p.add_argument(
+        "--base", type=Path,
+        help="image base (geoseg base build) in the GPS's frame: frames localised against it "
+        "give position fixes that start, constrain and recover the run (with or without --gps)",
+    )  # fmt: skip
+    run_p.add_argument(
         "--buildings", type=Path,
         help="building model's facade table CSV (x0, y0, x1, y1, z_min, z_max, nx, ny, nz, d): "
         "building constraints chosen by the network bridge",
@@ -176,6 +181,7 @@ def _run(args: argparse.Namespace) -> int:
         dem=args.dem,
         georeference=args.georeference,
         truth=args.truth,
+        base=args.base,
     )
     bridge = None if args.buildings is None else _bridge(args, cfg, inputs)
     out = run_image_slam(
@@ -188,6 +194,11 @@ def _run(args: argparse.Namespace) -> int:
         f"failure(s), {s['frames_per_second']:.1f} frames/s, "
         f"{'georeferenced' if s['georeferenced'] else 'not georeferenced (no GPS)'}"
     )
+    if "base_fixes" in s:
+        print(
+            f"image base: {s['base_fixes']} fixes from {s['base_frames_localised']} localised "
+            f"frames, fused at {s['base_fused_keyframes']} of {s['keyframes']} keyframes"
+        )
     if "translation_error_m" in s:
         line = (
             f"against poses.csv: {s['translation_error_m']:.2f} m horizontal, "

@@ -61,6 +61,13 @@ from slam_bridge.slam.health import HealthConfig, assess_run
 from slam_bridge.slam.initialization import InitConfig, OdometryDistance, TwoViewStart, VehicleRig
 from slam_bridge.slam.loop import SlamResult, run_slam
 from slam_bridge.slam.windows import METHODS
+from slam_bridge.system.base_fixes import (
+    BaseConstraints,
+    BaseFixConfig,
+    BaseFixes,
+    base_constraints,
+    localise_frames,
+)
 from slam_bridge.system.sensor_logs import read_dem_csv, read_gps_csv, read_odometry_csv
 
 logger = logging.getLogger(__name__)
@@ -113,6 +120,7 @@ class ImageSlamConfig:
             (:class:`slam_bridge.slam.fusion.VerticalConstraints`).
         vertical_lines: how those segments are found and fitted.
         bridge: the network bridge, when a building model is given (``--buildings``).
+        base: how frames localised against an image base become fixes (``--base``).
         health: the gates of the run's consistency checks (its ``status``).
     """
 
@@ -128,6 +136,7 @@ class ImageSlamConfig:
     vertical: bool = True
     vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    base: BaseFixConfig = field(default_factory=BaseFixConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
 
     def __post_init__(self) -> None:
@@ -150,6 +159,8 @@ class SlamInputs:
         georef: the world frame's WGS84 origin, or None (no WGS84 output).
         truth: ``(timestamps (T,), R_wc (T, 3, 3), t_wc (T, 3))`` from ``poses.csv`` when the
             folder has one (evaluation only), or None.
+        base: an image base folder whose localised frames give fixes (``--base``), or None.
+        base_fixes: those fixes once localised (:func:`base_fixes_of`).
     """
 
     frames: ImageFolder
@@ -160,6 +171,8 @@ class SlamInputs:
     dem: object = None
     georef: object = None
     truth: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+    base: Path | None = None
+    base_fixes: BaseFixes | None = None
 
 
 def load_inputs(
@@ -172,6 +185,7 @@ def load_inputs(
     dem: str | Path | None = None,
     georeference: str | Path | None = None,
     truth: str | Path | None = None,
+    base: str | Path | None = None,
 ) -> SlamInputs:
     """Read and check everything a run needs, before any work.
 
@@ -191,6 +205,8 @@ def load_inputs(
         truth: true poses in the GPS's world frame (:func:`read_truth_csv`), for evaluation
             only (default: the folder's ``poses.csv``, as a render writes it). A truth whose
             positions are far from the GPS fixes is refused (given) or ignored (the folder's).
+        base: an image base (``geoseg base build``) in the GPS's world frame: frames localised
+            against it give fixes (:mod:`slam_bridge.system.base_fixes`).
 
     Raises:
         SlamError: any unreadable or inconsistent input, naming the file and the problem
@@ -236,6 +252,10 @@ def load_inputs(
         inputs.odometry = OdometryDistance(t, v, yaw_rate)
     if dem is not None:
         inputs.dem = read_dem_csv(dem)
+    if base is not None:
+        if not (Path(base) / "poses.csv").is_file():
+            raise SlamError(f"--base {base}: not an image base (no poses.csv): geoseg base build")
+        inputs.base = Path(base)
     poses = Path(truth) if truth is not None else Path(frames_dir) / "poses.csv"
     if truth is not None or poses.is_file():
         inputs.truth = _checked_truth(poses, inputs, given=truth is not None)
@@ -304,9 +324,12 @@ def run_image_slam(
                 "no map point was associated with a facade: is the building model in the "
                 "images' world frame, and does it cover the route? (no building constraint)"
             )
+    if inputs.base is not None:
+        summary.update(base_fixes_of(inputs, cfg).summary())
+        summary["base_fused_keyframes"] = sum("base" in r.constraints for r in result.records)
     health = assess_run(
         result,
-        gps=_gps_constraints(inputs, cfg),
+        gps=_gps_constraints(inputs, cfg) or _base_constraints(inputs, cfg),
         odometry=inputs.odometry,
         antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
         config=cfg.health,
@@ -425,17 +448,18 @@ def run_on_images(
     """
     cfg = cfg or ImageSlamConfig()
     gps = _gps_constraints(inputs, cfg)
+    base = _base_constraints(inputs, cfg)
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
     start = start or TwoViewStart(
         cfg.init,
         inputs.rig,
         mapping=cfg.slam.mapping,
         outlier_gate_px=cfg.slam.tracking.outlier_gate_px,
-        gps=gps,
+        gps=gps or base,  # without a GPS, the base's fixes georeference the start
         odometry=inputs.odometry,
         dem=inputs.dem,
     )
-    providers = [gps] if gps else []
+    providers = [p for p in (gps, base) if p is not None]
     if inputs.dem is not None:
         providers.append(
             DemConstraints(inputs.dem, inputs.rig.camera_height_m, weight=cfg.dem_weight)
@@ -488,6 +512,22 @@ def _gps_constraints(inputs: SlamInputs, cfg: ImageSlamConfig) -> GpsConstraints
         weight=cfg.gps_weight,
         antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
     )
+
+
+def base_fixes_of(inputs: SlamInputs, cfg: ImageSlamConfig) -> BaseFixes | None:
+    """The fixes of ``inputs.base`` (localised once, then kept on ``inputs``)."""
+    if inputs.base is None:
+        return None
+    if inputs.base_fixes is None:
+        inputs.base_fixes = localise_frames(inputs.frames, inputs.base, cfg.base)
+    return inputs.base_fixes
+
+
+def _base_constraints(inputs: SlamInputs, cfg: ImageSlamConfig) -> BaseConstraints | None:
+    fixes = base_fixes_of(inputs, cfg)
+    if fixes is None:
+        return None
+    return base_constraints(fixes, cfg.base, cfg.gps_interpolate_gap_s)
 
 
 class _Progress:
