@@ -25,12 +25,12 @@ from geoseg.synth.world_records import (
     Vehicle,
 )
 
-if TYPE_CHECKING:  # the world imports this module to build itself
-    from geoseg.synth.world import World
+if TYPE_CHECKING:
     from geoseg.synth.world_config import WorldConfig
+    from geoseg.synth.world_meshes import WorldView
 
 
-def _build_streets(world: World, rng: np.random.Generator) -> None:
+def _build_streets(world: WorldView, rng: np.random.Generator) -> None:
     cfg = world.config
     nx, ny = cfg.blocks_x + 1, cfg.blocks_y + 1
     gx, gy = np.meshgrid(np.arange(nx) * cfg.block_size, np.arange(ny) * cfg.block_size)
@@ -104,7 +104,7 @@ def _connected(n_nodes: int, edges: np.ndarray) -> bool:
     return len(seen) == n_nodes
 
 
-def _build_terrain(world: World, rng: np.random.Generator) -> None:
+def _build_terrain(world: WorldView, rng: np.random.Generator) -> None:
     t = world.config.terrain
     wavelengths = rng.uniform(t.min_wavelength, t.max_wavelength, 3)
     angles = rng.uniform(0, 2 * np.pi, 3)
@@ -116,7 +116,7 @@ def _build_terrain(world: World, rng: np.random.Generator) -> None:
     world.terrain = Terrain(amplitudes, wave_vectors, rng.uniform(0, 2 * np.pi, 3))
 
 
-def _build_street_index(world: World) -> None:
+def _build_street_index(world: WorldView) -> None:
     cfg = world.config
     reach = cfg.street_width / 2 + cfg.sidewalk_width + 2.0 + cfg.buildings.setback_max
     origin = np.floor(world.bounds[0])
@@ -124,7 +124,7 @@ def _build_street_index(world: World) -> None:
     world.street_index = StreetIndex(world.streets, origin, (int(size[1]), int(size[0])), reach)
 
 
-def _build_buildings(world: World, rng: np.random.Generator) -> None:
+def _build_buildings(world: WorldView, rng: np.random.Generator) -> None:
     cfg = world.config
     bc = cfg.buildings
     half = cfg.street_width / 2
@@ -257,7 +257,7 @@ def _tangent_heading(t: np.ndarray) -> float:
     return float(np.arctan2(t[1], t[0]))
 
 
-def _build_occluders(world: World, rng: np.random.Generator) -> None:
+def _build_occluders(world: WorldView, rng: np.random.Generator) -> None:
     """Place trees, vehicles and street furniture (stored as records; meshed later).
 
     The placements draw from ``rng`` street by street, in a fixed order (per side: trees, parked
@@ -285,7 +285,12 @@ def _build_occluders(world: World, rng: np.random.Generator) -> None:
 
 
 def _kerb_trees(
-    world: World, street: Street, side: float, clear: float, usable: float, rng: np.random.Generator
+    world: WorldView,
+    street: Street,
+    side: float,
+    clear: float,
+    usable: float,
+    rng: np.random.Generator,
 ) -> list[Tree]:
     """Trees near the kerb on one side of ``street`` (on a share of the street sides)."""
     cfg = world.config

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import IntEnum
 from functools import cache
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import trimesh
@@ -22,8 +22,17 @@ import trimesh
 from geoseg.classes import BUILDING, OBJECT, ROAD, VEGETATION, VEHICLE
 from geoseg.synth.world_records import Vehicle
 
-if TYPE_CHECKING:  # the world imports this module to build its meshes
-    from geoseg.synth.world import World
+if TYPE_CHECKING:
+    from geoseg.synth.street_index import StreetIndex
+    from geoseg.synth.world_config import WorldConfig
+    from geoseg.synth.world_records import (
+        Building,
+        FacadeTable,
+        RoadGraph,
+        Street,
+        Terrain,
+        Tree,
+    )
 
 
 class SurfaceKind(IntEnum):
@@ -65,6 +74,48 @@ class MeshPart:
     faces: np.ndarray
     kind: np.ndarray
     instance: np.ndarray
+
+
+class WorldView(Protocol):
+    """What the build steps (here and :mod:`geoseg.synth.world_layout`) read and fill of the
+    city (:class:`geoseg.synth.world.World` is one): they depend on this, not on the world's
+    module, which imports them.
+
+    Attributes:
+        config: the configuration.
+        bounds: `(2, 2)` [[xmin, ymin], [xmax, ymax]] of the built area.
+        terrain: the heightfield.
+        streets: the streets (``S``).
+        road_graph: junctions and streets as a graph.
+        street_index: distance-to-street lookup.
+        buildings, trees, vehicles: the placed records.
+        furniture: ``(kind, xy (2,), heading)`` per item.
+        parts: static scene geometry, one :class:`MeshPart` per surface group.
+        instance_class: `(I,)` uint8 class of each instance id.
+        n_static_instances: ids ``>=`` this belong to moving vehicles.
+    """
+
+    config: WorldConfig
+    bounds: np.ndarray
+    terrain: Terrain
+    streets: list[Street]
+    road_graph: RoadGraph
+    street_index: StreetIndex
+    buildings: list[Building]
+    trees: list[Tree]
+    vehicles: list[Vehicle]
+    furniture: list[tuple[str, np.ndarray, float]]
+    parts: list[MeshPart]
+    instance_class: np.ndarray
+    n_static_instances: int
+
+    def terrain_normal(self, xy: np.ndarray) -> np.ndarray:
+        """`(N, 2)` world xy -> `(N, 3)` upward unit normals."""
+        ...
+
+    def facades(self) -> FacadeTable:
+        """The facade table (one row per footprint edge of every building)."""
+        ...
 
 
 def concat_parts(parts: list[MeshPart]) -> MeshPart:
@@ -152,7 +203,9 @@ def _prisms(bases: np.ndarray, radii: np.ndarray, heights: np.ndarray, sides: in
     return verts.reshape(-1, 3), all_faces.reshape(-1, 3)
 
 
-def vehicle_mesh_part(world: World, vehicles: list[Vehicle], xy: np.ndarray, heading: np.ndarray):
+def vehicle_mesh_part(
+    world: WorldView, vehicles: list[Vehicle], xy: np.ndarray, heading: np.ndarray
+):
     """Body, glass cabin and two axle blocks per vehicle, tilted with the terrain.
 
     Args:
@@ -213,7 +266,7 @@ def vehicle_mesh_part(world: World, vehicles: list[Vehicle], xy: np.ndarray, hea
     return concat_parts(parts)
 
 
-def _ground_part(world: World, instance: int) -> MeshPart:
+def _ground_part(world: WorldView, instance: int) -> MeshPart:
     t = world.config.terrain
     lo = world.bounds[0] - t.skirt
     hi = world.bounds[1] + t.skirt
@@ -236,7 +289,7 @@ def _ground_part(world: World, instance: int) -> MeshPart:
     )
 
 
-def _building_parts(world: World) -> list[MeshPart]:
+def _building_parts(world: WorldView) -> list[MeshPart]:
     table = world.facades()
     n_facades = len(table)
     verts_all, faces_all, kind_all, inst_all = [], [], [], []
@@ -281,7 +334,7 @@ def _icosphere() -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(ico.vertices, dtype=np.float64), np.asarray(ico.faces, dtype=np.int64)
 
 
-def _tree_parts(world: World, rng: np.random.Generator) -> list[MeshPart]:
+def _tree_parts(world: WorldView, rng: np.random.Generator) -> list[MeshPart]:
     trees = world.trees
     if not trees:
         return []
@@ -309,7 +362,7 @@ def _tree_parts(world: World, rng: np.random.Generator) -> list[MeshPart]:
     ]
 
 
-def _furniture_parts(world: World, first_instance: int) -> tuple[list[MeshPart], int]:
+def _furniture_parts(world: WorldView, first_instance: int) -> tuple[list[MeshPart], int]:
     """Lamps, signs, shelters and panels as boxes; returns the parts and the next free id."""
     items = world.furniture
     centers, sizes, headings, kinds, insts = [], [], [], [], []
@@ -355,7 +408,7 @@ def _furniture_parts(world: World, first_instance: int) -> tuple[list[MeshPart],
     return [MeshPart(verts, faces, kind_arr, inst_arr)], inst
 
 
-def _build_parts(world: World, rng: np.random.Generator) -> None:
+def _build_parts(world: WorldView, rng: np.random.Generator) -> None:
     n_facades = len(world.facades())
     n_buildings = len(world.buildings)
     ground_id = n_facades + n_buildings
