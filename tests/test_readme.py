@@ -148,8 +148,15 @@ def test_every_readme_command_and_snippet_runs(tmp_path: Path, monkeypatch, caps
     _make_own_data(tmp_path)
     blocks = readme_blocks(README.read_text())
     commands = [c for lang, code in blocks if lang == "bash" for c in bash_commands(code)]
-    # renders whose output a `geoseg slam run` reads need the SLAM's frame count and size
-    slam_renders = {shlex.split(c)[3] for c in commands if c.startswith("geoseg slam run")}
+    # renders whose output a `geoseg slam run` reads need the SLAM's frame count and size, and
+    # so do the renders its image bases (--base) are built from
+    slam_runs = [shlex.split(c) for c in commands if c.startswith("geoseg slam run")]
+    slam_renders = {argv[3] for argv in slam_runs}
+    bases = {argv[argv.index("--base") + 1] for argv in slam_runs if "--base" in argv}
+    for c in commands:
+        argv = shlex.split(c)
+        if c.startswith("geoseg base build") and argv[argv.index("--out") + 1] in bases:
+            slam_renders.add(argv[3])
     ran, skipped = [], []
     for lang, code in blocks:
         if lang == "python":
@@ -174,6 +181,7 @@ def test_every_readme_command_and_snippet_runs(tmp_path: Path, monkeypatch, caps
     _check_own_photos_localised(tmp_path)
     _check_sequence_localised(out, tmp_path)
     _check_slam(tmp_path / "drive_slam" / "summary.json")
+    _check_slam_from_base(tmp_path / "drive_from_base" / "summary.json")
     assert len(ran) >= 12 and all(_not_run(c) for c in skipped)
 
 
@@ -245,6 +253,14 @@ def _check_slam(summary_path: Path) -> None:
     summary = json.loads(summary_path.read_text())
     assert summary["status"] == "ok" and summary["georeferenced"], summary["status"]
     assert summary["tracking_failures"] == 0
+    assert summary["translation_error_m"] < SLAM_MAX_ERROR_M, summary["translation_error_m"]
+
+
+def _check_slam_from_base(summary_path: Path) -> None:
+    """The run without GPS, from the winter base, is georeferenced by the base's fixes."""
+    summary = json.loads(summary_path.read_text())
+    print("FROM BASE", {k: summary.get(k) for k in ("georeferenced", "base_fixes", "base_frames_localised", "base_fused_keyframes", "keyframes", "translation_error_m", "status")})
+    assert summary["georeferenced"] and summary["base_fixes"] > 0, summary["status"]
     assert summary["translation_error_m"] < SLAM_MAX_ERROR_M, summary["translation_error_m"]
 
 
