@@ -43,6 +43,7 @@ import numpy as np
 
 from geoseg.errors import check_finite
 from slam_bridge.bridge.builder import BridgeConfig, check_covers_window
+from slam_bridge.bridge.gps_bias import BuildingGpsBias, GpsBiasConfig
 from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
@@ -113,6 +114,8 @@ class ImageSlamConfig:
             (:class:`slam_bridge.slam.fusion.VerticalConstraints`).
         vertical_lines: how those segments are found and fitted.
         bridge: the network bridge, when a building model is given (``--buildings``).
+        gps_bias: the GPS's bias estimated from the building model and removed from the fixes
+            (:mod:`slam_bridge.bridge.gps_bias`; only with a building model and a GPS).
         health: the gates of the run's consistency checks (its ``status``).
     """
 
@@ -128,6 +131,7 @@ class ImageSlamConfig:
     vertical: bool = True
     vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
+    gps_bias: GpsBiasConfig = field(default_factory=GpsBiasConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
 
     def __post_init__(self) -> None:
@@ -447,6 +451,12 @@ def run_on_images(
         providers.append(VerticalConstraints(source.image_at, tracks.K, cfg.vertical_lines))
     if bridge is not None:
         providers.append(bridge.constraints)
+        if gps is not None and cfg.gps_bias.enabled:
+            gps.bias = BuildingGpsBias(bridge.constraints, gps.camera_fix_at, cfg.gps_bias)
+            # the GPS after the buildings: its estimate reads the association the building
+            # rows of the same fusion used (a replayed run, experiments/replay.py, sets it then)
+            providers.remove(gps)
+            providers.append(gps)
         if bridge.image_at is None:
             frames = inputs.frames
             bridge.image_at = lambda t: frames[int(np.searchsorted(frames.timestamps, t))][1]
