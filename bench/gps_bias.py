@@ -49,8 +49,11 @@ from provenance import provenance  # noqa: E402
 
 #: world and route seed of each drive (the GPS's seed too) where the settings were chosen
 TUNING_SEEDS = (21, 22, 23, 24, 25)
-#: drives never used to choose a setting (the figures reported)
-REPORT_SEEDS = (31, 32, 33, 34, 35)
+#: drives never used to choose a setting (the figures reported). A drive whose runs never reach
+#: the world frame counts for none: seed 34's GPS log misses its first 11.6 s of 14.3 s (a
+#: dropout burst), so no run of it is georeferenced, with or without buildings; seed 36 was
+#: added for it, before any of its runs, to keep five drives
+REPORT_SEEDS = (31, 32, 33, 34, 35, 36)
 #: each drive's length (CPU is scarce: three runs of a 150 m drive take a few minutes)
 LENGTH_M = 150.0
 

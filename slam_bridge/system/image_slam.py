@@ -27,8 +27,11 @@ is an unfinished run):
 * ``frame_poses.csv``, ``trajectory_tum.txt``, ``trajectory_kitti.txt``: a pose for every
   frame (:mod:`slam_bridge.slam.frame_poses`: keyframe, interpolated or extrapolated);
 * ``summary.json``: the figures (keyframes, tracking failures, frames per second, the run's
-  ``status`` with its reasons from :mod:`slam_bridge.slam.health`, and the errors against the
-  ground truth when there is one: evaluation only, never used by the run).
+  ``status`` with its reasons from :mod:`slam_bridge.slam.health`, the last estimate of the
+  GPS's bias when it was estimated from the building model, ``gps_bias_m``,
+  ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, and
+  the errors against the ground truth when there is one: evaluation only, never used by the
+  run).
 """
 
 from __future__ import annotations
@@ -275,7 +278,8 @@ def run_image_slam(
     remove_outputs(out, ["summary.json"])  # unfinished until written again (only our own)
     record_outputs(out, OUTPUTS)
     t0 = time.perf_counter()
-    result, tracks = run_on_images(inputs, cfg, progress, bridge=bridge)
+    gps = _gps_constraints(inputs, cfg)
+    result, tracks = run_on_images(inputs, cfg, progress, bridge=bridge, gps=gps)
     seconds = time.perf_counter() - t0
     frame_of = np.searchsorted(inputs.frames.timestamps, result.map.timestamps)
     summary = {
@@ -308,9 +312,16 @@ def run_image_slam(
                 "no map point was associated with a facade: is the building model in the "
                 "images' world frame, and does it cover the route? (no building constraint)"
             )
-    health = assess_run(
+    if gps is not None and gps.bias is not None and gps.bias.history:
+        _, _, b, _, facades, p_biased = gps.bias.history[-1]
+        summary.update(  # the last estimate of the GPS's bias (the fixes less it were fused)
+            gps_bias_m=[float(b[0]), float(b[1])],
+            gps_bias_facades=int(facades),
+            gps_biased_probability=float(p_biased),
+        )
+    health = assess_run(  # against the fixes the run fused (less their estimated bias)
         result,
-        gps=_gps_constraints(inputs, cfg),
+        gps=gps,
         odometry=inputs.odometry,
         antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
         config=cfg.health,
@@ -410,6 +421,7 @@ def run_on_images(
     progress: bool = True,
     bridge=None,
     start=None,
+    gps: GpsConstraints | None = None,
 ) -> tuple[SlamResult, ImageTracks]:
     """The run itself, for programs and benchmarks (no file written).
 
@@ -423,12 +435,14 @@ def run_on_images(
         start: the start-up (default: :class:`TwoViewStart`, georeferenced by the GPS); an
             experiment with a known first pose gives a
             :class:`slam_bridge.slam.loop.KnownStartPoses`.
+        gps: the GPS provider (default: from ``inputs`` and ``cfg``); given, it carries the
+            run's bias estimate afterwards (``gps.bias``, with a building model).
 
     Returns:
         ``(the SLAM's result, the front end with its timings and counters)``.
     """
     cfg = cfg or ImageSlamConfig()
-    gps = _gps_constraints(inputs, cfg)
+    gps = gps if gps is not None else _gps_constraints(inputs, cfg)
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
     start = start or TwoViewStart(
         cfg.init,
