@@ -472,6 +472,15 @@ ABOUT: dict[str, str] = {
     "as users run it (asynchronous worker): mean, spread and every drive's figures.",
     "reloc_slam": "The SLAM started and constrained by an image base (a winter traversal of the "
     "route) instead of or beside a GPS, on five report drives; see bench/reloc_slam.py.",
+    "gps_bias": "A biased GPS caught by the building model (thesis §4.4): six 150 m "
+    "chapter-4 drives never used to choose a setting (seeds 31-36; seed 34's GPS misses most of "
+    "its drive, so its biased runs never georeference), GIS model + odometry + DEM + "
+    "the simulator's biased receiver (up to 3 m); the SLAM's mean error over the fixes' "
+    "(`bias_ratio_*`, target <= 0.5 with buildings) without buildings, with buildings and with "
+    "the GPS bias estimated from the facades, and the estimate's cost on an unbiased GPS "
+    "(`unbiased_ratio_*`); see docs/bridge.md.",
+    "gps_bias_tuning": "The same on the five tuning drives (seeds 21-25), where the bias "
+    "estimate's settings were chosen.",
     "train_speed": "Training step time under thread settings.",
 }
 

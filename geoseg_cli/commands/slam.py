@@ -14,6 +14,8 @@ keyframes, eq. 4.14 associates the building points with the facades, and the fus
 onto their planes (:mod:`slam_bridge.bridge`). ``--association dirichlet`` uses the naive CNN +
 Dirichlet filter instead; ``raycast`` the chapter-2 baseline (no network; needs the model's
 mesh, ``--buildings-mesh``, by default ``buildings_model.ply`` beside the table).
+``--gps-bias estimate`` (with ``--buildings`` and ``--gps``) estimates the GPS's slowly varying
+bias from the facades and removes it from the fixes (:mod:`slam_bridge.bridge.gps_bias`).
 
 ``FRAMES_DIR`` holds the images (PNG/JPEG, directly or in ``rgb/``, sorted by name) and a
 ``camera.json`` (``K``, ``image_size``; optionally ``fps``, ``camera_height_m``,
@@ -70,6 +72,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     run_p.add_argument(
         "--buildings-mesh", type=Path,
         help="raycast: the model's mesh (default: buildings_model.ply beside --buildings)",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--gps-bias", choices=("estimate", "off"), default=None,
+        help="estimate: the GPS's slowly varying bias is estimated from the building model "
+        "(the facades the map points lie off) and removed from the fixes, for a receiver "
+        "whose urban bias reaches metres; off: fixes used as they are; default from config "
+        "(gps_bias.enabled); needs --buildings and --gps",
     )  # fmt: skip
     run_p.add_argument("--camera", type=Path, help="camera.json (default: FRAMES/camera.json)")
     run_p.add_argument("--timestamps", type=Path, help="timestamps CSV (image, timestamp)")
@@ -171,6 +180,10 @@ def _run(args: argparse.Namespace) -> int:
         raise GeosegError(
             "--association, --network, --dirichlet, --buildings-mesh: need --buildings"
         )
+    if args.gps_bias:
+        if args.gps_bias == "estimate" and (args.buildings is None or args.gps is None):
+            raise GeosegError("--gps-bias estimate: needs --buildings and --gps")
+        overrides.append(f"gps_bias.enabled={str(args.gps_bias == 'estimate').lower()}")
     cfg = load_config(ImageSlamConfig, source, overrides=overrides)
     inputs = load_inputs(
         args.frames,

@@ -138,6 +138,10 @@ class BuildingsConfig:
         methods: among :data:`METHODS`.
         models: among :data:`MODELS`.
         gps_sigma_m: the GPS of the ``gis`` model, ``N(0, sigma^2)`` per axis at every frame.
+        gps_bias: the ``gis`` model's GPS is instead :func:`geoseg.synth.gps.simulate_gps`'s
+            default error model at the frame rate (a locally constant bias of up to 3 m, noise,
+            dropouts; ``gps_sigma_m`` unused), as ``bench/slam_images.py``'s ``bias`` log:
+            the bench of a biased GPS (``bench/gps_bias.py``).
         start_keyframes: keyframes placed at their true poses (``exact`` model).
         quick_length_m: drive length of the default (non ``--full``) run.
         seed: seed of the GPS noise.
@@ -154,6 +158,7 @@ class BuildingsConfig:
     methods: list[str] = field(default_factory=lambda: list(METHODS))
     models: list[str] = field(default_factory=lambda: list(MODELS))
     gps_sigma_m: float = 0.75
+    gps_bias: bool = False
     start_keyframes: int = 3
     quick_length_m: float = 250.0
     seed: int = 0
@@ -243,16 +248,21 @@ def prepare_drive(cfg: BuildingsConfig, folder: str | Path, workers: int | None 
 
     poses = read_columns(folder / "poses.csv", ["timestamp", "vehicle_x", "vehicle_y", "vehicle_z"])
     antenna = np.column_stack([poses["vehicle_x"], poses["vehicle_y"], poses["vehicle_z"]])
-    gps = GpsConfig(
-        rate_hz=d.fps, bias_max_m=0.0, bias_std_m=0.0, noise_std_m=cfg.gps_sigma_m,
-        dropout_share=0.0,
-    )  # fmt: skip
+    if cfg.gps_bias:  # the simulator's default receiver: a bias that GPS fusion cannot remove
+        gps = GpsConfig(rate_hz=d.fps)
+    else:
+        gps = GpsConfig(
+            rate_hz=d.fps, bias_max_m=0.0, bias_std_m=0.0, noise_std_m=cfg.gps_sigma_m,
+            dropout_share=0.0,
+        )  # fmt: skip
     simulate_gps(poses["timestamp"], antenna, gps, seed=cfg.seed).write_csv(_gps_path(cfg, folder))
     _write_exact_model(world, folder / "gis" / "exact")
     return folder
 
 
 def _gps_path(cfg: BuildingsConfig, folder: Path) -> Path:
+    if cfg.gps_bias:
+        return folder / f"gps_bias_seed{cfg.seed}.csv"
     return folder / f"gps_sigma{cfg.gps_sigma_m:g}.csv"
 
 
@@ -345,12 +355,16 @@ def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool
 
     parts = {
         "method": method, "model": model, "drive": to_dict(cfg.drive),
-        "slam": {  # its own `bridge` is not this experiment's
-            k: v for k, v in to_dict(cfg.slam_for(model)).items() if k != "bridge"
+        "slam": {  # its own `bridge` is not this experiment's; no bridge, no GPS bias estimate
+            k: v
+            for k, v in to_dict(cfg.slam_for(model)).items()
+            if k != "bridge" and not (k == "gps_bias" and method == "nobuild")
         },
         "gps_sigma_m": cfg.gps_sigma_m, "start_keyframes": cfg.start_keyframes,
         "seed": cfg.seed,
     }  # fmt: skip
+    if cfg.gps_bias:  # absent otherwise: the saved runs of the unbiased GPS stay valid
+        parts["gps_bias"] = True
     if method != "nobuild":
         parts["bridge"] = to_dict(_settings(cfg, method, model, asynchronous))
         if not asynchronous:  # inline: where an asynchronous worker would run changes nothing

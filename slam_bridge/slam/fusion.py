@@ -43,6 +43,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "ConstraintProvider",
+    "GpsBiasSource",
     "GpsConstraints",
     "DemConstraints",
     "OdometryConstraints",
@@ -71,6 +72,27 @@ class ConstraintProvider(Protocol):
         ...
 
 
+class GpsBiasSource(Protocol):
+    """An estimate of a GPS receiver's bias at keyframe ``k`` (e.g.
+    :class:`slam_bridge.bridge.gps_bias.BuildingGpsBias`, from the building model).
+
+    Attributes:
+        inflate: the fix's weight is lowered by the estimate's uncertainty.
+    """
+
+    inflate: bool
+
+    def estimate(self, slam_map: Map, problem, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(b (2,), cov (2, 2))``: the bias of keyframe ``k``'s fix (``fix = true + b``),
+        metres, and its covariance."""
+        ...
+
+    def at(self, timestamps):
+        """The best estimate so far of the bias of fixes at ``timestamps`` (a float: ``(2,)``;
+        ``(N,)``: ``(N, 2)``); 0 where nothing is known."""
+        ...
+
+
 class GpsConstraints:
     """GPS fixes on the horizontal position of the newest camera (eq. 3.1, eq. B.7).
 
@@ -90,6 +112,9 @@ class GpsConstraints:
         tolerance_s: how far from a keyframe's time a fix may be.
         interpolate_gap_s: the longest interval between two fixes interpolated (None: none).
         antenna_c: ``(3,)`` the antenna in the camera frame, metres (None: at the camera).
+        bias: an estimate of the receiver's slowly varying bias (:class:`GpsBiasSource`;
+            None: fixes taken as they are): each fix is corrected by it, and its weight lowered
+            by the estimate's uncertainty when ``bias.inflate`` holds.
     """
 
     name = "gps"
@@ -104,7 +129,9 @@ class GpsConstraints:
         tolerance_s: float = 1e-3,
         interpolate_gap_s: float | None = None,
         antenna_c: np.ndarray | None = None,
+        bias: GpsBiasSource | None = None,
     ) -> None:
+        self.bias = bias
         self.timestamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
         self.xy = np.asarray(xy, dtype=np.float64)
         check_shape("xy", self.xy, (self.timestamps.size, 2))
@@ -145,15 +172,42 @@ class GpsConstraints:
         w = (timestamp - t[a]) / (t[b] - t[a])
         return (1 - w) * self.xy[a] + w * self.xy[b]
 
+    def corrected_fix_at(self, timestamp: float) -> np.ndarray | None:
+        """:meth:`fix_at` less the bias estimated for ``timestamp`` (``bias.at``; the fix
+        itself without a bias source): what the start-up georeferences the map on."""
+        fix = self.fix_at(timestamp)
+        if fix is None or self.bias is None:
+            return fix
+        return fix - self.bias.at(timestamp)
+
+    def corrected_xy(self) -> np.ndarray:
+        """``(F, 2)`` every fix less the bias estimated for its time (:attr:`xy` without a
+        bias source)."""
+        if self.bias is None:
+            return self.xy
+        return self.xy - self.bias.at(self.timestamps)
+
+    def camera_fix_at(self, timestamp: float, R_wc: np.ndarray) -> np.ndarray | None:
+        """The ``(2,)`` fix of the optical centre of a camera of rotation ``R_wc`` ``(3, 3)``
+        (the antenna's lever arm removed), or None."""
+        fix = self.fix_at(timestamp)
+        if fix is None or self.antenna_c is None:
+            return fix
+        return fix - (R_wc @ self.antenna_c)[:2]
+
     def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
         """One :class:`GPSFactor` on the newest free camera, or none (dropout)."""
-        fix = self.fix_at(float(slam_map.timestamps[k]))
+        st = problem.state
+        fix = self.camera_fix_at(float(slam_map.timestamps[k]), st.R_wc[st.free_cameras[-1]])
         if fix is None:
             return []
-        if self.antenna_c is not None:
-            st = problem.state
-            fix = fix - (st.R_wc[st.free_cameras[-1]] @ self.antenna_c)[:2]
-        return [GPSFactor.most_recent(problem.state, fix, weight=self.weight)]
+        weight = self.weight
+        if self.bias is not None:
+            b, cov = self.bias.estimate(slam_map, problem, k)
+            fix = fix - b
+            if self.bias.inflate:  # an uncertain bias is noise on the fix: sigma^2 + var(b)
+                weight = 1.0 / (1.0 / weight + 0.5 * float(np.trace(cov)))
+        return [GPSFactor.most_recent(problem.state, fix, weight=weight)]
 
 
 class DemConstraints:

@@ -3,8 +3,9 @@
 Each check compares the SLAM's estimate with a measurement it should agree with, on the scale
 of that measurement's noise, and names the keyframe ranges where it does not:
 
-* ``gps``: each fix against the fused antenna position at its keyframe (residual over
-  ``gps_gate_m``);
+* ``gps``: each fix (less its estimated bias, when the run estimated one:
+  :meth:`~slam_bridge.slam.fusion.GpsConstraints.corrected_fix_at`) against the fused antenna
+  position at its keyframe (residual over ``gps_gate_m``);
 * ``odometry``: each step between successive keyframes against the distance driven (relative
   miss over ``odometry_gate``: five sigma of a 2 % odometry);
 * ``heading``: each camera's heading against its own track's on straight stretches (the
@@ -163,7 +164,7 @@ def _check_gps(h: Health, m, world, gps, antenna_c, cfg: HealthConfig) -> None:
     ids, res = [], []
     a = np.zeros(3) if antenna_c is None else np.asarray(antenna_c, dtype=np.float64)
     for k in np.flatnonzero(world):
-        fix = gps.fix_at(float(m.timestamps[k]))
+        fix = gps.corrected_fix_at(float(m.timestamps[k]))
         if fix is not None:
             ids.append(k)
             res.append(float(np.linalg.norm(fix - (m.t_wc[k] + m.R_wc[k] @ a)[:2])))
@@ -232,7 +233,7 @@ def _check_heading(h: Health, m, world, gps, cfg: HealthConfig) -> None:
         flagged[np.array(ids)] |= np.abs(dev_a) > cfg.heading_gate_deg
         h.figures["heading_camera_deviation_max_deg"] = float(np.max(np.abs(dev_a)))
     # the track against the GPS track over chords of chord_m
-    fixes = [gps.fix_at(float(m.timestamps[k])) for k in ks]
+    fixes = [gps.corrected_fix_at(float(m.timestamps[k])) for k in ks]
     s_along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(pos, axis=0), axis=1))])
     track = []
     for i in range(ks.size):

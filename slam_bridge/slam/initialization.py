@@ -365,7 +365,7 @@ class TwoViewStart:
             if not self._misfit(m, k):
                 return False
             recovering = True
-        fixes = [self.gps.fix_at(float(m.timestamps[j])) for j in seg]
+        fixes = [self.gps.corrected_fix_at(float(m.timestamps[j])) for j in seg]
         have = np.array([f is not None for f in fixes])
         if have.sum() < cfg.min_fixes:
             return False
@@ -446,7 +446,7 @@ class TwoViewStart:
     def _misfit(self, m: Map, k: int) -> bool:
         """Keyframe ``k`` is the ``recover_keyframes``-th in a row far from its fix."""
         cfg = self.config
-        fix = self.gps.fix_at(float(m.timestamps[k]))
+        fix = self.gps.corrected_fix_at(float(m.timestamps[k]))
         if cfg.recover_keyframes <= 0 or fix is None:
             return False
         far = self._rms(m, np.array([k]), fix[None]) > cfg.warn_residual_m
@@ -487,7 +487,7 @@ class TwoViewStart:
         lo, hi, w = seg[lo[keep]], seg[hi[keep]], w[keep][:, None]
         positions = (1 - w) * m.t_wc[lo] + w * m.t_wc[hi]
         nearer = np.where(w[:, 0] < 0.5, lo, hi)
-        return positions, m.R_wc[nearer], gps.xy[inside][keep]
+        return positions, m.R_wc[nearer], gps.corrected_xy()[inside][keep]
 
     def _up(self, m: Map, seg: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, float]:
         """The segment's up direction in the map frame and its weight in the fit: from the

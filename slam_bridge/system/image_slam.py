@@ -27,8 +27,11 @@ is an unfinished run):
 * ``frame_poses.csv``, ``trajectory_tum.txt``, ``trajectory_kitti.txt``: a pose for every
   frame (:mod:`slam_bridge.slam.frame_poses`: keyframe, interpolated or extrapolated);
 * ``summary.json``: the figures (keyframes, tracking failures, frames per second, the run's
-  ``status`` with its reasons from :mod:`slam_bridge.slam.health`, and the errors against the
-  ground truth when there is one: evaluation only, never used by the run).
+  ``status`` with its reasons from :mod:`slam_bridge.slam.health`, the last estimate of the
+  GPS's bias when it was estimated from the building model, ``gps_bias_m``,
+  ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, and
+  the errors against the ground truth when there is one: evaluation only, never used by the
+  run).
 """
 
 from __future__ import annotations
@@ -43,6 +46,7 @@ import numpy as np
 
 from geoseg.errors import check_finite
 from slam_bridge.bridge.builder import BridgeConfig, check_covers_window
+from slam_bridge.bridge.gps_bias import BuildingGpsBias, GpsBiasConfig
 from slam_bridge.csv_columns import read_columns
 from slam_bridge.errors import SlamError
 from slam_bridge.frontend.base import KeyframeObservations
@@ -121,6 +125,8 @@ class ImageSlamConfig:
         vertical_lines: how those segments are found and fitted.
         bridge: the network bridge, when a building model is given (``--buildings``).
         base: how frames localised against an image base become fixes (``--base``).
+        gps_bias: the GPS's bias estimated from the building model and removed from the fixes
+            (:mod:`slam_bridge.bridge.gps_bias`; only with a building model and a GPS).
         health: the gates of the run's consistency checks (its ``status``).
     """
 
@@ -137,6 +143,7 @@ class ImageSlamConfig:
     vertical_lines: VerticalLinesConfig = field(default_factory=VerticalLinesConfig)
     bridge: BridgeConfig = field(default_factory=BridgeConfig)
     base: BaseFixConfig = field(default_factory=BaseFixConfig)
+    gps_bias: GpsBiasConfig = field(default_factory=GpsBiasConfig)
     health: HealthConfig = field(default_factory=HealthConfig)
 
     def __post_init__(self) -> None:
@@ -291,7 +298,8 @@ def run_image_slam(
     remove_outputs(out, ["summary.json"])  # unfinished until written again (only our own)
     record_outputs(out, OUTPUTS)
     t0 = time.perf_counter()
-    result, tracks = run_on_images(inputs, cfg, progress, bridge=bridge)
+    gps = _gps_constraints(inputs, cfg)
+    result, tracks = run_on_images(inputs, cfg, progress, bridge=bridge, gps=gps)
     seconds = time.perf_counter() - t0
     frame_of = np.searchsorted(inputs.frames.timestamps, result.map.timestamps)
     summary = {
@@ -327,9 +335,16 @@ def run_image_slam(
     if inputs.base is not None:
         summary.update(base_fixes_of(inputs, cfg).summary())
         summary["base_fused_keyframes"] = sum("base" in r.constraints for r in result.records)
-    health = assess_run(
+    if gps is not None and gps.bias is not None and gps.bias.history:
+        _, _, b, _, facades, p_biased = gps.bias.history[-1]
+        summary.update(  # the last estimate of the GPS's bias (the fixes less it were fused)
+            gps_bias_m=[float(b[0]), float(b[1])],
+            gps_bias_facades=int(facades),
+            gps_biased_probability=float(p_biased),
+        )
+    health = assess_run(  # against the fixes the run fused (less their estimated bias)
         result,
-        gps=_gps_constraints(inputs, cfg) or _base_constraints(inputs, cfg),
+        gps=gps or _base_constraints(inputs, cfg),
         odometry=inputs.odometry,
         antenna_c=np.asarray(inputs.rig.antenna_c, dtype=np.float64),
         config=cfg.health,
@@ -429,6 +444,7 @@ def run_on_images(
     progress: bool = True,
     bridge=None,
     start=None,
+    gps: GpsConstraints | None = None,
 ) -> tuple[SlamResult, ImageTracks]:
     """The run itself, for programs and benchmarks (no file written).
 
@@ -442,12 +458,14 @@ def run_on_images(
         start: the start-up (default: :class:`TwoViewStart`, georeferenced by the GPS); an
             experiment with a known first pose gives a
             :class:`slam_bridge.slam.loop.KnownStartPoses`.
+        gps: the GPS provider (default: from ``inputs`` and ``cfg``); given, it carries the
+            run's bias estimate afterwards (``gps.bias``, with a building model).
 
     Returns:
         ``(the SLAM's result, the front end with its timings and counters)``.
     """
     cfg = cfg or ImageSlamConfig()
-    gps = _gps_constraints(inputs, cfg)
+    gps = gps if gps is not None else _gps_constraints(inputs, cfg)
     base = _base_constraints(inputs, cfg)
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
     start = start or TwoViewStart(
@@ -471,6 +489,12 @@ def run_on_images(
         providers.append(VerticalConstraints(source.image_at, tracks.K, cfg.vertical_lines))
     if bridge is not None:
         providers.append(bridge.constraints)
+        if gps is not None and cfg.gps_bias.enabled:
+            gps.bias = BuildingGpsBias(bridge.constraints, gps.camera_fix_at, cfg.gps_bias)
+            # the GPS after the buildings: its estimate reads the association the building
+            # rows of the same fusion used (a replayed run, experiments/replay.py, sets it then)
+            providers.remove(gps)
+            providers.append(gps)
         if bridge.image_at is None:
             frames = inputs.frames
             bridge.image_at = lambda t: frames[int(np.searchsorted(frames.timestamps, t))][1]

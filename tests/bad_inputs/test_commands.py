@@ -213,6 +213,9 @@ CASES: list[Case] = [
     Case("slam", "raycast-with-network", lambda e: [*slam_buildings(e), "--association", "raycast", "--buildings-mesh", str(e.inputs / "notes.txt"), "--network", str(e.onnx)], "--network"),
     Case("slam", "association-without-buildings", lambda e: ["slam", "run", str(rendered(e)), "--out", str(e.out("slam")), "--association", "bayes"], "--buildings"),
     Case("slam", "association-unknown", lambda e: [*slam_buildings(e), "--association", "magic"]),
+    Case("slam", "gps-bias-without-gps", lambda e: [*slam_buildings(e), "--gps-bias", "estimate"], "--gps"),
+    Case("slam", "gps-bias-without-buildings", lambda e: ["slam", "run", str(rendered(e)), "--out", str(e.out("slam")), "--gps", str(e.inputs / "gps.csv"), "--gps-bias", "estimate"], "--buildings"),
+    Case("slam", "gps-bias-unknown", lambda e: [*slam_buildings(e), "--gps-bias", "maybe"]),
     # ------------------------------------------------------------------ base
     Case("base", "src-missing", lambda e: ["base", "build", str(e.inputs / "nothere"), "--out", str(e.out("base"))], "nothere"),
     Case("base", "src-is-a-file", lambda e: ["base", "build", str(e.inputs / "notes.txt"), "--out", str(e.out("base"))], "notes.txt"),

@@ -106,6 +106,8 @@ def test_slam_run_command_with_buildings(drive, tmp_path, capsys, caplog):
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["association"] == "raycast"
     assert summary["associated_points"] > 100 and summary["building_keyframes"] > 0
+    # the GPS bias estimated from the facades (configs/slam_images.yaml: on)
+    assert summary["gps_bias_facades"] > 0 and len(summary["gps_bias_m"]) == 2
     assert "map points on facades" in capsys.readouterr().out
     # a model far from the route (another frame, say): the run goes on without building rows
     table = np.genfromtxt(facades, delimiter=",", names=True)
@@ -119,6 +121,7 @@ def test_slam_run_command_with_buildings(drive, tmp_path, capsys, caplog):
                           "raycast", *mesh)) == 0  # fmt: skip
     summary = json.loads((tmp_path / "far" / "summary.json").read_text())
     assert summary["associated_points"] == 0 and summary["building_keyframes"] == 0
+    assert summary["gps_bias_facades"] == 0 and summary["gps_bias_m"] == [0.0, 0.0]
     assert "no map point was associated with a facade" in caplog.text
 
 
