@@ -91,12 +91,16 @@ class BuildingConstraints:
             raise SlamError("association: weights must be finite and >= 0")
         self.association = association
 
-    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
-        """One :class:`BuildingFactor` over the window's associated points (none when no point
-        of the window is associated)."""
+    def window_points(self, problem) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The window's points associated with a facade.
+
+        Returns:
+            ``(rows (P,), facade ids (P,), weights (P,))``: their rows in ``problem``'s points,
+            their facades and association weights (all empty without an association).
+        """
         a = self.association
         if a is None:
-            return []
+            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0)
         ids = np.asarray(problem.point_ids)
         known = ids < a.facade.size  # points newer than the association have none yet
         facade = np.full(ids.size, -1, np.int64)
@@ -104,10 +108,15 @@ class BuildingConstraints:
         weight = np.zeros(ids.size)
         weight[known] = a.weight[ids[known]]
         rows = np.flatnonzero((facade >= 0) & (weight > 0))
+        return rows, facade[rows], weight[rows]
+
+    def factors(self, slam_map: Map, problem, k: int) -> list[Factor]:
+        """One :class:`BuildingFactor` over the window's associated points (none when no point
+        of the window is associated)."""
+        rows, f, weight = self.window_points(problem)
         if rows.size == 0:
             return []
-        f = facade[rows]
-        w = self.weight * weight[rows]
+        w = self.weight * weight
         if self.window_weight is not None and w.sum() > self.window_weight:
             w *= self.window_weight / w.sum()
         logger.debug("keyframe %d: %d points on facades", k, rows.size)

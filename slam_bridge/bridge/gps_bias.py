@@ -239,23 +239,14 @@ class BuildingGpsBias:
 
     def _measure(self, slam_map: Map, problem, t: float) -> None:
         """Each facade with enough points in the window: its latest ``y`` (steps 1-2)."""
-        a, cfg = self.constraints.association, self.config
-        if a is None:
-            return
-        ids = np.asarray(problem.point_ids)
-        known = ids < a.facade.size  # points newer than the association have none yet
-        facade = np.full(ids.size, -1, np.int64)
-        facade[known] = a.facade[ids[known]]
-        weight = np.zeros(ids.size)
-        weight[known] = a.weight[ids[known]]
-        rows = np.flatnonzero((facade >= 0) & (weight > 0))
+        cfg = self.config
+        rows, f, _ = self.constraints.window_points(problem)
         if rows.size == 0:
             return
         g = self._fix_offset(slam_map, problem)
         if g is None:  # a dropout over the whole window: nothing to compare with
             return
         model = self.constraints.facades
-        f = facade[rows]
         offset = np.einsum("ij,ij->i", model.normal[f], problem.state.X_w[rows]) - model.d[f]
         order = np.argsort(f, kind="stable")
         groups, starts = np.unique(f[order], return_index=True)
