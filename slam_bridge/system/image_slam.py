@@ -29,8 +29,9 @@ is an unfinished run):
 * ``summary.json``: the figures (keyframes, tracking failures, frames per second, the run's
   ``status`` with its reasons from :mod:`slam_bridge.slam.health`, the last estimate of the
   GPS's bias when it was estimated from the building model, ``gps_bias_m``,
-  ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, and
-  the errors against the ground truth when there is one: evaluation only, never used by the
+  ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, what
+  an image base gave when one was (``base_fixes``, ``base_fused_keyframes``:
+  :mod:`slam_bridge.system.base_fixes`), and the errors against the ground truth when there is one: evaluation only, never used by the
   run).
 """
 
