@@ -31,8 +31,8 @@ is an unfinished run):
   GPS's bias when it was estimated from the building model, ``gps_bias_m``,
   ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, what
   an image base gave when one was (``base_fixes``, ``base_fused_keyframes``:
-  :mod:`slam_bridge.system.base_fixes`), and the errors against the ground truth when there is one: evaluation only, never used by the
-  run).
+  :mod:`slam_bridge.system.base_fixes`), and the errors against the ground truth when there
+  is one: evaluation only, never used by the run).
 """
 
 from __future__ import annotations
