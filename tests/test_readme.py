@@ -178,6 +178,7 @@ def test_every_readme_command_and_snippet_runs(tmp_path: Path, monkeypatch, caps
     out = capsys.readouterr().out
     # what the walkthroughs promise
     _check_demo_figures(out, tmp_path / "geoseg_demo" / "demo.json")
+    _check_demo_outputs(out, tmp_path / "geoseg_demo")
     assert (tmp_path / "geoseg_demo" / "segmentation.png").is_file()
     assert (tmp_path / "my_labels" / "street_classes.png").is_file()
     assert (tmp_path / "my_labels" / "legend.json").is_file()
@@ -220,6 +221,24 @@ def _check_demo_figures(out: str, figures_path: Path) -> None:
         assert error < 0.5 * alone, f"{rule}: {error:.3f} m, without buildings {alone:.3f} m"
 
 
+def _check_demo_outputs(out: str, demo: Path) -> None:
+    """The buildings step prints each run in the README's words, with the experiment's names,
+    and writes its report and pictures for both building models."""
+    exact, gis = out.index("slam on images, exact"), out.index("slam on images, gis")
+    assert exact < gis
+    for block in (out[exact:gis], out[gis:]):
+        for method, name in (("nobuild", "no buildings"), ("raycast", "geometric rule"),
+                             ("bayes", "network")):  # fmt: skip
+            assert f"  {name}" in block and f"({method})" in block
+        assert "% on the right one" in block
+    assert "GPS fixes" in out[gis:] and "GPS fixes" not in out[exact:gis]
+    report = (demo / "buildings" / "buildings_ch4.md").read_text()
+    assert "## Model `exact`" in report and "## Model `gis`" in report and "`bayes` |" in report
+    for model in ("exact", "gis"):
+        for name in ("trajectories", "association", "reprojection"):
+            assert (demo / "buildings" / f"{name}_{model}.png").is_file()
+
+
 def _check_own_photos_localised(folder: Path) -> None:
     """Each query photo (a copy of base image ``p02`` / ``p05``) finds its own base image first
     and is placed near its true position, in metres (not only inside the GPS window)."""
@@ -260,10 +279,16 @@ def _check_slam(summary_path: Path) -> None:
 
 
 def _check_slam_from_base(summary_path: Path) -> None:
-    """The run without GPS, from the winter base, is georeferenced by the base's fixes."""
+    """The run without GPS, from the winter base, is georeferenced by the base's fixes, which
+    its keyframes log as theirs (no GPS's)."""
     summary = json.loads(summary_path.read_text())
-    assert summary["georeferenced"] and summary["base_fixes"] > 0, summary["status"]
+    assert summary["georeferenced"] and summary["tracking_failures"] == 0, summary["status"]
+    assert summary["base_fixes"] >= 0.8 * summary["base_frames_localised"] > 0
+    assert summary["base_fused_keyframes"] > 0 and "gps_error_m" not in summary
     assert summary["translation_error_m"] < BASE_SLAM_MAX_ERROR_M, summary["translation_error_m"]
+    log = list(csv.DictReader(open(summary_path.parent / "keyframes.csv")))
+    assert any("base" in r["constraints"] for r in log)
+    assert not any("gps" in r["constraints"] for r in log)
 
 
 def _make_results():
