@@ -318,7 +318,7 @@ class ImageBase:
         check_image_size(f"base image {self.images[i]}", image, self.image_size, CAMERA_FILE)
         return image
 
-    def _fingerprints(self) -> np.ndarray:
+    def fingerprints(self) -> np.ndarray:
         """``(M, 2)`` int64 (size in bytes, mtime in ns) of each image file."""
         out = np.empty((len(self), 2), dtype=np.int64)
         for i in range(len(self)):
@@ -386,7 +386,7 @@ class ImageBase:
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
             raise GeosegError(f"batch_size: expected an int >= 1, got {batch_size!r}")
         name = getattr(embed_fn, "name", None)
-        fingerprints = self._fingerprints()
+        fingerprints = self.fingerprints()
         cpath = self.cache_path(str(name)) if (cache and name) else None
         if cpath is not None:
             emb, writable = self._read_cache(cpath, fingerprints)

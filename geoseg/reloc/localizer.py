@@ -63,6 +63,15 @@ __all__ = [
     "RelativePoseFn",
 ]
 
+# a match's relative pose when the base's points gave the query's pose (the heads not run)
+_NOT_COMPUTED = {
+    "ok": False,
+    "reason": "not computed: the base's points gave the pose",
+    "R_ab": None,
+    "t_dir_ab": None,
+    "distance_m": None,
+    "n_inliers": None,
+}
 # (base indices (k,), query) -> one dict per index: "ok", "reason", "R_ab" (3, 3), "t_dir_ab"
 # (3,) (unit, base camera frame), "distance_m" (float or None), "n_inliers" (int or None).
 RelativePoseFn = Callable[[np.ndarray, Any], list[dict[str, Any]]]
@@ -140,7 +149,9 @@ class QueryResult:
             (embedding), "base_t_wc" (3,), "relative_pose": {...}}`` (plus
             ``"sequence_probability"`` or ``"gps_fused_distance_m"`` when those apply).
         position: ``{"method", "xyz" (3,) or None, "degenerate", "n_rays", "n_inliers",
-            "inlier_ranks", "reason"}``.
+            "inlier_ranks", "reason"}``; with the base's points (method ``structure``)
+            ``{"method", "xyz", "R_wc" (3, 3), "degenerate", "n_matches", "n_inliers",
+            "rms_px", "reason"}``, and ``"structure_reason"`` when they gave no pose.
     """
 
     name: str
@@ -177,6 +188,9 @@ class Localizer:
         embedding_name, relative_pose_name: descriptions for reports.
         check_query: optional ``fn(name, query)`` raising :class:`GeosegError` for a query
             the relative poses cannot use (e.g. an image of another size than the intrinsics').
+        structure: a :class:`~geoseg.reloc.base_structure.StructureLocator` over the base's
+            triangulated points: a query it localises (PnP on its matches' points) takes that
+            pose (method ``structure``); the others the relative poses' position.
     """
 
     def __init__(
@@ -191,6 +205,7 @@ class Localizer:
         embedding_name: str = "",
         relative_pose_name: str = "",
         check_query: Callable[[str, Any], None] | None = None,
+        structure: Any = None,
     ) -> None:
         if index.R_wc is None or index.t_wc is None:
             raise GeosegError("index: needs the base poses (R_wc, t_wc)")
@@ -205,6 +220,7 @@ class Localizer:
         self.embedding_name = embedding_name
         self.relative_pose_name = relative_pose_name
         self.check_query = check_query
+        self.structure = structure
 
     def __len__(self) -> int:
         return len(self.index)
@@ -229,6 +245,8 @@ class Localizer:
         device: str = "cpu",
         cache: bool = True,
         config: LocalizerConfig | None = None,
+        structure: bool = False,
+        query_K: Any = None,
     ) -> Localizer:
         """A localizer over an image base directory with the shipped networks by default.
 
@@ -258,6 +276,9 @@ class Localizer:
             focal: focal length in pixels when the base has no ``camera.json`` (essential).
             device: torch device of the networks.
             cache: read/write the base embeddings under ``BASE/cache/``.
+            structure: localise queries on the base's triangulated points where enough match
+                (:mod:`geoseg.reloc.base_structure`; needs the base's ``camera.json``).
+            query_K: ``(3, 3)`` the queries' intrinsics for ``structure`` (default: the base's).
             config: :class:`LocalizerConfig` (default: ``appearance_weight`` 0.5 with the
                 learned embedding).
 
@@ -317,6 +338,12 @@ class Localizer:
             def check_query(name: str, image: Any) -> None:
                 check_image_size(f"query {name}", image, size, size_source)
 
+        locator = None
+        if structure:
+            from geoseg.reloc.base_structure import StructureLocator, build_structure
+
+            K_q = base.K if query_K is None else query_K
+            locator = StructureLocator(build_structure(base, cache=cache), K_q)
         stamps = base.timestamps if np.isfinite(base.timestamps).all() else None
         return cls(
             index=index,
@@ -328,6 +355,7 @@ class Localizer:
             embedding_name=embedding_name,
             relative_pose_name=pose_name,
             check_query=check_query,
+            structure=locator,
         )
 
     # ------------------------------------------------------------------ localisation
@@ -379,8 +407,14 @@ class Localizer:
         for j, (name, query) in enumerate(zip(names, queries)):
             rows = [r for r in range(ranked.shape[1]) if ranked[j, r] >= 0]
             idx = np.array([int(ranked[j, r]) for r in rows], dtype=np.int64)
+            placed = None
+            if self.structure is not None and idx.size:
+                placed = self.structure.locate(query, idx)
             try:
-                poses = self.relative_pose(idx, query) if idx.size else []
+                if placed is not None and placed.ok:  # the pose is known: no rays needed
+                    poses = [dict(_NOT_COMPUTED) for _ in idx]
+                else:
+                    poses = self.relative_pose(idx, query) if idx.size else []
             except GeosegError as err:
                 raise GeosegError(f"query {name}: {err}") from None
             matches = []
@@ -406,7 +440,7 @@ class Localizer:
                     name=str(name),
                     gps=None if fix is None else (float(fix[0]), float(fix[1])),
                     matches=matches,
-                    position=self._position(matches),
+                    position=self._position_of(placed, matches),
                 )
             )
         return out
@@ -476,6 +510,25 @@ class Localizer:
         for r, m in enumerate(matches, start=1):
             m["appearance_rank"], m["rank"] = m["rank"], r
         return matches
+
+    def _position_of(self, placed: Any, matches: list[dict]) -> dict[str, Any]:
+        """The pose from the base's points (``placed``, a
+        :class:`~geoseg.reloc.base_structure.StructurePose` or None), else :meth:`_position`."""
+        if placed is None or not placed.ok:
+            position = self._position(matches)
+            if placed is not None:
+                position["structure_reason"] = placed.reason
+            return position
+        return {
+            "method": "structure",
+            "xyz": placed.t_wc,
+            "R_wc": placed.R_wc,
+            "degenerate": False,
+            "n_matches": placed.n_matches,
+            "n_inliers": placed.n_inliers,
+            "rms_px": placed.rms_px,
+            "reason": "",
+        }
 
     def _position(self, matches: list[dict]) -> dict[str, Any]:
         """The absolute position from the best ``position_k`` matches' rays."""

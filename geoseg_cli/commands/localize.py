@@ -125,6 +125,13 @@ def _add_ranking(parser: argparse.ArgumentParser) -> None:
         help="matches used for the absolute position, best first (default: all --k)",
     )
     parser.add_argument(
+        "--structure",
+        action="store_true",
+        help="place each query on the base's points, triangulated from neighbouring base images "
+        "(PnP; cached under BASE/cache/): centimetres where enough points match, else the "
+        "relative poses' position; needs the base's camera.json, and queries from that camera",
+    )
+    parser.add_argument(
         "--min-agreeing-rays",
         type=int,
         default=2,
@@ -287,7 +294,8 @@ def _print_table(result: dict[str, Any]) -> None:
         "one); appearance: embedding distance (lower = more alike) and its own rank; 'm away': "
         "the predicted distance to that base camera. position: 'ranged rays' = each match's "
         "predicted direction and distance, fitted robustly (n/k: the matches that agree); "
-        "'best match' = they did not agree, the best match's camera position"
+        "'best match' = they did not agree, the best match's camera position; 'on the base's "
+        "points' (--structure) = PnP on the points the matches see"
     )
     print(textwrap.fill(legend, width=len(header) + 20))
     for q in result["queries"]:
@@ -315,10 +323,11 @@ def _print_table(result: dict[str, Any]) -> None:
             print(f"{'':<24} position: degenerate ({pos['reason']})")
         else:
             x, y, z = pos["xyz"]
-            print(
-                f"{'':<24} position: x {x:.2f}  y {y:.2f}  z {z:.2f} m "
-                f"({pos['n_inliers']}/{pos['n_rays']} {pos['method']})"
-            )
+            if pos["method"] == "structure":
+                how = f"on the base's points: {pos['n_inliers']}/{pos['n_matches']} PnP inliers"
+            else:
+                how = f"{pos['n_inliers']}/{pos['n_rays']} {pos['method']}"
+            print(f"{'':<24} position: x {x:.2f}  y {y:.2f}  z {z:.2f} m ({how})")
 
 
 # ============================================================================ run
@@ -439,6 +448,7 @@ def run(args: argparse.Namespace) -> int:
             device=args.device,
             cache=not args.no_cache,
             config=config,
+            structure=args.structure,
         )
     except GeosegError as err:
         msg = str(err)

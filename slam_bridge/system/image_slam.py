@@ -40,7 +40,7 @@ from __future__ import annotations
 import json
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -469,8 +469,11 @@ def run_on_images(
     gps = gps if gps is not None else _gps_constraints(inputs, cfg)
     base = _base_constraints(inputs, cfg)
     tracks = ImageTracks(inputs.frames, cfg.frontend, distance=inputs.odometry)
+    init = cfg.init
+    if gps is None and base is not None:  # the base's fixes alone: centimetres, not metres
+        init = replace(init, refit_distance_m=cfg.base.refit_distance_m)
     start = start or TwoViewStart(
-        cfg.init,
+        init,
         inputs.rig,
         mapping=cfg.slam.mapping,
         outlier_gate_px=cfg.slam.tracking.outlier_gate_px,
