@@ -495,7 +495,7 @@ ABOUT: dict[str, str] = {
     "of cities never used to choose a setting (bench/splits.py's report seeds), synchronous and "
     "as users run it (asynchronous worker): mean, spread and every drive's figures.",
     "colour_transfer_ch4": "The bridge's colour transfer (thesis §4.3.2, `slam run "
-    "--colour-transfer card`) on the chapter-4 experiment: three 300 m report drives rendered as "
+    "--colour-transfer card`) on the chapter-4 experiment: five 300 m report drives rendered as "
     "they are and through another camera (a warm white balance, darker mid-tones: outside the "
     "networks' training data), bayes association on both models with and without the transfer; "
     "see docs/bridge.md.",
