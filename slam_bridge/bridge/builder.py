@@ -227,21 +227,21 @@ def colour_transfer_of(cfg: BridgeConfig, weights: str | Path | None = None, seg
     ref = cfg.colour_transfer
     if ref is None or cfg.association == "raycast":
         return None
+    model_path = None  # card: the weights' own errors are theirs, raised here unwrapped
+    if ref == CARD_REFERENCE:
+        model_path = network_file(cfg.association, weights) if segmenter is None else None
     try:
         if ref != CARD_REFERENCE:
             target = reference_statistics(ref)
-        elif segmenter is not None:
-            source = getattr(segmenter, "source", None)
-            if source is None:
-                raise GeosegError(
-                    "card: the network object names no weights file whose model card to read; "
-                    "give a reference image or folder instead"
-                )
-            target = training_colour_statistics(source)
+        elif model_path is not None:
+            target = training_colour_statistics(model_path)
+        elif getattr(segmenter, "source", None) is not None:
+            target = training_colour_statistics(segmenter.source)
         else:
-            target = training_colour_statistics(network_file(cfg.association, weights))
-    except SlamError:
-        raise
+            raise GeosegError(
+                "card: the network object names no weights file whose model card to read; "
+                "give a reference image or folder instead"
+            )
     except GeosegError as exc:
         raise SlamError(f"bridge.colour_transfer {ref!r}: {exc}") from None
     return ColourTransfer(target, match_std=not cfg.colour_means_only)
