@@ -210,3 +210,14 @@ def test_slam_run_refuses_colour_options_it_cannot_use(drive, tmp_path, capsys):
     assert main(_slam_run(drive, tmp_path / "d", *missing)) == 2
     err = capsys.readouterr().err
     assert "no_such.png" in err and "no such colour reference" in err
+
+
+def test_slam_run_with_colour_transfer_records_it(drive, tmp_path):
+    """The whole run with ``--colour-transfer card``: the bridge associates as usual and the
+    summary names the reference."""
+    facades = str(drive / "gis" / "facades.csv")
+    run = _slam_run(drive, tmp_path / "run", "--buildings", facades, "--colour-transfer", "card")
+    assert main(run) == 0
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert summary["colour_transfer"] == "card" and summary["association"] == "bayes"
+    assert summary["associated_points"] > 100
