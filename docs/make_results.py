@@ -369,6 +369,30 @@ HEADLINE: tuple[Figure, ...] = (
         unit=" m",
     ),
     Figure(
+        "colour_transfer_ch4",
+        (
+            "shifted_translation_error_m_bayes_exact_plain_mean",
+            "shifted_translation_error_m_bayes_exact_transfer_mean",
+            "control_translation_error_m_bayes_exact_plain_mean",
+            "control_translation_error_m_bayes_exact_transfer_mean",
+        ),
+        "chapter 4 through another camera's colours (warm cast, darker mid-tones), exact model, "
+        "no GPS: network as given / with the colour transfer (card); the same on the render",
+        "with < as given (cast); with ~ as given (render)",
+        unit=" m",
+    ),
+    Figure(
+        "colour_transfer_ch4",
+        (
+            "shifted_association_precision_bayes_exact_plain_mean",
+            "shifted_association_precision_bayes_exact_transfer_mean",
+            "shifted_association_recall_bayes_exact_plain_mean",
+            "shifted_association_recall_bayes_exact_transfer_mean",
+        ),
+        "the same, cast drives: association precision as given / with; recall as given / with",
+        "with >= as given",
+    ),
+    Figure(
         "reloc_slam",
         ("noGPS_base_translation_error_m", "base_fix_error_m"),
         "SLAM from an image base (winter traversal), no GPS: mean error / the base's fixes' error",
@@ -470,6 +494,11 @@ ABOUT: dict[str, str] = {
     "buildings_ch4_report": "The chapter-4 experiment, settings unchanged, on five 300 m drives "
     "of cities never used to choose a setting (bench/splits.py's report seeds), synchronous and "
     "as users run it (asynchronous worker): mean, spread and every drive's figures.",
+    "colour_transfer_ch4": "The bridge's colour transfer (thesis §4.3.2, `slam run "
+    "--colour-transfer card`) on the chapter-4 experiment: five 300 m report drives rendered as "
+    "they are and through another camera (a warm white balance, darker mid-tones: outside the "
+    "networks' training data), bayes association on both models with and without the transfer; "
+    "see docs/bridge.md.",
     "reloc_slam": "The SLAM started and constrained by an image base (a winter traversal of the "
     "route) instead of or beside a GPS, on five report drives; see bench/reloc_slam.py.",
     "gps_bias": "A biased GPS caught by the building model (thesis §4.4): six 150 m "

@@ -17,13 +17,16 @@ of one image or pooled over a sequence (:func:`colour_statistics`; a source esti
 frames of a drive, steadier than frame by frame), or those of a typical image of a set
 (:func:`typical_statistics`, per-channel medians of the images' own statistics). A model card
 records the typical statistics of the training set (key ``colour_statistics``) so that inference
-can map onto them.
+can map onto them; :func:`reference_statistics` reads a target from a file instead (an image, a
+folder of images, a model card or a statistics JSON).
 """
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -298,3 +301,64 @@ def statistics_from_card(card: Mapping[str, Any], *, name: str = "model card") -
             "geoseg.colour_transfer.colour_statistics"
         )
     return ColourStatistics.from_dict(card[CARD_KEY], name=f"{name}: {CARD_KEY}")
+
+
+#: image files a reference folder is read from
+REFERENCE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".ppm", ".webp")
+#: most images of a reference folder read, evenly spaced (a model card's statistics come from
+#: 64 training frames too)
+REFERENCE_IMAGES = 64
+
+
+def reference_statistics(path: str | Path) -> ColourStatistics:
+    """The target statistics a reference file describes.
+
+    Args:
+        path: one image (its own statistics); a folder of images, directly or in ``rgb/`` (a
+            render's layout), of which at most :data:`REFERENCE_IMAGES` evenly spaced ones
+            give :func:`typical_statistics`; or a ``.json`` file: a model card
+            (:func:`statistics_from_card`) or :meth:`ColourStatistics.as_dict` output.
+
+    Raises:
+        GeosegError: no such file or folder, a folder without images, an unreadable image, a
+            JSON file of neither kind.
+    """
+    path = Path(path)
+    if path.is_dir():
+        folder = path / "rgb" if (path / "rgb").is_dir() else path
+        files = sorted(
+            p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in REFERENCE_SUFFIXES
+        )
+        if not files:
+            raise GeosegError(
+                f"{path}: a colour reference folder without images ({', '.join(REFERENCE_SUFFIXES)}"
+                " directly or in rgb/)"
+            )
+        picks = np.unique(np.linspace(0, len(files) - 1, min(len(files), REFERENCE_IMAGES)).round())
+        return typical_statistics(_read_rgb(files[int(i)]) for i in picks)
+    if not path.is_file():
+        raise GeosegError(
+            f"{path}: no such colour reference (expected an image, a folder of images or a JSON "
+            "file of colour statistics)"
+        )
+    if path.suffix.lower() == ".json":
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise GeosegError(f"{path}: not a readable JSON file ({exc})") from None
+        if not isinstance(data, dict):
+            raise GeosegError(f"{path}: expected a JSON object, got {type(data).__name__}")
+        if CARD_KEY in data:
+            return statistics_from_card(data, name=str(path))
+        return ColourStatistics.from_dict(data, name=str(path))
+    return colour_statistics(_read_rgb(path))
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    """`(H, W, 3)` uint8 RGB of an image file (grey ones replicated)."""
+    import cv2
+
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise GeosegError(f"{path}: not a readable image")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)

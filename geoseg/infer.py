@@ -470,6 +470,29 @@ class Segmenter:
         )
 
 
+def training_colour_statistics(model_path: str | os.PathLike) -> Any:
+    """The training set's colour statistics recorded in the ``model_card.json`` beside the
+    weights file ``model_path`` (:func:`geoseg.colour_transfer.statistics_from_card`).
+
+    Returns:
+        A :class:`geoseg.colour_transfer.ColourStatistics`.
+
+    Raises:
+        GeosegError: no model card beside the weights, or a card without statistics.
+    """
+    import json
+
+    from geoseg.colour_transfer import statistics_from_card
+
+    card_path = Path(model_path).parent / "model_card.json"
+    if not card_path.is_file():
+        raise GeosegError(
+            f"colour transfer: no model card {card_path} beside {model_path} to read the "
+            "training set's colour statistics from"
+        )
+    return statistics_from_card(json.loads(card_path.read_text()), name=str(card_path))
+
+
 def colour_transfer_for(
     model_path: str | os.PathLike,
     *,
@@ -497,22 +520,11 @@ def colour_transfer_for(
         GeosegError: no model card beside the weights, a card without statistics, an unknown
             mode, or ``"sequence"`` without images.
     """
-    import json
-
-    from geoseg.colour_transfer import ColourTransfer, statistics_from_card
+    from geoseg.colour_transfer import ColourTransfer
 
     if mode not in ("image", "sequence"):
         raise GeosegError(f"colour transfer mode: expected image or sequence, got {mode!r}")
-    card_path = Path(model_path).parent / "model_card.json"
-    if not card_path.is_file():
-        raise GeosegError(
-            f"colour transfer: no model card {card_path} beside {model_path} to read the "
-            "training set's colour statistics from"
-        )
-    transfer = ColourTransfer(
-        statistics_from_card(json.loads(card_path.read_text()), name=str(card_path)),
-        match_std=match_std,
-    )
+    transfer = ColourTransfer(training_colour_statistics(model_path), match_std=match_std)
     if mode == "sequence":
         if len(sequence) == 0:
             raise GeosegError("colour transfer mode 'sequence': no images to pool statistics from")

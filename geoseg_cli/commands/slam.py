@@ -14,6 +14,12 @@ keyframes, eq. 4.14 associates the building points with the facades, and the fus
 onto their planes (:mod:`slam_bridge.bridge`). ``--association dirichlet`` uses the naive CNN +
 Dirichlet filter instead; ``raycast`` the chapter-2 baseline (no network; needs the model's
 mesh, ``--buildings-mesh``, by default ``buildings_model.ply`` beside the table).
+``--colour-transfer REF`` maps each keyframe's colours onto a reference's before the network
+sees it (thesis §4.3.2: Reinhard's transfer, :mod:`geoseg.colour_transfer`), for a camera whose
+colours or exposure differ from the training images': ``card`` takes the training images'
+statistics from the network's model card, a path those of an image or the typical image of a
+folder (or a JSON file of statistics); each keyframe is mapped from its own statistics, as
+``geoseg infer --colour-transfer image`` maps each image (``--colour-means-only`` as there).
 ``--gps-bias estimate`` (with ``--buildings`` and ``--gps``) estimates the GPS's slowly varying
 bias from the facades and removes it from the fixes (:mod:`slam_bridge.bridge.gps_bias`).
 
@@ -68,6 +74,18 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="dirichlet association: the Dirichlet filter (dirichlet.json, a `geoseg train "
         "dirichlet` run folder or shipped name, e.g. dirichlet_real; default: the one shipped "
         "for --network)",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--colour-transfer", metavar="REF",
+        help="map each keyframe's colours onto a reference's before the network (Reinhard et "
+        "al. 2001, thesis 4.3.2; each keyframe from its own statistics, as geoseg infer's "
+        "'image' mode): 'card' (the network's training images, from its model card), an image, "
+        "a folder of images or a JSON file of colour statistics; default: from config (off)",
+    )  # fmt: skip
+    run_p.add_argument(
+        "--colour-means-only", action="store_true",
+        help="with --colour-transfer: shift the colour means only (keep the keyframes' "
+        "contrast and saturation) instead of matching means and standard deviations",
     )  # fmt: skip
     run_p.add_argument(
         "--buildings-mesh", type=Path,
@@ -176,15 +194,18 @@ def _run(args: argparse.Namespace) -> int:
         overrides.append(f"bridge.association={args.association}")
     if args.buildings is None and (
         args.association or args.network or args.buildings_mesh or args.dirichlet
-    ):
+        or args.colour_transfer or args.colour_means_only
+    ):  # fmt: skip
         raise GeosegError(
-            "--association, --network, --dirichlet, --buildings-mesh: need --buildings"
+            "--association, --network, --dirichlet, --buildings-mesh, --colour-transfer, "
+            "--colour-means-only: need --buildings"
         )
     if args.gps_bias:
         if args.gps_bias == "estimate" and (args.buildings is None or args.gps is None):
             raise GeosegError("--gps-bias estimate: needs --buildings and --gps")
         overrides.append(f"gps_bias.enabled={str(args.gps_bias == 'estimate').lower()}")
     cfg = load_config(ImageSlamConfig, source, overrides=overrides)
+    cfg = _with_colour_transfer(args, cfg)
     inputs = load_inputs(
         args.frames,
         camera=args.camera,
@@ -240,6 +261,25 @@ def _run(args: argparse.Namespace) -> int:
     return EXIT_FAILED if s["status"] == "failed" else 0
 
 
+def _with_colour_transfer(args, cfg):
+    """``cfg`` with ``--colour-transfer`` / ``--colour-means-only`` in its bridge settings (set
+    here, not through ``--set``: a path may hold any character)."""
+    import dataclasses
+
+    from geoseg.errors import GeosegError
+
+    changes = {}
+    if args.colour_transfer is not None:
+        changes["colour_transfer"] = args.colour_transfer
+    if args.colour_means_only:
+        if (args.colour_transfer or cfg.bridge.colour_transfer) is None:
+            raise GeosegError("--colour-means-only: needs --colour-transfer")
+        changes["colour_means_only"] = True
+    if not changes:
+        return cfg
+    return dataclasses.replace(cfg, bridge=dataclasses.replace(cfg.bridge, **changes))
+
+
 def _bridge(args, cfg, inputs):
     """The network bridge of ``--buildings`` (its inputs read and checked before the run)."""
     from geoseg.errors import GeosegError
@@ -249,6 +289,8 @@ def _bridge(args, cfg, inputs):
     method = cfg.bridge.association
     if method == "raycast" and args.network:
         raise GeosegError("--network: the raycast association uses no network")
+    if method == "raycast" and args.colour_transfer:
+        raise GeosegError("--colour-transfer: the raycast association uses no network")
     if method != "raycast" and args.buildings_mesh:
         raise GeosegError("--buildings-mesh: only the raycast association uses a mesh")
     if method != "dirichlet" and args.dirichlet:

@@ -7,6 +7,16 @@ network) over a building model (``facades.csv``, and for ``raycast`` its mesh), 
 :class:`~slam_bridge.bridge.worker.BridgeWorker`. The network is tried once on a blank image
 before the SLAM starts, so that a network without the ``building`` class, or one whose outputs
 do not match the images, is refused up front rather than at the first keyframe.
+
+With ``colour_transfer`` (``slam run --colour-transfer REF``) the network sees each keyframe
+with the colour statistics of a reference (thesis §4.3.2, Reinhard et al. 2001:
+:mod:`geoseg.colour_transfer`): ``card``, the training set's, recorded in the network's model
+card, or those of a reference image or folder of images (:func:`colour_transfer_of`). Each
+keyframe is mapped from its own statistics, as ``geoseg infer --colour-transfer image`` maps
+each image: a stateless map gives the same input wherever the network runs (inline, a thread,
+the child process) and whichever keyframes a busy worker drops, and it follows the light as it
+changes along a drive; statistics pooled over the keyframes seen so far would be steadier
+against a frame that one facade fills, but depend on which keyframes came first.
 """
 
 from __future__ import annotations
@@ -32,9 +42,11 @@ __all__ = [
     "ASSOCIATIONS",
     "BridgeConfig",
     "check_covers_window",
+    "colour_transfer_of",
     "load_dirichlet_filter",
     "load_network",
     "resolve_weights",
+    "network_file",
     "network_outputs",
     "check_network",
     "build_bridge",
@@ -47,6 +59,8 @@ SHIPPED_WEIGHTS = {"bayes": "normals", "dirichlet": "naive"}
 #: ``network: real`` (photographs): the association's network for real photographs
 #: (``street`` when installed, else ``normals_real``: :func:`geoseg.pretrained.real_photo_network`)
 REAL_PHOTO = "real"
+#: ``colour_transfer: card``: the training set's colour statistics, from the network's model card
+CARD_REFERENCE = "card"
 #: the shipped Dirichlet filter calibrated on each shipped naive CNN
 SHIPPED_FILTERS = {"naive": "dirichlet", "naive_real": "dirichlet_real"}
 
@@ -88,6 +102,14 @@ class BridgeConfig:
             ``normals_real``; dirichlet: ``naive_real``), as ``configs/slam_images.yaml`` sets;
             None: :data:`SHIPPED_WEIGHTS` (the synthetic city's, as the chapter-4 experiment
             on rendered drives uses).
+        colour_transfer: map each keyframe onto a reference's colour statistics before the
+            network (module docstring): ``card`` (the network's training set, from its model
+            card), an image, a folder of images (directly or in ``rgb/``) or a JSON file of
+            statistics (:func:`geoseg.colour_transfer.reference_statistics`); None: the
+            keyframes as they are. Unused by ``raycast`` (no network).
+        colour_means_only: with ``colour_transfer``, shift the colour means only (keep the
+            keyframe's contrast and saturation) instead of matching means and standard
+            deviations (``geoseg infer --colour-means-only``).
     """
 
     association: str = "bayes"
@@ -103,8 +125,17 @@ class BridgeConfig:
     recent_keyframes: int | None = 150
     lag_keyframes: int | None = None
     network: str | None = None
+    colour_transfer: str | None = None
+    colour_means_only: bool = False
 
     def __post_init__(self) -> None:
+        if self.colour_transfer is not None:
+            if not isinstance(self.colour_transfer, (str, Path)) or not str(self.colour_transfer):
+                raise SlamError(
+                    "colour_transfer: expected 'card', an image, a folder of images or a JSON "
+                    f"file, got {self.colour_transfer!r}"
+                )
+            self.colour_transfer = str(self.colour_transfer)
         if self.lag_keyframes is not None and self.lag_keyframes < 1:
             raise SlamError(f"lag_keyframes: expected >= 1 or None, got {self.lag_keyframes}")
         if self.association not in ASSOCIATIONS:
@@ -150,19 +181,70 @@ def load_network(association: str, weights: str | Path | None = None, threads: i
     real photographs, or ``real``: :func:`resolve_weights`), else the association's shipped one;
     ``threads``: onnxruntime's. None for ``raycast``."""
     from geoseg.infer import Segmenter
-    from geoseg.pretrained import path_or_shipped, pretrained_file
 
     if association == "raycast":
         return None
-    weights = resolve_weights(association, weights)
-    if weights is None:
-        path = pretrained_file(SHIPPED_WEIGHTS[association], "model.onnx")
-    else:
-        path = path_or_shipped(weights)
-        path = path / "model.onnx" if path.is_dir() else path
+    path = network_file(association, weights)
     if path.suffix.lower() == ".onnx":
         return Segmenter.from_onnx(path, threads=threads)
     return Segmenter.from_file(path)
+
+
+def network_file(association: str, weights: str | Path | None = None) -> Path:
+    """The weights file :func:`load_network` loads for ``association`` (``bayes`` or
+    ``dirichlet``): ``weights`` resolved (a folder: its ``model.onnx``), else the shipped one."""
+    from geoseg.pretrained import path_or_shipped, pretrained_file
+
+    weights = resolve_weights(association, weights)
+    if weights is None:
+        return pretrained_file(SHIPPED_WEIGHTS[association], "model.onnx")
+    path = path_or_shipped(weights)
+    return path / "model.onnx" if path.is_dir() else path
+
+
+def colour_transfer_of(cfg: BridgeConfig, weights: str | Path | None = None, segmenter=None):
+    """The map of ``cfg.colour_transfer`` (module docstring), or None when off or for
+    ``raycast``.
+
+    Args:
+        cfg: the settings (``colour_transfer``, ``colour_means_only``, ``association``).
+        weights: the network's weights, as :func:`load_network` takes them (``card`` reads the
+            model card beside them).
+        segmenter: or the network as an object: ``card`` reads the card beside its ``source``.
+
+    Returns:
+        A :class:`geoseg.colour_transfer.ColourTransfer` mapping each image from its own
+        statistics (picklable: it travels to the worker's child process).
+
+    Raises:
+        SlamError: a reference that is not there or not readable, or ``card`` for weights
+            without a model card (or a network object that names no weights file).
+    """
+    from geoseg.colour_transfer import ColourTransfer, reference_statistics
+    from geoseg.errors import GeosegError
+    from geoseg.infer import training_colour_statistics
+
+    ref = cfg.colour_transfer
+    if ref is None or cfg.association == "raycast":
+        return None
+    model_path = None  # card: the weights' own errors are theirs, raised here unwrapped
+    if ref == CARD_REFERENCE:
+        model_path = network_file(cfg.association, weights) if segmenter is None else None
+    try:
+        if ref != CARD_REFERENCE:
+            target = reference_statistics(ref)
+        elif model_path is not None:
+            target = training_colour_statistics(model_path)
+        elif getattr(segmenter, "source", None) is not None:
+            target = training_colour_statistics(segmenter.source)
+        else:
+            raise GeosegError(
+                "card: the network object names no weights file whose model card to read; "
+                "give a reference image or folder instead"
+            )
+    except GeosegError as exc:
+        raise SlamError(f"bridge.colour_transfer {ref!r}: {exc}") from None
+    return ColourTransfer(target, match_std=not cfg.colour_means_only)
 
 
 def load_dirichlet_filter(filter_spec=None, weights: str | Path | None = None):
@@ -214,12 +296,17 @@ def _shipped_naive(weights: str | Path | None) -> str | None:
 
 
 def network_outputs(
-    association: str, weights: str | Path | None, threads: int | None, size: tuple[int, int]
+    association: str,
+    weights: str | Path | None,
+    threads: int | None,
+    size: tuple[int, int],
+    colour_transfer=None,
 ) -> NetworkOutputs:
     """The worker's network (:func:`load_network` through
-    :func:`~slam_bridge.bridge.worker.segmenter_outputs` at ``size``); with
-    :func:`functools.partial`, the picklable recipe a child process builds it from."""
-    return segmenter_outputs(load_network(association, weights, threads), size)
+    :func:`~slam_bridge.bridge.worker.segmenter_outputs` at ``size``, its inputs mapped by
+    ``colour_transfer`` first: :func:`colour_transfer_of`); with :func:`functools.partial`, the
+    picklable recipe a child process builds it from."""
+    return segmenter_outputs(load_network(association, weights, threads), size, colour_transfer)
 
 
 def check_network(network: NetworkOutputs, image_size: tuple[int, int], needs_normals: bool):
@@ -271,7 +358,8 @@ def build_bridge(
 
     Raises:
         SlamError: a missing mesh for ``raycast``, a network the bridge cannot use
-            (:func:`check_network`).
+            (:func:`check_network`), a colour reference it cannot read
+            (:func:`colour_transfer_of`).
     """
     method = cfg.association
     if weights is None and cfg.network is not None and segmenter is None:
@@ -280,12 +368,13 @@ def build_bridge(
     network, make_network = None, None
     size = tuple(cfg.network_size)
     uses_network = method != "raycast"
+    colour = colour_transfer_of(cfg, weights, segmenter)  # a bad reference fails before the run
     if uses_network and segmenter is not None:
-        network = segmenter_outputs(segmenter, size)
+        network = segmenter_outputs(segmenter, size, colour)
     elif uses_network and cfg.worker == "process":
-        make_network = partial(network_outputs, method, weights, cfg.network_threads, size)
+        make_network = partial(network_outputs, method, weights, cfg.network_threads, size, colour)
     elif uses_network:
-        network = network_outputs(method, weights, cfg.network_threads, size)
+        network = network_outputs(method, weights, cfg.network_threads, size, colour)
     if uses_network:  # bayes uses the filter's smoothing only: the shipped one
         spec = dirichlet_filter if method == "dirichlet" else dirichlet_filter or "dirichlet"
         dirichlet_filter = load_dirichlet_filter(spec, weights)

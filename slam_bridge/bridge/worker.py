@@ -393,22 +393,33 @@ class PointRows:
         )
 
 
-def segmenter_outputs(segmenter, input_size: tuple[int, int] | None = None) -> NetworkOutputs:
+def segmenter_outputs(
+    segmenter,
+    input_size: tuple[int, int] | None = None,
+    colour_transfer: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> NetworkOutputs:
     """A :class:`geoseg.infer.Segmenter` as the worker's network.
 
     Args:
         segmenter: the network (the joint network gives normals, the naive CNN none).
         input_size: ``(W, H)`` the image is resized to first (area interpolation), the size
             the network was trained at; None: as it comes.
+        colour_transfer: ``(H, W, 3) uint8 RGB -> the same``, applied after the resizing (a
+            grey image made RGB first): e.g. a :class:`geoseg.colour_transfer.ColourTransfer`
+            onto the training set's colours; None: the image as it comes.
 
     Returns:
         ``image (H, W, 3) uint8 -> (probabilities (h, w, K), normals (h, w, 3) or None)``.
     """
     import cv2
 
+    from geoseg.infer import as_rgb
+
     def run(image: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
         if input_size is not None and (image.shape[1], image.shape[0]) != tuple(input_size):
             image = cv2.resize(image, tuple(input_size), interpolation=cv2.INTER_AREA)
+        if colour_transfer is not None:  # after resizing: a quarter of the pixels to map
+            image = colour_transfer(as_rgb(image)[0])
         out = segmenter(image)
         probs = out.probabilities[0].transpose(1, 2, 0)
         normals = None if out.normals is None else out.normals[0].transpose(1, 2, 0)

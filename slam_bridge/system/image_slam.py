@@ -31,8 +31,9 @@ is an unfinished run):
   GPS's bias when it was estimated from the building model, ``gps_bias_m``,
   ``gps_bias_facades``, ``gps_biased_probability``: :mod:`slam_bridge.bridge.gps_bias`, what
   an image base gave when one was (``base_fixes``, ``base_fused_keyframes``:
-  :mod:`slam_bridge.system.base_fixes`), and the errors against the ground truth when there
-  is one: evaluation only, never used by the run).
+  :mod:`slam_bridge.system.base_fixes`), the colour reference the network's keyframes were
+  mapped onto when one was (``colour_transfer``: :mod:`slam_bridge.bridge.builder`), and the
+  errors against the ground truth when there is one: evaluation only, never used by the run).
 """
 
 from __future__ import annotations
@@ -328,6 +329,8 @@ def run_image_slam(
             building_keyframes=sum("building" in r.constraints for r in result.records),
             associated_points=0 if a is None else int(a.associated.sum()),
         )
+        if cfg.bridge.colour_transfer is not None and cfg.bridge.association != "raycast":
+            summary["colour_transfer"] = cfg.bridge.colour_transfer  # the network's reference
         if summary["associated_points"] == 0:  # documented fallback: no building constraint
             logger.warning(
                 "no map point was associated with a facade: is the building model in the "

@@ -210,6 +210,7 @@ CASES: list[Case] = [
     Case("slam", "network-not-a-segmenter", lambda e: [*slam_buildings(e), "--network", str(e.reloc_onnx)], "reloc.onnx"),
     Case("slam", "network-corrupt", lambda e: [*slam_buildings(e), "--network", str(e.inputs / "corrupt.onnx")], "corrupt.onnx"),
     Case("slam", "raycast-without-mesh", lambda e: [*slam_buildings(e), "--association", "raycast"], "buildings_model.ply"),
+    Case("slam", "colour-reference-missing", lambda e: [*slam_buildings(e), "--colour-transfer", str(e.inputs / "no_such.png")], "no_such.png"),
     Case("slam", "raycast-with-network", lambda e: [*slam_buildings(e), "--association", "raycast", "--buildings-mesh", str(e.inputs / "notes.txt"), "--network", str(e.onnx)], "--network"),
     Case("slam", "association-without-buildings", lambda e: ["slam", "run", str(rendered(e)), "--out", str(e.out("slam")), "--association", "bayes"], "--buildings"),
     Case("slam", "association-unknown", lambda e: [*slam_buildings(e), "--association", "magic"]),

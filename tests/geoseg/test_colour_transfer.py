@@ -121,3 +121,41 @@ def test_mean_only_transfer_keeps_the_image_contrast() -> None:
     mapped = transfer_lab(rgb_to_lab(source), s_stats, t_stats, match_std=False).reshape(-1, 3)
     assert np.allclose(mapped.mean(0), t_stats.mean, atol=1e-12)
     assert np.allclose(mapped.std(0), s_stats.std, atol=1e-12)
+
+
+def test_reference_statistics_of_an_image_a_folder_and_json(tmp_path) -> None:
+    import cv2
+
+    from geoseg.colour_transfer import reference_statistics, typical_statistics
+
+    rng = np.random.default_rng(2)
+    images = [np.round(rng.uniform(0.1, 0.9, (20, 30, 3)) * 255).astype(np.uint8) for _ in range(3)]
+    (tmp_path / "drive" / "rgb").mkdir(parents=True)
+    for i, image in enumerate(images):
+        cv2.imwrite(str(tmp_path / "drive" / "rgb" / f"{i}.png"), image[..., ::-1])  # BGR file
+    one = reference_statistics(tmp_path / "drive" / "rgb" / "1.png")
+    assert np.allclose(one.mean, colour_statistics(images[1]).mean)
+    assert np.allclose(
+        reference_statistics(tmp_path / "drive").mean, typical_statistics(images).mean
+    )
+    stats = colour_statistics(images[0])
+    (tmp_path / "stats.json").write_text(json.dumps(stats.as_dict()))
+    (tmp_path / "model_card.json").write_text(json.dumps({CARD_KEY: stats.as_dict()}))
+    assert reference_statistics(tmp_path / "stats.json") == stats
+    assert reference_statistics(tmp_path / "model_card.json") == stats
+
+
+def test_reference_statistics_refusals(tmp_path) -> None:
+    from geoseg.colour_transfer import reference_statistics
+
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "broken.png").write_bytes(b"not a png")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    for path, message in (
+        ("missing", "no such colour reference"),
+        ("empty", "without images"),
+        ("broken.png", "not a readable image"),
+        ("list.json", "expected a JSON object"),
+    ):
+        with pytest.raises(GeosegError, match=message):
+            reference_statistics(tmp_path / path)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import operator
 from types import SimpleNamespace
 
@@ -16,6 +18,7 @@ from slam_bridge.bridge.builder import (
     BridgeConfig,
     build_bridge,
     check_network,
+    colour_transfer_of,
     load_dirichlet_filter,
     load_network,
     resolve_weights,
@@ -205,3 +208,128 @@ def test_online_associations_must_cover_the_fusion_window():
         ImageSlamConfig(slam=SlamConfig(window=window), bridge=BridgeConfig(recent_keyframes=29))
     with pytest.raises(SlamError, match="recent_keyframes"):
         BridgeConfig(recent_keyframes=0)
+
+
+class RecordingSegmenter(FakeSegmenter):
+    """A :class:`FakeSegmenter` that keeps the images it is given."""
+
+    def __init__(self, **kwargs):
+        super().__init__(**kwargs)
+        self.images = []
+
+    def __call__(self, image):
+        self.images.append(image)
+        return super().__call__(image)
+
+
+def _warm_image(seed: int, shape=(480, 640)) -> np.ndarray:
+    """A textured image with a warm, dark cast (red up, blue down)."""
+    rng = np.random.default_rng(seed)
+    grey = rng.uniform(0.1, 0.9, shape)[..., None] * np.array([1.0, 0.8, 0.5])
+    return np.round(np.clip(grey + rng.normal(0, 0.05, (*shape, 3)), 0, 1) * 255).astype(np.uint8)
+
+
+def test_colour_transfer_gives_the_network_the_references_colours(facades, tmp_path):
+    """The network sees each keyframe with the statistics of the reference image."""
+    import cv2
+
+    from geoseg.colour_transfer import colour_statistics
+
+    rng = np.random.default_rng(5)
+    reference = np.round(rng.uniform(0.3, 0.7, (60, 80, 3)) * [[[0.6, 0.8, 1.0]]] * 255)
+    cv2.imwrite(str(tmp_path / "ref.png"), reference.astype(np.uint8)[..., ::-1])  # BGR file
+    target = colour_statistics(reference.astype(np.uint8))
+    fake = RecordingSegmenter()
+    cfg = BridgeConfig(colour_transfer=str(tmp_path / "ref.png"), asynchronous=False)
+    worker = build_bridge(cfg, facades, image_size=(640, 480), segmenter=fake)
+    try:
+        worker.network(_warm_image(0))
+    finally:
+        worker.close()
+    seen = colour_statistics(fake.images[-1])
+    assert fake.images[-1].shape == (240, 320, 3)  # resized, then mapped
+    np.testing.assert_allclose(seen.mean, target.mean, atol=0.005)
+    np.testing.assert_allclose(seen.std, target.std, rtol=0.1, atol=0.002)
+    # without the setting, the network sees the keyframe's own colours, far from the reference's
+    plain = RecordingSegmenter()
+    build_bridge(
+        BridgeConfig(asynchronous=False), facades, image_size=(640, 480), segmenter=plain
+    ).network(_warm_image(0))
+    off = np.abs(np.subtract(colour_statistics(plain.images[-1]).mean, target.mean))
+    assert off.max() > 0.03
+
+
+def test_colour_means_only_keeps_the_keyframes_contrast(facades):
+    from geoseg.colour_transfer import colour_statistics, statistics_from_card
+
+    cfg = BridgeConfig(colour_transfer="card", colour_means_only=True, asynchronous=False)
+    transfer = colour_transfer_of(cfg)
+    card = json.loads(pretrained_file("normals", "model_card.json").read_text())
+    assert transfer.target == statistics_from_card(card) and not transfer.match_std
+    image = _warm_image(1, (60, 80))
+    own, mapped = colour_statistics(image), colour_statistics(transfer(image))
+    np.testing.assert_allclose(mapped.mean, transfer.target.mean, atol=0.02)
+    np.testing.assert_allclose(mapped.std[0], own.std[0], rtol=0.1)  # contrast kept
+
+
+def test_colour_card_reads_the_card_of_the_networks_weights(tmp_path):
+    from geoseg.colour_transfer import CARD_KEY, ColourStatistics
+
+    folder = tmp_path / "net"
+    folder.mkdir()
+    stats = ColourStatistics(mean=(-1.0, 0.01, 0.0), std=(0.4, 0.05, 0.01))
+    (folder / "model_card.json").write_text(json.dumps({CARD_KEY: stats.as_dict()}))
+    cfg = BridgeConfig(colour_transfer="card")
+    assert colour_transfer_of(cfg, weights=folder).target == stats
+    assert colour_transfer_of(cfg, segmenter=SimpleNamespace(source=folder / "x.onnx")).target == (
+        stats
+    )
+    assert colour_transfer_of(BridgeConfig(association="raycast", colour_transfer="card")) is None
+    assert colour_transfer_of(BridgeConfig()) is None
+
+
+@pytest.mark.parametrize(
+    ("reference", "message"),
+    [
+        ("missing.png", "no such colour reference"),
+        ("empty_dir", "without images"),
+        ("notes.json", "expected"),
+        ("card", "names no weights file"),
+    ],
+)
+def test_a_bad_colour_reference_is_refused_before_the_run(facades, tmp_path, reference, message):
+    (tmp_path / "empty_dir").mkdir()
+    (tmp_path / "notes.json").write_text('{"hello": 1}')
+    ref = reference if reference == "card" else str(tmp_path / reference)
+    fake = RecordingSegmenter()
+    with pytest.raises(SlamError, match=message) as err:
+        build_bridge(
+            BridgeConfig(colour_transfer=ref, asynchronous=False), facades, image_size=(640, 480),
+            segmenter=fake,
+        )  # fmt: skip
+    assert "bridge.colour_transfer" in str(err.value) and not fake.images  # nothing ran
+
+
+def test_the_child_process_network_maps_its_inputs_as_the_inline_one(facades):
+    image = _warm_image(2)
+    call = operator.methodcaller("__call__", image)
+    cfg = BridgeConfig(colour_transfer="card")
+    inline = build_bridge(
+        dataclasses.replace(cfg, asynchronous=False), facades, image_size=(640, 480)
+    )
+    child = build_bridge(cfg, facades, image_size=(640, 480))
+    plain = build_bridge(BridgeConfig(asynchronous=False), facades, image_size=(640, 480))
+    try:
+        (p_child, _), (p_inline, _), (p_plain, _) = (
+            child.call_network(call), inline.call_network(call), plain.call_network(call),
+        )  # fmt: skip
+        np.testing.assert_allclose(p_child, p_inline, atol=1e-5)
+        assert np.abs(p_plain - p_inline).max() > 0.05  # the transfer changed what it saw
+    finally:
+        for worker in (child, inline, plain):
+            worker.close()
+
+
+def test_config_refuses_an_empty_colour_reference():
+    with pytest.raises(SlamError, match="colour_transfer"):
+        BridgeConfig(colour_transfer="")
