@@ -15,11 +15,15 @@ drive is a run that never restarted), ``base_constrained_share`` (keyframes fuse
 fix, no-GPS run), ``gps_plus_base_translation_error_m`` (target <= ``gps_only``'s),
 ``gps_only_translation_error_m``, ``base_fix_error_m`` (the fixes themselves against the
 truth); each the mean over the drives with ``_std`` beside it, every drive's under
-``per_drive``. The base traverses the same lane as the drive (the renderer drives one route per
-seed): its images are never more than half its spacing from a query, with no lateral offset.
+``per_drive``; ``base_structure_fix_error_m`` the fixes placed on the base's points alone, and
+the counts summed over the drives: ``base_frames_localised`` (retrieval), ``base_frames_tracked``
+(placed on the points without it), ``base_fixes``, ``base_fixes_from_structure``. The base
+traverses the same lane as the drive (the renderer drives one route per seed): its images are
+never more than half its spacing from a query, with no lateral offset.
 
-Usage: ``python bench/reloc_slam.py [--drives 31,32] [--length-m 200] [--data DIR]``; writes
-``bench/results/reloc_slam.json``.
+Usage: ``python bench/reloc_slam.py [--tuning] [--drives 31,32] [--length-m 200] [--data DIR]``;
+writes ``bench/results/reloc_slam.json`` (``--tuning``: ``reloc_slam_tuning.json``, the tuning
+drives).
 """
 
 from __future__ import annotations
@@ -36,14 +40,18 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "bench"))
 from provenance import provenance  # noqa: E402
-from splits import RELOC_SLAM_REPORT_SEEDS  # noqa: E402
+from splits import RELOC_SLAM_REPORT_SEEDS, RELOC_SLAM_TUNING_SEEDS  # noqa: E402
 
 BASE_FPS = 2.5  # a base image every ~3.5 m at city speed
 LENGTH_M = 200.0
 SPLIT = (
     f"report: light-city drives with world and route seeds {RELOC_SLAM_REPORT_SEEDS} "
-    "(bench/splits.py); no setting was chosen on them (the base fixes' defaults were set "
-    "before any run)"
+    "(bench/splits.py); no setting was chosen on them"
+)
+TUNING_SPLIT = (
+    f"tuning: light-city drives with world and route seeds {RELOC_SLAM_TUNING_SEEDS} "
+    "(bench/splits.py), on which the points' inlier gate and the base fixes' weights, tracking "
+    "and refit distance were chosen"
 )
 RUNS = ("noGPS_base", "gps_only", "gps_plus_base")
 
@@ -108,23 +116,31 @@ def run_one(drive: Path, gps: Path | None, base: Path | None, fixes=None) -> tup
         t_true, _, T_true = inputs.truth
         ok = np.isfinite(fixes.xy[:, 0])
         idx = np.searchsorted(t_true, fixes.timestamps[ok])
-        out["base_fix_error_m"] = float(
-            np.linalg.norm(fixes.xy[ok] - T_true[idx, :2], axis=1).mean()
-        )
+        errors = np.linalg.norm(fixes.xy[ok] - T_true[idx, :2], axis=1)
+        out["base_fix_error_m"] = float(errors.mean())
+        on_points = np.array([m == "structure" for m in fixes.methods])[ok]
+        if on_points.any():
+            out["base_structure_fix_error_m"] = float(errors[on_points].mean())
         out.update(fixes.summary())
     return out, fixes
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--drives", default=",".join(map(str, RELOC_SLAM_REPORT_SEEDS)))
+    parser.add_argument("--drives", default=None, help="seeds (default: the report drives)")
+    parser.add_argument(
+        "--tuning", action="store_true",
+        help="the tuning drives (bench/splits.py), written to reloc_slam_tuning.json",
+    )  # fmt: skip
     parser.add_argument("--length-m", type=float, default=LENGTH_M)
     parser.add_argument("--data", type=Path, default=ROOT / "runs" / "bench" / "reloc_slam")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
-    seeds = [int(s) for s in args.drives.split(",") if s.strip()]
+    default = RELOC_SLAM_TUNING_SEEDS if args.tuning else RELOC_SLAM_REPORT_SEEDS
+    seeds = [int(s) for s in (args.drives or ",".join(map(str, default))).split(",") if s.strip()]
+    split = TUNING_SPLIT if args.tuning else SPLIT
     meta = provenance(
-        SPLIT if seeds == list(RELOC_SLAM_REPORT_SEEDS) else f"report (a subset): seeds {seeds}",
+        split if seeds == list(default) else f"a subset of {split.split(':')[0]}: seeds {seeds}",
         command=" ".join(["python", "bench/reloc_slam.py", *(argv or sys.argv[1:])]),
     )
     per_drive: dict[str, dict] = {}
@@ -146,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         "noGPS_base_rotation_error_deg": "noGPS_base_rotation_error_deg",
         "base_constrained_share": "noGPS_base_base_constrained_share",
         "base_fix_error_m": "noGPS_base_base_fix_error_m",
+        "base_structure_fix_error_m": "noGPS_base_base_structure_fix_error_m",
         "gps_plus_base_translation_error_m": "gps_plus_base_translation_error_m",
         "gps_only_translation_error_m": "gps_only_translation_error_m",
         "gps_error_m": "gps_only_gps_error_m",
@@ -158,9 +175,16 @@ def main(argv: list[str] | None = None) -> int:
             results[f"{key}_std"] = float(np.std(values, ddof=1)) if len(values) > 1 else 0.0
     for key in ("tracking_failures", "segments"):
         results[f"noGPS_base_{key}"] = int(sum(d[f"noGPS_base_{key}"] for d in per_drive.values()))
+    for key in ("frames_localised", "frames_tracked", "fixes", "fixes_from_structure"):
+        results[f"base_{key}"] = int(sum(d[f"noGPS_base_base_{key}"] for d in per_drive.values()))
     results["drives"] = len(per_drive)
     results["per_drive"] = per_drive
-    path = ROOT / "bench" / "results" / "reloc_slam.json"
+    path = (
+        ROOT
+        / "bench"
+        / "results"
+        / ("reloc_slam_tuning.json" if args.tuning else "reloc_slam.json")
+    )
     path.write_text(json.dumps(results, indent=1) + "\n")
     print(json.dumps({k: v for k, v in results.items() if k != "per_drive"}, indent=1))
     print(f"wrote {path}")
