@@ -77,6 +77,8 @@ OCCLUDED_METHODS = ["raycast", "bayes", "raycast_wide"]
 #: the wide gate: the GIS model's radius_m (configs/buildings_ch4.yaml's bridge), one that covers
 #: a GIS model's errors as the thesis's baseline had to
 WIDE_GATE_M = 3.0
+#: a keyframe this far off its true position has drifted (first_keyframe_over_<m>m_*)
+DRIFT_M = 0.5
 CITIES = {"occluded": "facade_occluded", "chapter4": "dense_occlusion"}
 
 
@@ -173,7 +175,7 @@ def run_occluded(args: argparse.Namespace, command: str) -> int:
             folder = args.out / f"seed{seed}" / city
             world = None
             figures: dict = {}
-            for name, run_cfg, sub in (("", cfg, "runs"), ("_wide", wide, "wide")):
+            for name, run_cfg, sub in (("", cfg, "."), ("_wide", wide, "wide")):
                 out = run_experiment(run_cfg, folder / sub, data_dir=folder / "drive",
                                      force=args.force, overwrite=True)  # fmt: skip
                 summary = json.loads((out / "buildings_ch4.json").read_text())
@@ -189,6 +191,12 @@ def run_occluded(args: argparse.Namespace, command: str) -> int:
                         figures[f"{key}_{label}_exact"] = run.get(key)
                     with np.load(out / "runs" / f"{method}_exact.npz") as arrays:
                         figures[f"false_{label}"] = false_associations(dict(arrays), world)
+                        error = arrays["error_m"]  # (C,) per keyframe: when the drift began
+                    over = np.flatnonzero(error > DRIFT_M)
+                    figures[f"first_keyframe_over_{DRIFT_M:g}m_{label}_exact"] = (
+                        int(over[0]) if over.size else None
+                    )
+                    figures[f"max_error_m_{label}_exact"] = float(np.nanmax(error))
             per_drive.setdefault(str(seed), {})[city] = figures
             for kind, g in occluder_gaps(build_world(cfg.drive.world_config())).items():
                 gaps[city].setdefault(kind, []).extend(g.tolist())
@@ -200,7 +208,8 @@ def run_occluded(args: argparse.Namespace, command: str) -> int:
     for city in CITIES:
         drives = [per_drive[str(s)][city] for s in args.drives]
         for method in OCCLUDED_METHODS:
-            for key in ("translation_error_m", "tracking_failures"):
+            for key in ("translation_error_m", "tracking_failures", "association_precision",
+                        "max_error_m"):  # fmt: skip
                 name = f"{key}_{method}_exact"
                 values = np.array([d[name] for d in drives], dtype=float)
                 results[f"{city}_{name}"] = float(values.mean())
@@ -208,6 +217,8 @@ def run_occluded(args: argparse.Namespace, command: str) -> int:
                     float(values.std(ddof=1)) if len(values) > 1 else 0.0
                 )
                 results[f"{city}_{name}_per_drive"] = values.tolist()
+            drift = f"first_keyframe_over_{DRIFT_M:g}m_{method}_exact"
+            results[f"{city}_{drift}_per_drive"] = [d[drift] for d in drives]
             results[f"{city}_false_{method}"] = _sum_false([d[f"false_{method}"] for d in drives])
         results[f"{city}_occluder_gap_median_m"] = {
             kind: float(np.median(g)) for kind, g in gaps[city].items() if g
