@@ -26,19 +26,23 @@ Usage: ``python bench/buildings_ch4.py [--full] [--data DIR] [--out DIR] [--forc
 (``--data``: where the drive is rendered and reused; ``--out``: the experiment's folder with
 its runs and pictures, default ``runs/bench/buildings_ch4``).
 
-``--occluded [--drives 41,42,43] [--length-m 250]``: the geometric baseline behind occluders
+``--occluded [--drives 41,42] [--length-m 250]``: the geometric baseline behind occluders
 (:mod:`slam_bridge.experiments.occluded_ch4`). Each drive (``bench/splits.py``'s
-``OCCLUDED_REPORT_SEEDS``) in two cities of the same seed, the exact model, methods
-``raycast`` and ``bayes``, the config's settings: ``occluded`` (preset ``facade_occluded`` with
-``FACADE_OCCLUDED_LAYOUT``: trees, shelters, panels and parked vehicles within 1-2 m of the
-facades, as in the thesis's figure 4.13) and ``chapter4`` (``dense_occlusion``, the city of the
-experiment above). Writes ``bench/results/buildings_ch4_occluded.json``, keys
-``<city>_translation_error_m_<m>_exact`` and ``<city>_tracking_failures_<m>_exact`` (mean over
-the drives; ``_std`` the sample spread, ``_per_drive`` the values), ``<city>_false_<m>`` (the
-wrong associations summed over the drives, by class and by true distance to the nearest facade,
-and the share of non-building points within 1-3 m of one: ``occluded_ch4.false_associations``)
-and ``<city>_occluder_gap_median_m`` (trees, shelters, panels, parked vehicles: plan distance to
-the nearest facade, median over the cities).
+``OCCLUDED_REPORT_SEEDS``) in two cities of the same seed, the exact model, the config's
+settings: ``occluded`` (preset ``facade_occluded`` with ``FACADE_OCCLUDED_LAYOUT``: trees,
+shelters, panels and parked vehicles within 1-2 m of the facades, as in the thesis's figure
+4.13) and ``chapter4`` (``dense_occlusion``, the city of the experiment above). Runs
+(``<m>``): ``raycast``, ``bayes`` and ``raycast_wide`` (the baseline with the GIS model's 3 m
+gate instead of the exact model's 1.5 m). Writes ``bench/results/buildings_ch4_occluded.json``
+(a run on other drives: beside its runs), keys ``<city>_<key>_<m>_exact`` for ``key``
+``translation_error_m``, ``tracking_failures``, ``association_precision`` and ``max_error_m``
+(mean over the drives; ``_std`` the sample spread, ``_per_drive`` the values),
+``<city>_first_keyframe_over_0.5m_<m>_exact_per_drive`` (where each run drifted past 0.5 m),
+``<city>_false_<m>`` (the wrong associations summed over the drives, by class and by true
+distance to the nearest facade, and where the occluders' points stand:
+``occluded_ch4.false_associations``) and ``<city>_occluder_gap_median_m`` (trees, shelters,
+panels, parked vehicles: plan distance to the nearest facade, median over the cities); every
+drive's figures under ``per_drive``.
 """
 
 from __future__ import annotations

@@ -375,7 +375,7 @@ HEADLINE: tuple[Figure, ...] = (
             "occluded_translation_error_m_bayes_exact",
             "chapter4_translation_error_m_raycast_exact",
         ),
-        "occluders within 1-2 m of the facades (fig. 4.13), exact model, three 250 m report "
+        "occluders within 1-2 m of the facades (fig. 4.13), exact model, five 250 m report "
         "drives: baseline / network (mean); the baseline in the chapter-4 city, same seeds",
         "baseline fails, network holds",
         "baseline drifts, loses tracking after ~50 keyframes",
@@ -492,7 +492,7 @@ ABOUT: dict[str, str] = {
     "as users run it (asynchronous worker): mean, spread and every drive's figures.",
     "buildings_ch4_occluded": "The chapter-4 experiment's exact model behind occluders "
     "(`bench/buildings_ch4.py --occluded`, its own file: `buildings_ch4.json` is a 1.2 km run "
-    "assembled in passes): three 250 m report drives, each in a `facade_occluded` city (1 m "
+    "assembled in passes): five 250 m report drives, each in a `facade_occluded` city (1 m "
     "sidewalks, facades on their edge: trees, shelters and parked vehicles within 1-2 m of the "
     "facades, as in the thesis's figure 4.13) and in the chapter-4 city of the same seed; the "
     "ray-cast baseline (the exact model's 1.5 m gate and the GIS model's 3 m) against the "

@@ -125,10 +125,10 @@ PRESETS: dict[str, dict[str, float]] = {
 
 #: The street geometry of the ``facade_occluded`` preset's city (:class:`WorldConfig` fields;
 #: ``buildings`` those of :class:`BuildingConfig`): a 1 m sidewalk and facades on its back edge
-#: (no setback), so the kerb trees' trunks stand ~0.9 m and the shelters' back walls ~0.3 m in
-#: front of a facade, and the parked vehicles' far sides ~1.7 m (3 m sidewalks and setbacks of
-#: up to 1.5 m put them 2.3-3.8, 0.7-2.2 and 4-5.5 m away). The chapter-4 bench's ``--occluded``
-#: variant builds its cities with it.
+#: (no setback). The kerb trees' trunks then stand ~1.0 m in front of a facade, the panels
+#: ~0.9 m, the shelters' centres ~1.3 m and the parked vehicles' near sides ~1.6 m (medians;
+#: with the defaults, 3 m sidewalks and setbacks of up to 1.5 m: 3.2, 1.9-2.9, 1.9-2.0 and
+#: 4.5 m). The chapter-4 bench's ``--occluded`` variant builds its cities with it.
 FACADE_OCCLUDED_LAYOUT: dict = {"sidewalk_width": 1.0, "buildings": {"setback_max": 0.0}}
 
 
