@@ -377,7 +377,7 @@ HEADLINE: tuple[Figure, ...] = (
         ),
         "occluders within 1-2 m of the facades (fig. 4.13), exact model, five 250 m report "
         "drives: baseline / network (mean); the baseline in the chapter-4 city, same seeds",
-        "baseline fails, network holds",
+        "-",
         "baseline drifts, loses tracking after ~50 keyframes",
         unit=" m",
     ),
