@@ -242,7 +242,7 @@ def _sum_false(drives: list[dict]) -> dict:
         values = [d[key] for d in drives]
         if isinstance(value, dict):
             out[key] = {k: sum(v[k] for v in values) for k in value}
-        elif key.startswith(("occluder_within", "occluder_distance", "false_share")):
+        elif "_within_" in key or key.endswith(("_median_m", "_share")):  # a drive's share
             kept = [v for v in values if v is not None]
             out[key] = sum(kept) / len(kept) if kept else None
         else:

@@ -147,3 +147,18 @@ def test_bench_occluded_flag_parses():
     for bad in (["--occluded", "--full"], ["--occluded", "--drives", "a,b"]):
         with pytest.raises(SystemExit):
             bench.parse_args(bad)
+
+
+def test_bench_sums_the_drives_counts_and_averages_their_shares():
+    drives = [
+        {"false": 3, "false_by_distance": {"0-0.5": 1}, "vegetation_within_1.5m": 0.2,
+         "vegetation_distance_median_m": 2.0, "object_within_1m": None, "false_share": 0.5},
+        {"false": 5, "false_by_distance": {"0-0.5": 4}, "vegetation_within_1.5m": 0.4,
+         "vegetation_distance_median_m": 4.0, "object_within_1m": 0.1, "false_share": 0.25},
+    ]  # fmt: skip
+    total = _bench()._sum_false(drives)
+    assert total["false"] == 8 and total["false_by_distance"] == {"0-0.5": 5}
+    assert total["vegetation_within_1.5m"] == pytest.approx(0.3)
+    assert total["vegetation_distance_median_m"] == pytest.approx(3.0)
+    assert total["object_within_1m"] == pytest.approx(0.1)  # the drives that have one
+    assert total["false_share"] == pytest.approx(0.375)
