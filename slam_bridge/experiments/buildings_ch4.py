@@ -81,6 +81,8 @@ class DriveConfig:
         length_m: distance driven.
         fps: frame rate.
         image_size: ``(W, H)`` of the rendered images.
+        world: the city's street geometry, fields of :class:`~geoseg.synth.world.WorldConfig`
+            (:func:`~geoseg.synth.world_config.with_layout`; empty: the defaults).
     """
 
     preset: str = "dense_occlusion"
@@ -92,12 +94,15 @@ class DriveConfig:
     length_m: float = 1200.0
     fps: float = 10.0
     image_size: tuple[int, int] = (640, 480)
+    world: dict = field(default_factory=dict)
 
     def world_config(self):
         from geoseg.synth.world import WorldConfig
+        from geoseg.synth.world_config import with_layout
 
         bx, by = self.blocks
-        return WorldConfig(seed=self.world_seed, preset=self.preset, blocks_x=bx, blocks_y=by)
+        cfg = WorldConfig(seed=self.world_seed, preset=self.preset, blocks_x=bx, blocks_y=by)
+        return with_layout(cfg, self.world)
 
 
 def _default_slam() -> ImageSlamConfig:
@@ -354,7 +359,8 @@ def _signature(cfg: BuildingsConfig, method: str, model: str, asynchronous: bool
     from geoseg.config import to_dict
 
     parts = {
-        "method": method, "model": model, "drive": to_dict(cfg.drive),
+        "method": method, "model": model,
+        "drive": {k: v for k, v in to_dict(cfg.drive).items() if v or k != "world"},
         "slam": {  # its own `bridge` is not this experiment's; no bridge, no GPS bias estimate
             k: v
             for k, v in to_dict(cfg.slam_for(model)).items()
@@ -408,6 +414,7 @@ def run_one(
         map points, their association and true facade).
     """
     from slam_bridge.experiments.facade_truth import FacadeTruth
+    from slam_bridge.experiments.occluded_ch4 import point_classes
     from slam_bridge.slam.loop import KnownStartPoses
     from slam_bridge.system.image_slam import evaluate_run, load_inputs, run_on_images
 
@@ -455,6 +462,7 @@ def run_one(
     rows = evaluation.model_rows(assets.facades[model], m.num_points)
     facade = np.full(m.num_points, -1, np.int64)
     right = np.zeros(m.num_points, dtype=bool)
+    true_class = point_classes(folder, m, inputs.frames.timestamps)  # where the errors come from
     if worker is not None and worker.constraints.association is not None:
         a = worker.constraints.association.facade
         facade[: a.size] = a[: m.num_points]
@@ -468,6 +476,7 @@ def run_one(
         timestamps=m.timestamps, t_wc=m.t_wc, R_wc=m.R_wc, K=m.K, in_world=result.in_world,
         error_m=e_h, points=np.where(m.triangulated[:, None], m.X_w, np.nan), facade=facade,
         right=right, true_facade=rows, true_points=evaluation.true_positions(m.num_points),
+        true_class=true_class,
     )  # fmt: skip
     if record:
         arrays["recorded"] = worker.constraints
