@@ -17,6 +17,12 @@ mesh, ``--buildings-mesh``, by default ``buildings_model.ply`` beside the table)
 ``--gps-bias estimate`` (with ``--buildings`` and ``--gps``) estimates the GPS's slowly varying
 bias from the facades and removes it from the fixes (:mod:`slam_bridge.bridge.gps_bias`).
 
+``geoseg slam refine RUN`` adjusts a finished run's map (its ``map.npz``) once more, all
+keyframes together, constrained to the building model, the DEM, the GPS and the odometry: the
+thesis's pseudo ground truth for a drive without truth (§3.7;
+:func:`slam_bridge.system.refine.refine_run`, docs/refine.md). ``geoseg slam-eval run --run RUN
+--reference RUN_refined`` then measures a run against it.
+
 ``FRAMES_DIR`` holds the images (PNG/JPEG, directly or in ``rgb/``, sorted by name) and a
 ``camera.json`` (``K``, ``image_size``; optionally ``fps``, ``camera_height_m``,
 ``gps_antenna_c``); timestamps come from ``timestamps.csv``, ``poses.csv`` or ``fps``. The run
