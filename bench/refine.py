@@ -1,12 +1,14 @@
 """How good a pseudo ground truth the global constrained bundle adjustment is (thesis §3.7).
 
 For each drive (a 200 m summer car drive of a light city, 640x480 at 10 fps, rendered by
-``bench/slam_images.py``'s :func:`render_drive`, with its frame-rate GPS of sigma 0.75 m per
-axis, :func:`write_gps_logs`): ``geoseg slam run`` with the GPS, the wheel odometry, the road
+``bench/slam_images.py``'s :func:`render_drive`, with its two frame-rate GPS logs,
+:func:`write_gps_logs`: sigma 0.75 m per axis, and the simulator's biased receiver, a locally
+constant bias of up to 3 m): ``geoseg slam run`` with a GPS log, the wheel odometry, the road
 DEM and the GIS building model the render writes (``gis/facades.csv``: the network bridge
-associates the map points with its facades), then ``geoseg slam refine`` of that run with the
-same GPS, odometry, DEM and building model (:func:`slam_bridge.system.refine.refine_run`,
-default settings), and the refined keyframes measured against the truth (``poses.csv``).
+associates the map points with its facades, and estimates the GPS's bias from them), then
+``geoseg slam refine`` of that run with the same GPS, odometry, DEM and building model
+(:func:`slam_bridge.system.refine.refine_run`, default settings), and the refined keyframes
+measured against the truth (``poses.csv``). Once per GPS log.
 
 Keys: ``pseudo_truth_error_m`` (the refined keyframes' mean horizontal error against the truth,
 mean over the drives, ``_std`` their standard deviation), ``pseudo_truth_error_3d_m``,
@@ -15,7 +17,8 @@ mean over the drives, ``_std`` their standard deviation), ``pseudo_truth_error_3
 GPS fixes' mean horizontal error, ``gps_error_m``; ``run_error_vs_pseudo_truth_m``: the run's
 mean horizontal error measured against the refined run instead of the truth (what ``geoseg
 slam-eval run --reference`` reports on a drive without truth), beside the same against the
-truth; every drive's figures under ``per_drive``.
+truth; all with the 0.75 m GPS, and the same with the biased one prefixed ``biased_gps_``;
+every drive's figures under ``per_drive``.
 
 Usage: ``python bench/refine.py [--split report|tuning] [--data DIR]``: ``report`` (default)
 runs ``REFINE_REPORT_SEEDS`` and writes ``bench/results/refine.json``; ``tuning`` runs
@@ -62,8 +65,12 @@ FIGURES = {
 }
 
 
-def run_drive(data: Path, seed: int) -> dict:
-    """Render (once), run and refine drive ``seed``; its figures."""
+#: key prefix -> (GPS log of write_gps_logs, run folder prefix)
+GPS_LOGS = {"": ("sigma0.75", "run"), "biased_gps_": ("bias", "runbias")}
+
+
+def run_drive(data: Path, seed: int, log: str, name: str) -> dict:
+    """Render (once), run and refine drive ``seed`` with GPS ``log``; its figures."""
     import slam_images as si
 
     from slam_bridge.system.reference import compare_trajectories, read_trajectory
@@ -71,9 +78,9 @@ def run_drive(data: Path, seed: int) -> dict:
 
     drive = si.render_drive(data / "drives", f"drive{seed}", "car", "light", "summer_day", seed,
                             LENGTH_M)  # fmt: skip
-    gps = si.write_gps_logs(drive, seed)["sigma0.75"]
+    gps = si.write_gps_logs(drive, seed)[log]
     gis = drive / "gis"
-    run = data / "bench" / f"run{seed}"
+    run = data / "bench" / f"{name}{seed}"
     logs = ["--gps", str(gps), "--odometry", str(gis / "odometry.csv"), "--dem",
             str(gis / "dem.csv"), "--buildings", str(gis / "facades.csv")]  # fmt: skip
     done = subprocess.run(
@@ -84,7 +91,7 @@ def run_drive(data: Path, seed: int) -> dict:
     if done.returncode not in (0, 3):  # 3: a run whose status is failed (outputs written)
         raise RuntimeError(f"slam run of drive {seed} exited {done.returncode}")
     refined = refine_run(
-        run, data / "bench" / f"refined{seed}", buildings=gis / "facades.csv",
+        run, data / "bench" / f"{name}{seed}_refined", buildings=gis / "facades.csv",
         dem=gis / "dem.csv", gps=gps, odometry=gis / "odometry.csv", truth=drive / "poses.csv",
         overwrite=True,
     )  # fmt: skip
@@ -114,12 +121,17 @@ def main(argv: list[str] | None = None) -> int:
         ),
     )
     seeds = REFINE_REPORT_SEEDS if args.split == "report" else REFINE_TUNING_SEEDS
-    per_drive = {f"seed{seed}": run_drive(args.data, seed) for seed in seeds}
+    per_drive: dict = {f"seed{seed}": {} for seed in seeds}
+    for prefix, (log, name) in GPS_LOGS.items():
+        for seed in seeds:
+            figures = run_drive(args.data, seed, log, name)
+            per_drive[f"seed{seed}"].update({f"{prefix}{k}": v for k, v in figures.items()})
     results: dict = dict(meta)
-    for key, source in FIGURES.items():
-        values = np.array([d[source] for d in per_drive.values()])
-        results[key] = float(values.mean())
-        results[f"{key}_std"] = float(values.std(ddof=1)) if values.size > 1 else 0.0
+    for prefix in GPS_LOGS:
+        for key, source in FIGURES.items():
+            values = np.array([d[f"{prefix}{source}"] for d in per_drive.values()])
+            results[f"{prefix}{key}"] = float(values.mean())
+            results[f"{prefix}{key}_std"] = float(values.std(ddof=1)) if values.size > 1 else 0.0
     results.update(
         error_definition="mean over the keyframes in the world frame of the horizontal "
         "distance to the true optical centre at the same time (3d: in 3D), no alignment",

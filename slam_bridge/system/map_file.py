@@ -32,6 +32,10 @@ key                       shape           meaning
                                           ``--buildings`` table, -1: none; weight), when it
                                           had one (else absent)
 ``association``           ``()``          its method (``bayes``, ``dirichlet``, ``raycast``)
+``gps_bias_timestamps``,  ``(F,)``,       the GPS's bias as the run estimated it last (from
+``gps_bias_xy``,          ``(F, 2)``,     the building model, :mod:`slam_bridge.bridge.
+``gps_bias_var``          ``(F,)``        gps_bias`) at each fix's time and its variance per
+                                          axis (m²), when it did (else absent)
 ``camera_height_m``       ``()``          rig: camera height above the road
 ``antenna_c``             ``(3,)``        rig: GPS antenna in the camera frame
 ``frame_timestamps``      ``(F,)``        every frame's time (for per-frame poses)
@@ -68,6 +72,9 @@ class SavedMap:
         facade: ``(P,)`` the run's facade of each point (-1: none), or None (no association).
         facade_weight: ``(P,)`` its weight, or None.
         association: the association's method, or None.
+        gps_bias_timestamps: ``(F,)`` times of the run's GPS bias estimate, or None.
+        gps_bias_xy: ``(F, 2)`` the estimate (``fix = true + bias``), metres, or None.
+        gps_bias_var: ``(F,)`` its variance per axis (half the covariance's trace), m², or None.
         georef: ``(3,)`` origin latitude, longitude, altitude, or None.
     """
 
@@ -93,6 +100,9 @@ class SavedMap:
     facade: np.ndarray | None = None
     facade_weight: np.ndarray | None = None
     association: str | None = None
+    gps_bias_timestamps: np.ndarray | None = None
+    gps_bias_xy: np.ndarray | None = None
+    gps_bias_var: np.ndarray | None = None
     georef: np.ndarray | None = None
 
     @property
@@ -112,7 +122,7 @@ class SavedMap:
         return ids, self.X_w[ids]
 
 
-def save_map(path: str | Path, result, inputs, bridge=None) -> Path:
+def save_map(path: str | Path, result, inputs, bridge=None, gps=None) -> Path:
     """Write a run's map (module docstring), atomically.
 
     Args:
@@ -122,6 +132,8 @@ def save_map(path: str | Path, result, inputs, bridge=None) -> Path:
             georeference).
         bridge: its :class:`slam_bridge.bridge.worker.BridgeWorker` (the building association
             is saved), or None.
+        gps: its :class:`slam_bridge.slam.fusion.GpsConstraints` (the bias it estimated, if
+            any, is saved at its fixes' times), or None.
 
     Returns:
         ``path``.
@@ -162,6 +174,19 @@ def save_map(path: str | Path, result, inputs, bridge=None) -> Path:
         n = min(m.num_points, a.facade.size)  # points newer than the association: none
         facade[:n], weight[:n] = a.facade[:n], a.weight[:n]
         arrays.update(facade=facade, facade_weight=weight, association=np.array(a.method))
+    bias = None if gps is None else gps.bias
+    if bias is not None and getattr(bias, "history", None):
+        # the covariance of the estimate bias.at gives each fix (the same one: made
+        # memory_s after the fix, or the latest), as the run's fusion inflated the fix by it
+        t = gps.timestamps
+        times = np.array([h[1] for h in bias.history])
+        var = np.array([0.5 * np.trace(h[3]) for h in bias.history])
+        i = np.searchsorted(times, t + bias.config.memory_s, side="right") - 1
+        arrays.update(
+            gps_bias_timestamps=t,
+            gps_bias_xy=np.asarray(bias.at(t)),
+            gps_bias_var=np.where(i >= 0, var[np.maximum(i, 0)], 0.0),
+        )
     with atomic_output(path, "wb") as f:
         np.savez_compressed(f, **arrays)
     return Path(path)
@@ -224,6 +249,9 @@ def load_map(path: str | Path) -> SavedMap:
         facade=data.get("facade"),
         facade_weight=data.get("facade_weight"),
         association=str(data["association"]) if "association" in data else None,
+        gps_bias_timestamps=data.get("gps_bias_timestamps"),
+        gps_bias_xy=data.get("gps_bias_xy"),
+        gps_bias_var=data.get("gps_bias_var"),
         georef=None if np.isnan(georef).any() else georef,
     )
     _check(path, saved)
@@ -252,6 +280,13 @@ def _check(path: Path, s: SavedMap) -> None:
     if s.facade is not None:
         expected["facade"] = (s.facade.shape, (P,))
         expected["facade_weight"] = (s.facade_weight.shape, (P,))
+    bias = (s.gps_bias_timestamps, s.gps_bias_xy, s.gps_bias_var)
+    if any(b is None for b in bias) and not all(b is None for b in bias):
+        raise SlamError(f"{path}: gps_bias_timestamps, gps_bias_xy, gps_bias_var: all or none")
+    if s.gps_bias_xy is not None:
+        F = s.gps_bias_timestamps.size
+        expected["gps_bias_xy"] = (s.gps_bias_xy.shape, (F, 2))
+        expected["gps_bias_var"] = (s.gps_bias_var.shape, (F,))
     for name, (got, want) in expected.items():
         if got != want:
             raise SlamError(f"{path}: {name}: expected shape {want}, got {got}")

@@ -14,7 +14,10 @@ the points seen at least ``min_views`` times by them:
 * reprojection rows (:class:`slam_bridge.factors.reprojection.ReprojectionFactor`,
   ``pixel_sigma``, Huber beyond ``pixel_huber`` pixels: outliers the run missed cost linearly);
 * a GPS row per keyframe with a fix (:class:`slam_bridge.slam.fusion.GpsConstraints`' rule:
-  the fix at its time, or the two around it interpolated; the antenna's lever arm removed);
+  the fix at its time, or the two around it interpolated; the antenna's lever arm removed),
+  less the receiver's bias as the run estimated it from the building model when it did, its
+  weight lowered by the estimate's variance as the run's fusion lowers it (``gps_bias``;
+  :mod:`slam_bridge.bridge.gps_bias`);
 * a DEM row per keyframe on the DEM's roads (:class:`slam_bridge.factors.dem.DEMFactor`);
 * a vertical row per keyframe whose image gave world down (the run's vertical line segments,
   :class:`slam_bridge.factors.vertical.VerticalFactor`, ``vertical_sigma_deg`` per axis, Huber):
@@ -91,6 +94,7 @@ class RefineConfig:
         pixel_sigma: pixel sigma of a reprojection row.
         pixel_huber: Huber threshold of a reprojection row, pixels (None: least squares).
         gps_weight: weight of a GPS row (per square metre; the run's ``gps_weight``).
+        gps_bias: the fixes less the bias the run estimated, when its map has one.
         gps_tolerance_s: a fix within this time of a keyframe is its fix.
         gps_interpolate_gap_s: otherwise the fixes around it are interpolated when at most this
             far apart (None: not).
@@ -115,6 +119,7 @@ class RefineConfig:
     pixel_sigma: float = 1.0
     pixel_huber: float | None = 3.0
     gps_weight: float = 1.0
+    gps_bias: bool = True
     gps_tolerance_s: float = 0.02
     gps_interpolate_gap_s: float | None = 1.5
     # chosen on bench/refine.py's tuning drives (bench/splits.py REFINE_TUNING_SEEDS): the
@@ -241,8 +246,9 @@ def refine_map(
         g = _gps_factor(saved, kf, state, gps, cfg)
         if g is not None:
             constraints.append(g)
-            gps_total = cfg.gps_weight * g.cameras.size
+            gps_total = float(np.sum(g.sqrt_weights**2))
         figures["gps_rows"] = 0 if g is None else int(g.cameras.size)
+        figures["gps_bias_removed"] = bool(cfg.gps_bias and saved.gps_bias_xy is not None)
     if dem is not None:
         d = _dem_factor(saved, state, dem, cfg)
         if d is not None:
@@ -335,22 +341,28 @@ def _vision(saved: SavedMap, kf: np.ndarray, cfg: RefineConfig):
 def _gps_factor(saved, kf, state, gps: GpsConstraints, cfg: RefineConfig) -> GPSFactor | None:
     """A row per keyframe with a fix (the fix less the antenna's lever arm at the run's
     rotation)."""
+    xy, var = gps.xy, np.zeros(gps.timestamps.size)
+    if cfg.gps_bias and saved.gps_bias_xy is not None:
+        t_b, b = saved.gps_bias_timestamps, saved.gps_bias_xy
+        xy = xy - np.column_stack([np.interp(gps.timestamps, t_b, b[:, i]) for i in range(2)])
+        var = np.interp(gps.timestamps, t_b, saved.gps_bias_var)
     rule = GpsConstraints(
-        gps.timestamps, gps.xy, tolerance_s=cfg.gps_tolerance_s,
+        gps.timestamps, xy, tolerance_s=cfg.gps_tolerance_s,
         interpolate_gap_s=cfg.gps_interpolate_gap_s, antenna_c=saved.antenna_c,
     )  # fmt: skip
-    cams, fixes = [], []
+    cams, fixes, weights = [], [], []
     for i, k in enumerate(kf):
-        fix = rule.camera_fix_at(float(saved.timestamps[k]), state.R_wc[i])
+        t = float(saved.timestamps[k])
+        fix = rule.camera_fix_at(t, state.R_wc[i])
         if fix is not None:
             cams.append(i)
             fixes.append(fix)
+            # an uncertain bias is noise on the fix: sigma^2 + var(b) (the run's rule)
+            weights.append(1.0 / (1.0 / cfg.gps_weight + np.interp(t, gps.timestamps, var)))
     if not cams:
         logger.warning("refine: no GPS fix at any keyframe's time (no GPS row)")
         return None
-    return GPSFactor(
-        np.array(cams), np.array(fixes), np.full(len(cams), cfg.gps_weight), name="gps"
-    )
+    return GPSFactor(np.array(cams), np.array(fixes), np.array(weights), name="gps")
 
 
 def _vertical_factor(saved, kf, sigma_deg: float) -> VerticalFactor | None:

@@ -40,7 +40,7 @@ def scene_map(scene, R, t, X) -> Map:
     return m
 
 
-def saved_of(m: Map, tmp_path, association=None) -> SavedMap:
+def saved_of(m: Map, tmp_path, association=None, gps=None) -> SavedMap:
     """``m`` through the map file (as ``geoseg slam run`` writes it)."""
     C = m.num_keyframes
     result = SimpleNamespace(
@@ -53,7 +53,7 @@ def saved_of(m: Map, tmp_path, association=None) -> SavedMap:
     bridge = None
     if association is not None:
         bridge = SimpleNamespace(constraints=SimpleNamespace(association=association))
-    return load_map(save_map(tmp_path / MAP_FILE, result, inputs, bridge))
+    return load_map(save_map(tmp_path / MAP_FILE, result, inputs, bridge, gps))
 
 
 def street_facades() -> Facades:
@@ -81,6 +81,35 @@ def test_the_map_file_round_trips(scene, tmp_path):
     np.testing.assert_array_equal(s.frame, np.arange(m.num_keyframes) * 2)
     assert list(s.tracking) == ["tracked"] * m.num_keyframes and s.georef is None
     assert saved_of(m, tmp_path).facade is None  # a run without buildings has no association
+
+
+def test_the_runs_gps_bias_estimate_is_kept_and_removed_from_the_fixes(scene, tmp_path):
+    """A run that estimated its GPS's bias saves it; refine corrects the fixes by it."""
+    m = scene_map(scene, scene.R_wc, scene.t_wc, scene.X_w)
+    bias_m = np.array([2.0, -1.0])
+    t = m.timestamps.copy()
+    gps = GpsConstraints(t, scene.t_wc[:, :2] + bias_m)  # every fix off by the bias
+    # the estimate made at 0.3 s (known from then on: memory_s 0), and its covariance
+    history = [(3, 0.3, bias_m, np.eye(2) * 0.01, 4, 0.9)]
+    gps.bias = SimpleNamespace(
+        history=history, config=SimpleNamespace(memory_s=0.0),
+        at=lambda ts: np.where((np.asarray(ts) >= 0.3)[..., None], bias_m, 0.0),
+    )  # fmt: skip
+    s = saved_of(m, tmp_path, gps=gps)
+    np.testing.assert_array_equal(s.gps_bias_timestamps, t)
+    np.testing.assert_allclose(s.gps_bias_xy[3:], np.tile(bias_m, (9, 1)))
+    np.testing.assert_allclose(s.gps_bias_xy[:3], 0.0)
+    np.testing.assert_allclose(s.gps_bias_var, np.where(t >= 0.3, 0.01, 0.0))
+    facades = street_facades()
+    raw = GpsConstraints(t, gps.xy)
+    r = refine_map(s, facades=facades, gps=raw)
+    assert r.figures["gps_bias_removed"]
+    # the keyframes after the estimate are back on the truth; the first three keep their
+    # fixes' bias, which the vision spreads over the street (measured: 0.02 m against 1.6 m)
+    assert truth_errors(scene, r.map)["translation_error_m"] < 1.0
+    kept = refine_map(s, RefineConfig(gps_bias=False), facades=facades, gps=raw)
+    assert not kept.figures["gps_bias_removed"]
+    assert truth_errors(scene, kept.map)["translation_error_m"] > 2.0
 
 
 def test_bad_map_files_are_refused_with_what_was_expected(scene, tmp_path):
