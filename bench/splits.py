@@ -33,6 +33,8 @@ __all__ = [
     "RELOC_SLAM_REPORT_SEEDS",
     "GPS_BIAS_TUNING_SEEDS",
     "GPS_BIAS_REPORT_SEEDS",
+    "REFINE_TUNING_SEEDS",
+    "REFINE_REPORT_SEEDS",
 ]
 
 # -- the image SLAM (bench/slam_images.py): (name, rig, world preset, condition, seed, metres);
@@ -119,3 +121,11 @@ GPS_BIAS_TUNING_SEEDS = (21, 22, 23, 24, 25)
 #: none: seed 34's GPS log misses its first 11.6 s of 14.3 s (a dropout burst), so no run of it
 #: is georeferenced; seed 36 was added for it, before any of its runs, to keep five drives
 GPS_BIAS_REPORT_SEEDS = (31, 32, 33, 34, 35, 36)
+
+# -- the global constrained bundle adjustment as a pseudo ground truth (bench/refine.py): 200 m
+# summer car drives of a light city, the seed being the world's, the route's and the GPS's
+#: the refinement's settings (slam_bridge.system.refine.RefineConfig: dem_weight, the method,
+#: the building rows' cap) were chosen on these
+REFINE_TUNING_SEEDS = (40, 44)
+#: never used to choose a setting
+REFINE_REPORT_SEEDS = (41, 42, 43)

@@ -23,6 +23,12 @@ folder (or a JSON file of statistics); each keyframe is mapped from its own stat
 ``--gps-bias estimate`` (with ``--buildings`` and ``--gps``) estimates the GPS's slowly varying
 bias from the facades and removes it from the fixes (:mod:`slam_bridge.bridge.gps_bias`).
 
+``geoseg slam refine RUN`` adjusts a finished run's map (its ``map.npz``) once more, all
+keyframes together, constrained to the building model, the DEM, the GPS and the odometry: the
+thesis's pseudo ground truth for a drive without truth (§3.7;
+:func:`slam_bridge.system.refine.refine_run`, docs/refine.md). ``geoseg slam-eval run --run RUN
+--reference RUN_refined`` then measures a run against it.
+
 ``FRAMES_DIR`` holds the images (PNG/JPEG, directly or in ``rgb/``, sorted by name) and a
 ``camera.json`` (``K``, ``image_size``; optionally ``fps``, ``camera_height_m``,
 ``gps_antenna_c``); timestamps come from ``timestamps.csv``, ``poses.csv`` or ``fps``. The run
@@ -123,6 +129,40 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "r00..r22), for evaluation only; default: the folder's own poses.csv (a render)",
     )  # fmt: skip
 
+    ref = sub.add_parser(
+        "refine",
+        help="one bundle adjustment over a whole run, constrained to the building model and "
+        "the DEM: a pseudo ground truth (thesis section 3.7)",
+    )
+    ref.add_argument("run", type=Path, help="a `geoseg slam run` output folder (its map.npz)")
+    ref.add_argument("--out", type=Path, help="output folder (default: RUN_refined beside RUN)")
+    ref.add_argument(
+        "--buildings", type=Path,
+        help="facade table CSV (gis/facades.csv; the run's own for its association)",
+    )  # fmt: skip
+    ref.add_argument("--dem", type=Path, help="road DEM CSV (x0, y0, z0, x1, y1, z1)")
+    ref.add_argument("--gps", type=Path, help="GPS log CSV (timestamp, x, y or lat/lon)")
+    ref.add_argument("--odometry", type=Path, help="wheel odometry CSV (timestamp, speed_mps)")
+    ref.add_argument(
+        "--association", choices=("auto", "saved", "nearest"), default=None,
+        help="points on facades: saved (the run's network association), nearest (nearest "
+        "facade within radius_m), auto (saved when the run has one; the default)",
+    )  # fmt: skip
+    ref.add_argument(
+        "--method", choices=("joint", "barrier"), default=None,
+        help="joint: one weighted least squares (default); barrier: the thesis's barrier "
+        "fusion over the whole sequence",
+    )  # fmt: skip
+    ref.add_argument(
+        "--truth", type=Path,
+        help="true poses (poses.csv) for evaluation only: the refined and the run's errors",
+    )  # fmt: skip
+    ref.add_argument(
+        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+        help="override a setting of slam_bridge.system.refine.RefineConfig (repeatable)",
+    )  # fmt: skip
+    ref.add_argument("--overwrite", action="store_true", help="write into a folder of other files")
+
     sim = sub.add_parser(
         "simulate-logs",
         help="GPS, odometry and DEM logs simulated from a drive's true poses (KITTI poses.txt "
@@ -155,6 +195,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.action == "simulate-logs":
         return _simulate_logs(args)
+    if args.action == "refine":
+        return _refine(args)
     return _run(args)
 
 
@@ -179,6 +221,44 @@ def _simulate_logs(args: argparse.Namespace) -> int:
     )
     for name in meta["files"] + ["frame.json"]:
         print(f"  {name:13s} {out / name}")
+    return 0
+
+
+def _refine(args: argparse.Namespace) -> int:
+    from geoseg.config import load_config
+    from geoseg.errors import GeosegError
+    from slam_bridge.system.refine import RefineConfig, refine_run
+
+    if args.buildings is None and args.gps is None:
+        raise GeosegError("slam refine: give --buildings or --gps (or both): the world reference")
+    overrides = list(args.overrides)
+    overrides += [f"method={args.method}"] if args.method else []
+    overrides += [f"association={args.association}"] if args.association else []
+    cfg = load_config(RefineConfig, None, overrides=overrides)
+    out_dir = args.out or args.run.parent / f"{args.run.name}_refined"
+    out = refine_run(
+        args.run, out_dir, cfg, buildings=args.buildings, dem=args.dem, gps=args.gps,
+        odometry=args.odometry, truth=args.truth, overwrite=args.overwrite,
+    )  # fmt: skip
+    s = json.loads((out / "summary.json").read_text())
+    rows = ", ".join(
+        f"{s[k]} {k.removesuffix('_rows')}"
+        for k in ("gps_rows", "dem_rows", "odometry_rows", "building_rows")
+        if k in s
+    )
+    print(
+        f"refined {s['keyframes']} keyframes and {s['points']} points ({s['method']}; "
+        f"{s['observations']} observations, {rows} rows); keyframes moved "
+        f"{s['keyframe_shift_m_mean']:.3f} m on average, reprojection "
+        f"{s['reprojection_rms_px_before']:.2f} -> {s['reprojection_rms_px']:.2f} px rms"
+    )
+    if "translation_error_m" in s:
+        print(
+            f"against {args.truth}: refined {s['translation_error_m']:.3f} m horizontal "
+            f"(the run's {s['run_translation_error_m']:.3f} m)"
+        )
+    for name in ("trajectory.csv", "frame_poses.csv", "trajectory_tum.txt", "summary.json"):
+        print(f"  {name:20s} {out / name}")
     return 0
 
 

@@ -18,6 +18,17 @@ building constraints chosen by the ray-cast baseline, the naive CNN + Dirichlet 
 joint network + eq. 4.14 and the oracle, against the exact and the GIS building models. It
 writes ``buildings_ch4.md``, ``buildings_ch4.json``, ``runs/`` and the pictures.
 
+``run`` measures a run's keyframes (``--run``, a ``geoseg slam run`` folder) against a
+reference trajectory (``--reference``): a drive's true poses (``poses.csv``) or, on a drive
+without truth, a refined run (``geoseg slam refine``: one bundle adjustment over the whole run
+constrained to the building model and the DEM, the thesis's pseudo ground truth, §3.7)::
+
+    geoseg slam refine out/run --buildings gis/facades.csv --dem gis/dem.csv --gps gps.csv
+    geoseg slam-eval run --run out/run --reference out/run_refined
+
+It prints the errors (:func:`slam_bridge.system.reference.compare_trajectories`) and, with
+``--out``, writes them to ``OUT/reference_eval.json``.
+
 Without ``--full`` each runs the short version of its config (``quick_*`` keys); with it the
 whole experiment. A folder already holding the results of the same config is not recomputed
 (``--force`` recomputes).
@@ -47,9 +58,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "building model; a 250 m drive by default, --full the 1.2 km drive."
     )
     parser.add_argument(
-        "experiment", choices=sorted(EXPERIMENTS),
+        "experiment", choices=sorted([*EXPERIMENTS, "run"]),
         help="fusion: chapter 3 (GPS fusion, hybrid windows); buildings: chapter 4 (networks "
-        "choose building constraints)",
+        "choose building constraints); run: a run's keyframes against a reference (--run, "
+        "--reference)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--run", type=Path, default=None,
+        help="run: the `geoseg slam run` folder whose keyframes are measured",
+    )  # fmt: skip
+    parser.add_argument(
+        "--reference", type=Path, default=None,
+        help="run: the reference trajectory: a refined run folder (`geoseg slam refine`, the "
+        "pseudo ground truth of a drive without truth) or a poses.csv of true poses",
     )  # fmt: skip
     parser.add_argument(
         "--config",
@@ -85,6 +106,10 @@ def run(args: argparse.Namespace) -> int:
     from geoseg.config import default_config_file, load_config
     from geoseg.errors import GeosegError
 
+    if args.experiment == "run":
+        return _against_reference(args)
+    if args.run is not None or args.reference is not None:
+        raise GeosegError("--run, --reference: only the run experiment takes them")
     config_name, default_out, results = EXPERIMENTS[args.experiment]
     if args.data is not None and args.experiment != "buildings":
         raise GeosegError("--data: only the buildings experiment renders a drive")
@@ -109,4 +134,38 @@ def run(args: argparse.Namespace) -> int:
     print((out / f"{results}.md").read_text())
     print(f"results: {out / f'{results}.json'}")
     print("plots:   " + ", ".join(str(p) for p in plots))
+    return 0
+
+
+def _against_reference(args: argparse.Namespace) -> int:
+    """``slam-eval run``: the run's keyframes against the reference (module docstring)."""
+    import json
+
+    from geoseg.atomic import atomic_write
+    from geoseg.errors import GeosegError
+    from slam_bridge.system.reference import compare_trajectories, read_trajectory
+
+    if args.run is None or args.reference is None:
+        raise GeosegError("slam-eval run: needs --run RUN_DIR and --reference REFERENCE")
+    for name in ("config", "data"):
+        if getattr(args, name) is not None:
+            raise GeosegError(f"--{name}: the run experiment takes none")
+    if args.full or args.overrides:
+        raise GeosegError("--full, --set: the run experiment takes none")
+    figures = compare_trajectories(read_trajectory(args.run), read_trajectory(args.reference))
+    figures.update(run=str(args.run), reference=str(args.reference))
+    print(
+        f"{args.run} against {args.reference}: {figures['matched']} keyframes, "
+        f"{figures['translation_error_m']:.3f} m horizontal (max "
+        f"{figures['translation_error_max_m']:.3f} m), {figures['translation_error_3d_m']:.3f} m "
+        f"3D, {figures['rotation_error_deg']:.3f} deg"
+    )
+    if figures["unmatched"]:
+        print(f"  {figures['unmatched']} keyframe(s) without a reference pose at their time")
+    if args.out is not None:
+        from geoseg.output_dir import ensure_writable_dir
+
+        out = ensure_writable_dir(args.out)
+        path = atomic_write(out / "reference_eval.json", json.dumps(figures, indent=1) + "\n")
+        print(f"results: {path}")
     return 0

@@ -20,6 +20,8 @@ is an unfinished run):
   quaternion ``qw, qx, qy, qz`` and ``R_wc`` row-major), WGS84 position when a georeference is
   known, tracking state and segment;
 * ``map_points.ply``: the triangulated map points (trimesh point cloud);
+* ``map.npz``: the map a global bundle adjustment needs (keyframes, points, observations,
+  intrinsics, the building association): :mod:`slam_bridge.system.map_file`;
 * ``keyframes.csv``: the per-keyframe log (tracking state, inliers, observations, new points,
   window sizes, k-BA and fusion times, constraints fused);
 * ``trajectory.png``: a top-down plot of the trajectory over the GPS fixes (and the ground
@@ -74,6 +76,7 @@ from slam_bridge.system.base_fixes import (
     base_constraints,
     localise_frames,
 )
+from slam_bridge.system.map_file import save_map
 from slam_bridge.system.sensor_logs import read_dem_csv, read_gps_csv, read_odometry_csv
 
 logger = logging.getLogger(__name__)
@@ -99,6 +102,7 @@ OUTPUTS = [
     "trajectory_kitti.txt",
     "keyframes.csv",
     "map_points.ply",
+    "map.npz",
     "trajectory.png",
     "summary.json",
 ]
@@ -364,6 +368,7 @@ def run_image_slam(
     so.write_frame_poses(out, poses)
     so.write_keyframe_log(out / "keyframes.csv", result, frame_of)
     so.write_map_points(out / "map_points.ply", result.map)
+    save_map(out / "map.npz", result, inputs, bridge, gps)  # for `geoseg slam refine`
     so.plot_run(out / "trajectory.png", result, inputs, title=f"{cfg.method}: {out.name}")
     so.write_summary(out / "summary.json", summary)
     return out
