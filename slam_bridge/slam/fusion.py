@@ -172,6 +172,11 @@ class GpsConstraints:
         w = (timestamp - t[a]) / (t[b] - t[a])
         return (1 - w) * self.xy[a] + w * self.xy[b]
 
+    def fix_weights(self) -> np.ndarray:
+        """``(F,)`` each fix's weight: all :attr:`weight` (a provider whose fixes differ in
+        accuracy gives its own)."""
+        return np.full(self.timestamps.size, self.weight)
+
     def corrected_fix_at(self, timestamp: float) -> np.ndarray | None:
         """:meth:`fix_at` less the bias estimated for ``timestamp`` (``bias.at``; the fix
         itself without a bias source): what the start-up georeferences the map on."""

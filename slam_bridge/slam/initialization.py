@@ -197,7 +197,12 @@ class OdometryDistance:
 
 
 def fit_level_similarity(
-    src: np.ndarray, dst: np.ndarray, *, up_src: np.ndarray, fix_scale: bool = False
+    src: np.ndarray,
+    dst: np.ndarray,
+    *,
+    up_src: np.ndarray,
+    fix_scale: bool = False,
+    weights: np.ndarray | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Similarity ``dst ~ s R src + T`` whose tilt maps ``up_src`` onto ``+z`` exactly, the rest
     (heading, horizontal position, scale) fitted to the horizontal coordinates only; ``T_z``
@@ -208,6 +213,7 @@ def fit_level_similarity(
         dst: ``(N, 3)`` targets (their ``z`` only sets the mean altitude).
         up_src: ``(3,)`` the source frame's up direction.
         fix_scale: keep ``s = 1``.
+        weights: ``(N,)`` positive weight of each pair (None: all equal).
 
     Returns:
         ``(s, R (3, 3), T (3,))``.
@@ -228,17 +234,29 @@ def fit_level_similarity(
     axis = np.cross(u, [0.0, 0.0, 1.0])
     angle = np.arctan2(np.linalg.norm(axis), u[2])
     R_level = so3_exp(axis / max(np.linalg.norm(axis), 1e-12) * angle)
+    w = _pair_weights(weights, src.shape[0], "fit_level_similarity")
     level = src @ R_level.T
-    a = level[:, :2] - level[:, :2].mean(axis=0)
-    b = dst[:, :2] - dst[:, :2].mean(axis=0)
+    root = np.sqrt(w)[:, None]  # weighted least squares = unweighted on sqrt(w)-scaled pairs
+    a = root * (level[:, :2] - w @ level[:, :2])
+    b = root * (dst[:, :2] - w @ dst[:, :2])
     s, R2 = rotation_and_scale(a, b, b.T @ a, fix_scale=fix_scale, name="fit_level_similarity")
     R_yaw = np.eye(3)
     R_yaw[:2, :2] = R2
     R = R_yaw @ R_level
     moved = s * src @ R.T
-    T = np.append(dst[:, :2].mean(axis=0) - moved[:, :2].mean(axis=0), 0.0)
-    T[2] = dst[:, 2].mean() - moved[:, 2].mean()
+    T = np.append(w @ dst[:, :2] - w @ moved[:, :2], 0.0)
+    T[2] = w @ dst[:, 2] - w @ moved[:, 2]
     return s, R, T
+
+
+def _pair_weights(weights: np.ndarray | None, n: int, name: str) -> np.ndarray:
+    """``(n,)`` weights summing to 1 (equal when ``weights`` is None)."""
+    if weights is None:
+        return np.full(n, 1.0 / n)
+    w = np.asarray(weights, dtype=np.float64).reshape(-1)
+    if w.size != n or not np.all(np.isfinite(w)) or not np.all(w > 0):
+        raise SlamError(f"{name}: expected {n} positive finite weights, got {w.size}")
+    return w / w.sum()
 
 
 def fit_similarity(
@@ -248,6 +266,7 @@ def fit_similarity(
     up_src: np.ndarray | None = None,
     up_weight: float = 1.0,
     fix_scale: bool = False,
+    weights: np.ndarray | None = None,
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """Least-squares similarity ``dst ~ s R src + T`` (Umeyama), optionally with a direction.
 
@@ -258,6 +277,7 @@ def fit_similarity(
             ``+z`` (weighted into the rotation's cross-covariance).
         up_weight: its weight, relative to the spread of the points.
         fix_scale: keep ``s = 1``.
+        weights: ``(N,)`` positive weight of each pair (None: all equal).
 
     Returns:
         ``(s, R (3, 3), T (3,))``.
@@ -271,9 +291,11 @@ def fit_similarity(
     check_shape("dst", dst, (src.shape[0], 3))
     if src.shape[0] < 2:
         raise SlamError("fit_similarity: needs at least 2 points")
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    a, b = src - mu_s, dst - mu_d
-    H = b.T @ a  # sum_i b_i a_i^T
+    w = _pair_weights(weights, src.shape[0], "fit_similarity")
+    mu_s, mu_d = w @ src, w @ dst
+    root = np.sqrt(w)[:, None]  # weighted least squares = unweighted on sqrt(w)-scaled pairs
+    a, b = root * (src - mu_s), root * (dst - mu_d)
+    H = b.T @ a  # sum_i w_i b_i a_i^T
     if up_src is not None:
         u = np.asarray(up_src, dtype=np.float64)
         u = u / np.linalg.norm(u)
@@ -381,9 +403,9 @@ class TwoViewStart:
         # the fit pairs each fix with the map at the fix's own time: a fix interpolated to a
         # keyframe's time cuts the corners of a turn (0.8 m inside a 15 m radius at 10 m/s and
         # 1 Hz), the map's keyframes a tenth of a second apart do not
-        src, src_R, fit_xy = self._pairs_at_fix_times(m, seg)
+        src, src_R, fit_xy, fit_w = self._pairs_at_fix_times(m, seg)
         if fit_xy.shape[0] < 3:
-            src, src_R, fit_xy = m.t_wc[kf], m.R_wc[kf], xy
+            src, src_R, fit_xy, fit_w = m.t_wc[kf], m.R_wc[kf], xy, None
         fit_z = np.full(fit_xy.shape[0], self.rig.camera_height_m)
         if self.dem is not None:
             fit_z = fit_z + np.asarray(self.dem.altitude_at(fit_xy), dtype=np.float64)
@@ -392,10 +414,13 @@ class TwoViewStart:
             if self.dem is None:
                 # nothing measures the altitudes: a level road (z = camera height) would tilt
                 # a map that climbs by its slope, so the tilt comes from the up direction alone
-                return fit_level_similarity(src, target, up_src=up_local, fix_scale=fixed)
+                return fit_level_similarity(
+                    src, target, up_src=up_local, fix_scale=fixed, weights=fit_w
+                )
             return fit_similarity(
-                src, target, up_src=up_local, up_weight=up_weight, fix_scale=fixed
-            )
+                src, target, up_src=up_local, up_weight=up_weight, fix_scale=fixed,
+                weights=fit_w,
+            )  # fmt: skip
 
         for _ in range(2):  # the antenna offset depends on the rotation being fitted
             offset = np.einsum("ij,kjl,l->ki", R, src_R, antenna)[:, :2]
@@ -461,22 +486,23 @@ class TwoViewStart:
 
     def _pairs_at_fix_times(
         self, m: Map, seg: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """The valid fixes within the segment's time span and the map at their times.
 
         Returns:
-            ``(positions (M, 3), rotations (M, 3, 3), fixes (M, 2))``: the optical centre
-            interpolated between the two keyframes around each fix, the nearer keyframe's
-            rotation (for the antenna offset); a fix between keyframes further apart than the
-            GPS's ``interpolate_gap_s`` (or, without one, not within ``tolerance_s`` of a
-            keyframe) is left out.
+            ``(positions (M, 3), rotations (M, 3, 3), fixes (M, 2), weights (M,))``: the
+            optical centre interpolated between the two keyframes around each fix, the nearer
+            keyframe's rotation (for the antenna offset), each fix's weight (the provider's
+            ``fix_weights``: a fix to centimetres counts more than one metres off); a fix
+            between keyframes further apart than the GPS's ``interpolate_gap_s`` (or, without
+            one, not within ``tolerance_s`` of a keyframe) is left out.
         """
         gps, t_kf = self.gps, m.timestamps[seg]
         valid = np.all(np.isfinite(gps.xy), axis=1)
         inside = valid & (gps.timestamps >= t_kf[0]) & (gps.timestamps <= t_kf[-1])
         t_fix = gps.timestamps[inside]
         if seg.size < 2 or t_fix.size == 0:
-            return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2))
+            return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 2)), np.zeros(0)
         hi = np.clip(np.searchsorted(t_kf, t_fix), 1, seg.size - 1)
         lo = hi - 1
         gap = t_kf[hi] - t_kf[lo]
@@ -487,7 +513,8 @@ class TwoViewStart:
         lo, hi, w = seg[lo[keep]], seg[hi[keep]], w[keep][:, None]
         positions = (1 - w) * m.t_wc[lo] + w * m.t_wc[hi]
         nearer = np.where(w[:, 0] < 0.5, lo, hi)
-        return positions, m.R_wc[nearer], gps.corrected_xy()[inside][keep]
+        weights = gps.fix_weights()[inside][keep]
+        return positions, m.R_wc[nearer], gps.corrected_xy()[inside][keep], weights
 
     def _up(self, m: Map, seg: np.ndarray, kf: np.ndarray) -> tuple[np.ndarray, float]:
         """The segment's up direction in the map frame and its weight in the fit: from the

@@ -49,9 +49,9 @@ class BaseFixConfig:
             fix's is ``ImageSlamConfig.gps_weight``, for a 0.75 m receiver). The weights, the
             tracking and ``refit_distance_m`` were chosen on the tuning drives of
             ``bench/reloc_slam.py --tuning`` (``RELOC_SLAM_TUNING_SEEDS``): no GPS, mean error
-            0.59 m with the defaults, 0.78 with ``refit_distance_m`` 40 (one drive's start
-            turned by a fit over too few fixes), 0.87 with a structure weight of 16
-            (docs/relocalisation.md).
+            0.47 m with the defaults (the start-up's fit weighing each fix by its weight),
+            0.81 with ``refit_distance_m`` 40 (one drive's start turned by a fit over too
+            few fixes), 0.97 with 200 (docs/relocalisation.md).
         weight: weight of a fix from the rays or the best match, per square metre.
         max_residual_m: a fix whose agreeing rays miss their point by more than this (rms) is
             dropped.
@@ -65,8 +65,7 @@ class BaseFixConfig:
         refit_distance_m: without a GPS, the start-up's similarity refits stop once the
             base's fixes spread over this distance (a GPS run's is ``init.refit_distance_m``,
             200 m): fixes to centimetres fix the heading within tens of metres, and beyond
-            them a refit of the whole segment only spreads the map's own bends over it (200 m:
-            1.0 m mean error on a tuning drive where 80 m gives 0.59).
+            them a refit of the whole segment only spreads the map's own bends over it.
         batch: frames localised together (memory against speed).
     """
 
@@ -169,6 +168,10 @@ class BaseConstraints(GpsConstraints):
                 f"{self.weights.size} (min {self.weights.min(initial=np.inf):g})"
             )
         super().__init__(timestamps, xy, weight=float(self.weights.max()), **kwargs)
+
+    def fix_weights(self) -> np.ndarray:
+        """``(F,)`` each fix's weight (the start-up's fit weighs its fixes by them)."""
+        return self.weights
 
     def weight_at(self, timestamp: float) -> float:
         """The weight of the fix :meth:`fix_at` gives for ``timestamp`` (the lower of the two

@@ -16,6 +16,7 @@ from slam_bridge.slam.initialization import (
     OdometryDistance,
     TwoViewStart,
     VehicleRig,
+    fit_level_similarity,
     fit_similarity,
 )
 from slam_bridge.slam.loop import run_slam
@@ -33,6 +34,33 @@ def test_fit_similarity_recovers_a_known_transform():
     assert np.degrees(np.linalg.norm(so3_log(R_hat.T @ R))) < 0.05
     np.testing.assert_allclose(T_hat, T, atol=0.02)
     assert fit_similarity(src, dst, fix_scale=True)[0] == 1.0
+
+
+@pytest.mark.parametrize("level", [False, True])
+def test_weighted_fits_follow_the_accurate_pairs(level):
+    """Ten pairs to a millimetre and ten a few metres off: weighted by their accuracy, the fit
+    is the accurate pairs' own; equal weights give the unweighted fit."""
+    rng = np.random.default_rng(1)
+    R = so3_exp(np.array([0.0, 0.0, 0.8]))
+    T = np.array([3.0, -2.0, 1.0])
+    src = np.column_stack([rng.uniform(-30, 30, (20, 2)), rng.uniform(-1, 1, 20)])
+    dst = src @ R.T + T
+    dst[10:, :2] += rng.normal(scale=3.0, size=(10, 2))
+    weights = np.r_[np.full(10, 100.0), np.full(10, 1.0)]
+
+    def fit(w):
+        if level:
+            return fit_level_similarity(src, dst, up_src=np.array([0, 0, 1.0]), weights=w)
+        return fit_similarity(src, dst, weights=w)
+
+    _, R_w, T_w = fit(weights)
+    _, R_u, T_u = fit(None)
+    assert np.linalg.norm(so3_log(R_w.T @ R)) < 0.1 * np.linalg.norm(so3_log(R_u.T @ R))
+    np.testing.assert_allclose(src[:10] @ R_w.T + T_w, dst[:10], atol=0.1)
+    for a, b in zip(fit(np.ones(20)), fit(None)):
+        np.testing.assert_allclose(a, b, atol=1e-9)
+    with pytest.raises(SlamError, match="weights"):
+        fit(np.r_[weights[:-1], 0.0])
 
 
 def test_fit_similarity_up_axis_fixes_the_roll_of_collinear_points():
