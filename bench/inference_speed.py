@@ -23,7 +23,9 @@ interleaved rounds, median per contender):
 Weights: the shipped trained networks (``geoseg/weights/normals`` and ``.../seg``) when present
 (``--weights random``: untrained, timing only). With trained weights the int8 model is calibrated
 on frames of the validation city and ``int8_miou_change`` is its mIoU minus fp32's on held-out
-frames of the evaluation city at 320x240, the networks' training size. Always reported: label
+frames of the evaluation city at 320x240, the networks' training size; on the same frames the
+fp32 export is compared with the torch model (``onnx_torch_label_agreement_heldout``,
+``onnx_torch_normal_angle_deg_heldout``, ``torch_miou_heldout``). Always reported: label
 agreement (argmax) and mean normal angle between int8 and fp32 on smooth random inputs.
 
 With CUDA available (or ``--gpu-only`` on the GPU machine, merged into the results file) it
@@ -467,9 +469,26 @@ def main(argv: list[str] | None = None) -> int:
         accuracy: dict[str, float] = {}
         if trained:
             images, truth = synthetic_frames("test", args.accuracy_frames)
-            fp32 = [joint_dynamic(x)["logits"].argmax(1)[0] for x in images]
+            fp32_out = [joint_dynamic(x) for x in images]
+            fp32 = [out["logits"].argmax(1)[0] for out in fp32_out]
             int8 = [joint_int8(x)["logits"].argmax(1)[0] for x in images]
+            # the rewritten export against the torch model it came from, on the same frames
+            with torch.inference_mode():
+                eager = [joint(torch.from_numpy(x)) for x in images]
+            eager_labels = [out["logits"].argmax(1)[0].numpy() for out in eager]
             accuracy = {
+                "onnx_torch_label_agreement_heldout": float(
+                    np.mean([np.mean(a == b) for a, b in zip(fp32, eager_labels)])
+                ),
+                "onnx_torch_normal_angle_deg_heldout": float(
+                    np.mean(
+                        [
+                            angle_deg(out["normals"], ref["normals"].numpy())
+                            for out, ref in zip(fp32_out, eager)
+                        ]
+                    )
+                ),
+                "torch_miou_heldout": miou(eager_labels, truth),
                 "fp32_miou_heldout": miou(fp32, truth),
                 "int8_miou_heldout": miou(int8, truth),
                 "accuracy_frames": args.accuracy_frames,
@@ -564,6 +583,12 @@ def main(argv: list[str] | None = None) -> int:
             f"\nint8 on {args.accuracy_frames} held-out frames (trained weights): mIoU "
             f"{results['int8_miou_heldout']:.4f} vs fp32 {results['fp32_miou_heldout']:.4f} "
             f"(change {results['int8_miou_change']:+.4f})"
+        )
+        print(
+            "rewritten ONNX against torch on the same frames: label agreement "
+            f"{results['onnx_torch_label_agreement_heldout']:.6f}, mean normal angle "
+            f"{results['onnx_torch_normal_angle_deg_heldout']:.4f} deg, mIoU "
+            f"{results['fp32_miou_heldout']:.4f} against torch's {results['torch_miou_heldout']:.4f}"
         )
     print(
         f"\nint8 vs fp32 ({'trained' if trained else 'random'} weights, smooth random inputs): "
