@@ -103,6 +103,19 @@ def test_rewrite_leaves_other_models_alone_and_rejects_half_an_enet() -> None:
         rewrite_for_onnxruntime(torch.nn.Sequential(DownsamplingBottleneck(16, 64)))
 
 
+def test_unit_normals_export_form_matches_normalize_zero_vectors_included() -> None:
+    from geoseg.export_rewrites import UnitNormalsForExport
+    from geoseg.models.joint import UnitNormals
+
+    raw = torch.randn(2, 3, 5, 7, generator=torch.Generator().manual_seed(6)) * 10
+    raw[0, :, 1, 2] = 0.0  # a zero vector: eps keeps it finite (zero)
+    raw[1, :, 3, 4] = 1e-8
+    unit = UnitNormals()
+    got = UnitNormalsForExport(unit)(raw)
+    torch.testing.assert_close(got, unit(raw), rtol=1e-6, atol=1e-7)
+    assert torch.equal(got[0, :, 1, 2], torch.zeros(3))
+
+
 def test_pixel_shuffle_conv_transpose_matches_the_2x2_transposed_conv() -> None:
     from geoseg.export_rewrites import PixelShuffleConvTranspose
 
