@@ -7,8 +7,8 @@ and unpooling, and runs its transposed convolutions single-threaded. The rewrite
 computation and change its form: PReLU as depthwise 1x1 convolutions, the initial block and the
 downsampling padding as convolutions, max-unpooling as ``nearest_upsample(main) * mask`` with a
 *switch mask* instead of pooling indices, transposed convolutions as sub-pixel convolutions, pixel
-shuffles as ``fold`` (ONNX ``Col2Im``). Each rewrite and what it bought:
-``docs/onnx_operators.md``.
+shuffles as ``fold`` (ONNX ``Col2Im``), the normals' L2 normalisation as a sum of squares. Each
+rewrite and what it bought: ``docs/onnx_operators.md``.
 
 Outputs equal the original module's up to float rounding (batch norms folded), so a near-tie in a
 max-pooling window can move a switch: compare by argmax agreement and mean errors, as for any
@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from geoseg.models.enet import DownsamplingBottleneck, InitialBlock, UpsamplingBottleneck
+from geoseg.models.joint import UnitNormals
 
 
 def _folded_batch_norm(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
@@ -48,22 +49,6 @@ def _channel_placement(out_channels: int, in_channels: int, offset: int = 0) -> 
 def _depthwise(x: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
     """Per-channel scaling `(B, C, H, W)` by ``weight`` `(C, 1, 1, 1)` as a depthwise 1x1 conv."""
     return F.conv2d(x, weight, groups=weight.shape[0])
-
-
-def window_taps(channels: int) -> torch.Tensor:
-    """`(4 C, 1, 2, 2)` one-hot kernels, ``[4 c + k, 0, k // 2, k % 2] = 1``: tap k of a 2x2
-    window of channel c, in ``pixel_shuffle``'s order."""
-    return torch.eye(4).reshape(4, 1, 2, 2).repeat(channels, 1, 1, 1)
-
-
-def space_to_depth(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    """`(B, C, H, W)` → `(B, 4 C, H/2, W/2)`, the inverse of ``pixel_shuffle(., 2)``, as a
-    stride-2 depthwise convolution by one-hot ``taps`` (:func:`window_taps`; exact copies).
-
-    onnxruntime runs it in its blocked layout; four strided ``Slice`` nodes would each convert the
-    layout back and forth.
-    """
-    return F.conv2d(x, taps.to(x.dtype), stride=2, groups=x.shape[1])
 
 
 def depth_to_space(x: torch.Tensor) -> torch.Tensor:
@@ -122,49 +107,39 @@ class InitialBlockForExport(nn.Module):
         return self.act(conv + F.conv2d(F.max_pool2d(x, 2, 2), self.pool_weight))
 
 
-def switch_mask(
-    x: torch.Tensor, taps: torch.Tensor | None = None
-) -> tuple[torch.Tensor, torch.Tensor]:
+def window_priority(height: int, width: int, dtype: torch.dtype) -> torch.Tensor:
+    """`(H, W)` rank of each pixel in its 2x2 window, 4 for the first in row-major order down to
+    1 for the last: ``[[4, 3], [2, 1]]`` tiled (H, W even)."""
+    tile = torch.tensor([[4.0, 3.0], [2.0, 1.0]], dtype=dtype)
+    return tile.repeat(height // 2, width // 2)
+
+
+def _upsample2(x: torch.Tensor) -> torch.Tensor:
+    """Nearest-neighbour 2x upsampling `(B, C, h, w)` → `(B, C, 2h, 2w)`."""
+    return F.interpolate(x, scale_factor=2.0, mode="nearest")
+
+
+def switch_mask(x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """2x2 stride-2 max pooling and its switch mask.
 
     Args:
         x: `(B, C, H, W)`, H and W even.
-        taps: :func:`window_taps` of C (built when not given).
 
     Returns:
         ``(pooled, mask)``: `(B, C, H/2, W/2)` maxima and `(B, C, H, W)` float mask, 1 at the first
         maximum of each window in row-major order (where torch's max-pooling index points).
+
+    All at full resolution, exact: the maxima of each window (``x`` equal to its upsampled
+    pooling) get their :func:`window_priority`, and a second pooling of those priorities keeps
+    the first of tied maxima. Pooling and nearest upsampling run in onnxruntime's blocked layout;
+    the earlier form (windows unshuffled to channels by a grouped stride-2 convolution, a grouped
+    1x1 convolution keeping the first of four) ran outside it, ~4 GMAC/s (docs/onnx_operators.md).
     """
-    b, c = x.shape[:2]
-    taps = window_taps(c) if taps is None else taps
     pooled = F.max_pool2d(x, 2, 2)
-    # (B, 4C, h, w): channel 4 c + k is window position k of channel c, top left first
-    window = space_to_depth(x, taps)
-    at_max = (window == _repeat4(pooled)).to(x.dtype)
-    return pooled, depth_to_space(first_of_four(at_max))
-
-
-def _repeat4(x: torch.Tensor) -> torch.Tensor:
-    """`(B, C, h, w)` → `(B, 4 C, h, w)`, channel c copied to ``4 c .. 4 c + 3`` (a grouped 1x1
-    convolution by ones: exact, and in onnxruntime's blocked layout)."""
-    c = x.shape[1]
-    return F.conv2d(x, torch.ones(4 * c, 1, 1, 1, dtype=x.dtype, device=x.device), groups=c)
-
-
-def first_of_four(at_max: torch.Tensor) -> torch.Tensor:
-    """The first 1 of each group of four channels: `(B, 4 C, h, w)` of 0/1 → the same with
-    only the lowest ``k`` of each group ``4 c + k`` kept.
-
-    ``relu(e_k - sum_{j<k} e_j)`` is exactly that for 0/1 values (one grouped 1x1 convolution
-    with a fused ``Relu`` in onnxruntime); it replaces an ``ArgMax`` over a 5-D axis, which
-    onnxruntime runs outside its blocked layout, slowly.
-    """
-    c = at_max.shape[1] // 4
-    tri = torch.eye(4, dtype=at_max.dtype, device=at_max.device) - torch.tril(
-        torch.ones(4, 4, dtype=at_max.dtype, device=at_max.device), diagonal=-1
-    )
-    weight = tri.reshape(1, 4, 4).repeat(c, 1, 1).reshape(4 * c, 4, 1, 1)
-    return torch.relu(F.conv2d(at_max, weight, groups=c))
+    priority = window_priority(x.shape[-2], x.shape[-1], x.dtype).to(x.device)
+    ranked = (x == _upsample2(pooled)).to(x.dtype) * priority  # 0 where not a maximum
+    first = ranked == _upsample2(F.max_pool2d(ranked, 2, 2))
+    return pooled, first.to(x.dtype)
 
 
 class PixelShuffleConvTranspose(nn.Module):
@@ -215,14 +190,13 @@ class DownsamplingForExport(nn.Module):
         self.register_buffer(
             "pad_weight", _channel_placement(in_channels + block.extra_channels, in_channels)
         )
-        self.register_buffer("taps", window_taps(in_channels))
         # an identity depthwise conv: onnxruntime then keeps the mask in its blocked layout
         self.register_buffer("identity", torch.ones(in_channels, 1, 1, 1))
         self.ext = block.ext
         self.out_act = block.out_act
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        pooled, mask = switch_mask(x, self.taps)
+        pooled, mask = switch_mask(x)
         main = F.conv2d(pooled, self.pad_weight)
         return self.out_act(main + self.ext(x)), _depthwise(mask, self.identity)
 
@@ -294,8 +268,22 @@ class UpsamplingForExport(nn.Module):
         self.out_act = block.out_act
 
     def forward(self, x: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
-        main = F.interpolate(self.main_conv(x), scale_factor=2.0, mode="nearest") * mask
+        main = _upsample2(self.main_conv(x)) * mask
         return self.out_act(main + self.ext(x))
+
+
+class UnitNormalsForExport(nn.Module):
+    """:class:`~geoseg.models.joint.UnitNormals` as ``x / max(sqrt(sum_c x^2), eps)``:
+    `(B, 3, H, W)` → `(B, 3, H, W)`, the same arithmetic as ``F.normalize``. onnxruntime's
+    ``ReduceL2`` over three channels runs ~1.5x slower than ``Mul``, ``ReduceSum``, ``Sqrt``
+    (docs/onnx_operators.md)."""
+
+    def __init__(self, unit: UnitNormals) -> None:
+        super().__init__()
+        self.eps = unit.eps
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        return raw / torch.sqrt((raw * raw).sum(1, keepdim=True)).clamp_min(self.eps)
 
 
 _REWRITES: dict[type, type] = {
@@ -304,6 +292,7 @@ _REWRITES: dict[type, type] = {
     UpsamplingBottleneck: UpsamplingForExport,
     nn.PReLU: DepthwisePReLU,
     nn.ConvTranspose2d: PixelShuffleConvTranspose,
+    UnitNormals: UnitNormalsForExport,
 }
 
 

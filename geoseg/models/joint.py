@@ -38,6 +38,19 @@ from geoseg.models.enet import ENet, ENetHead, ENetTrunk, crop_to, pad_to_multip
 logger = logging.getLogger(__name__)
 
 
+class UnitNormals(nn.Module):
+    """Surface normals L2-normalised along the channels: `(B, 3, H, W)` → unit vectors
+    (``F.normalize``, ``eps`` guarding zero vectors). A module so that the ONNX export can swap
+    in a form onnxruntime runs faster (:mod:`geoseg.export_rewrites`)."""
+
+    def __init__(self, eps: float = 1e-6) -> None:
+        super().__init__()
+        self.eps = eps
+
+    def forward(self, raw: torch.Tensor) -> torch.Tensor:
+        return F.normalize(raw, dim=1, eps=self.eps)
+
+
 class JointNet(nn.Module):
     """Shared ENet trunk (layers 1-21) + label head + normals head.
 
@@ -65,6 +78,7 @@ class JointNet(nn.Module):
         self.trunk = ENetTrunk(in_channels)
         self.label_head = ENetHead(num_classes)
         self.normal_head = ENetHead(3)
+        self.unit_normals = UnitNormals()
         self._frozen = False
         if freeze_trunk:
             self.freeze_trunk_and_labels()
@@ -127,7 +141,7 @@ class JointNet(nn.Module):
         features, indices1, indices2 = self.trunk(pad_to_multiple(x))
         logits = crop_to(self.label_head(features, indices1, indices2), h, w)
         raw = crop_to(self.normal_head(features, indices1, indices2), h, w)
-        normals = F.normalize(raw, dim=1, eps=1e-6)
+        normals = self.unit_normals(raw)
         return {"logits": logits, "normals": normals, "features": features}
 
 

@@ -10,9 +10,8 @@ from geoseg.export_rewrites import (
     SubPixelTransposedConv,
     depth_to_space,
     rewrite_for_onnxruntime,
-    space_to_depth,
     switch_mask,
-    window_taps,
+    window_priority,
 )
 from geoseg.models import get_model
 from geoseg.models.enet import DownsamplingBottleneck
@@ -45,14 +44,15 @@ def test_switch_mask_marks_torchs_pooling_index_even_on_ties() -> None:
     assert mask.reshape(2, 5, 4, 2, 5, 2).sum((3, 5)).eq(1).all()  # one switch per window
 
 
-def test_space_to_depth_and_depth_to_space_are_exact_pixel_unshuffle_and_shuffle() -> None:
-    x = torch.randn(2, 3, 6, 8, generator=torch.Generator().manual_seed(3)) * 1e3
-    taps = window_taps(3)
-    assert taps.shape == (12, 1, 2, 2)
-    packed = space_to_depth(x, taps)
-    assert torch.equal(packed, F.pixel_unshuffle(x, 2))  # copies: bit-exact
-    assert torch.equal(depth_to_space(packed), x)
-    assert torch.equal(depth_to_space(packed), F.pixel_shuffle(packed, 2))
+def test_depth_to_space_is_an_exact_pixel_shuffle() -> None:
+    packed = torch.randn(2, 12, 3, 4, generator=torch.Generator().manual_seed(3)) * 1e3
+    assert torch.equal(depth_to_space(packed), F.pixel_shuffle(packed, 2))  # copies: bit-exact
+
+
+def test_window_priority_ranks_each_window_in_row_major_order() -> None:
+    rank = window_priority(4, 6, torch.float32)
+    y, x = torch.meshgrid(torch.arange(4), torch.arange(6), indexing="ij")
+    assert torch.equal(rank, (4 - 2 * (y % 2) - x % 2).float())
 
 
 @pytest.mark.parametrize("slopes", [1, 6])
@@ -103,20 +103,17 @@ def test_rewrite_leaves_other_models_alone_and_rejects_half_an_enet() -> None:
         rewrite_for_onnxruntime(torch.nn.Sequential(DownsamplingBottleneck(16, 64)))
 
 
-def test_first_of_four_keeps_the_first_one_of_each_group() -> None:
-    from geoseg.export_rewrites import first_of_four
+def test_unit_normals_export_form_matches_normalize_zero_vectors_included() -> None:
+    from geoseg.export_rewrites import UnitNormalsForExport
+    from geoseg.models.joint import UnitNormals
 
-    groups = torch.tensor(
-        [[0, 0, 0, 0], [1, 1, 1, 1], [0, 1, 0, 1], [0, 0, 1, 0], [1, 0, 0, 1], [0, 0, 0, 1]],
-        dtype=torch.float32,
-    )  # (6 groups, 4)
-    want = torch.zeros_like(groups)
-    for g, row in enumerate(groups):
-        hits = row.nonzero()
-        if len(hits):
-            want[g, hits[0, 0]] = 1
-    got = first_of_four(groups.reshape(1, 24, 1, 1)).reshape(6, 4)
-    torch.testing.assert_close(got, want)
+    raw = torch.randn(2, 3, 5, 7, generator=torch.Generator().manual_seed(6)) * 10
+    raw[0, :, 1, 2] = 0.0  # a zero vector: eps keeps it finite (zero)
+    raw[1, :, 3, 4] = 1e-8
+    unit = UnitNormals()
+    got = UnitNormalsForExport(unit)(raw)
+    torch.testing.assert_close(got, unit(raw), rtol=1e-6, atol=1e-7)
+    assert torch.equal(got[0, :, 1, 2], torch.zeros(3))
 
 
 def test_pixel_shuffle_conv_transpose_matches_the_2x2_transposed_conv() -> None:
