@@ -236,27 +236,41 @@ def fit_level_similarity(
     R_level = so3_exp(axis / max(np.linalg.norm(axis), 1e-12) * angle)
     w = _pair_weights(weights, src.shape[0], "fit_level_similarity")
     level = src @ R_level.T
-    root = np.sqrt(w)[:, None]  # weighted least squares = unweighted on sqrt(w)-scaled pairs
-    a = root * (level[:, :2] - w @ level[:, :2])
-    b = root * (dst[:, :2] - w @ dst[:, :2])
+    _, a = _centred(level[:, :2], w)
+    _, b = _centred(dst[:, :2], w)
     s, R2 = rotation_and_scale(a, b, b.T @ a, fix_scale=fix_scale, name="fit_level_similarity")
     R_yaw = np.eye(3)
     R_yaw[:2, :2] = R2
     R = R_yaw @ R_level
     moved = s * src @ R.T
-    T = np.append(w @ dst[:, :2] - w @ moved[:, :2], 0.0)
-    T[2] = w @ dst[:, 2] - w @ moved[:, 2]
+
+    def mean(x: np.ndarray) -> np.ndarray:
+        return x.mean(axis=0) if w is None else w @ x
+
+    T = np.append(mean(dst[:, :2]) - mean(moved[:, :2]), 0.0)
+    T[2] = mean(dst[:, 2]) - mean(moved[:, 2])
     return s, R, T
 
 
-def _pair_weights(weights: np.ndarray | None, n: int, name: str) -> np.ndarray:
-    """``(n,)`` weights summing to 1 (equal when ``weights`` is None)."""
+def _pair_weights(weights: np.ndarray | None, n: int, name: str) -> np.ndarray | None:
+    """``(n,)`` weights summing to 1, or None when they are all equal (the unweighted fit,
+    computed as such: a GPS's fits stay the same to the last bit)."""
     if weights is None:
-        return np.full(n, 1.0 / n)
+        return None
     w = np.asarray(weights, dtype=np.float64).reshape(-1)
     if w.size != n or not np.all(np.isfinite(w)) or not np.all(w > 0):
         raise SlamError(f"{name}: expected {n} positive finite weights, got {w.size}")
-    return w / w.sum()
+    return None if np.all(w == w[0]) else w / w.sum()
+
+
+def _centred(x: np.ndarray, w: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(mean (D,), rows centred on it and scaled by sqrt(w) (N, D))``: weighted least squares
+    as unweighted least squares on the scaled rows (plain means and rows when ``w`` is None)."""
+    if w is None:
+        mu = x.mean(axis=0)
+        return mu, x - mu
+    mu = w @ x
+    return mu, np.sqrt(w)[:, None] * (x - mu)
 
 
 def fit_similarity(
@@ -292,9 +306,7 @@ def fit_similarity(
     if src.shape[0] < 2:
         raise SlamError("fit_similarity: needs at least 2 points")
     w = _pair_weights(weights, src.shape[0], "fit_similarity")
-    mu_s, mu_d = w @ src, w @ dst
-    root = np.sqrt(w)[:, None]  # weighted least squares = unweighted on sqrt(w)-scaled pairs
-    a, b = root * (src - mu_s), root * (dst - mu_d)
+    (mu_s, a), (mu_d, b) = _centred(src, w), _centred(dst, w)
     H = b.T @ a  # sum_i w_i b_i a_i^T
     if up_src is not None:
         u = np.asarray(up_src, dtype=np.float64)

@@ -115,6 +115,7 @@ NON_NUMERIC = {
         "--reloc-head",
         "--relpose-head",
         "--no-rerank",
+        "--structure",
         "--pool",
         "--features",
         "--sequence",
