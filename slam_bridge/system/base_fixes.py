@@ -47,8 +47,9 @@ class BaseFixConfig:
         structure: localise on the base's triangulated points first (PnP).
         structure_weight: weight of a fix from the base's points, per square metre (a GPS
             fix's is ``ImageSlamConfig.gps_weight``, for a 0.75 m receiver). The weights, the
-            tracking and ``refit_distance_m`` were chosen on the tuning drives of
-            ``bench/reloc_slam.py --tuning`` (``RELOC_SLAM_TUNING_SEEDS``): no GPS, mean error
+            tracking and ``refit_distance_m`` were chosen on the tuning drives
+            ``RELOC_SLAM_TUNING_SEEDS`` (bench/splits.py; ``bench/reloc_slam.py --tuning``
+            runs them), the fixes of each localised once: no GPS, mean error
             0.47 m with the defaults (the start-up's fit weighing each fix by its weight),
             0.81 with ``refit_distance_m`` 40 (one drive's start turned by a fit over too
             few fixes), 0.97 with 200 (docs/relocalisation.md).
