@@ -155,6 +155,18 @@ class GpsConstraints:
 
     def fix_at(self, timestamp: float) -> np.ndarray | None:
         """The ``(2,)`` fix for ``timestamp``, or None (dropout, none near)."""
+        rows = self.rows_at(timestamp)
+        if rows is None:
+            return None
+        if len(rows) == 1:
+            return self.xy[rows[0]].copy()
+        a, b = rows
+        w = (timestamp - self.timestamps[a]) / (self.timestamps[b] - self.timestamps[a])
+        return (1 - w) * self.xy[a] + w * self.xy[b]
+
+    def rows_at(self, timestamp: float) -> tuple[int, ...] | None:
+        """The fixes :meth:`fix_at` uses for ``timestamp``: ``(i,)`` within ``tolerance_s``,
+        ``(a, b)`` interpolated, or None."""
         t, n = self.timestamps, self.timestamps.size
         if n == 0:
             return None
@@ -162,15 +174,13 @@ class GpsConstraints:
         near = [i for i in (hi - 1, hi) if 0 <= i < n]
         i = min(near, key=lambda j: abs(t[j] - timestamp))
         if abs(t[i] - timestamp) <= self.tolerance_s:
-            fix = self.xy[i]
-            return fix.copy() if np.all(np.isfinite(fix)) else None
+            return (i,) if np.all(np.isfinite(self.xy[i])) else None
         if self.interpolate_gap_s is None or not 0 < hi < n:
             return None
         a, b = hi - 1, hi
         if t[b] - t[a] > self.interpolate_gap_s or not np.all(np.isfinite(self.xy[[a, b]])):
             return None
-        w = (timestamp - t[a]) / (t[b] - t[a])
-        return (1 - w) * self.xy[a] + w * self.xy[b]
+        return (a, b)
 
     def fix_weights(self) -> np.ndarray:
         """``(F,)`` each fix's weight: all :attr:`weight` (a provider whose fixes differ in

@@ -176,14 +176,9 @@ class BaseConstraints(GpsConstraints):
 
     def weight_at(self, timestamp: float) -> float:
         """The weight of the fix :meth:`fix_at` gives for ``timestamp`` (the lower of the two
-        it interpolates)."""
-        t = self.timestamps
-        hi = int(np.searchsorted(t, timestamp))
-        near = [i for i in (hi - 1, hi) if 0 <= i < t.size]
-        i = min(near, key=lambda j: abs(t[j] - timestamp))
-        if abs(t[i] - timestamp) <= self.tolerance_s:
-            return float(self.weights[i])
-        return float(self.weights[[j for j in (hi - 1, hi) if 0 <= j < t.size]].min())
+        it interpolates; 0 when it gives none)."""
+        rows = self.rows_at(timestamp)
+        return 0.0 if rows is None else float(self.weights[list(rows)].min())
 
     def factors(self, slam_map, problem, k: int) -> list:
         """One :class:`~slam_bridge.factors.gps.GPSFactor` on the newest free camera with the
