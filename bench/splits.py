@@ -106,7 +106,8 @@ CAMVID_REPORT = "CamVid val"
 # city, a summer drive and a winter traversal of the same route as the image base
 #: the localisation on the base's points (geoseg.reloc.base_structure: its inlier gate) and the
 #: base fixes' settings (slam_bridge.system.base_fixes.BaseFixConfig) were chosen on these
-RELOC_SLAM_TUNING_SEEDS = (41, 42, 43)
+#: (41-43 first; 44-46 were added when the closing adjustment on the fixes was chosen)
+RELOC_SLAM_TUNING_SEEDS = (41, 42, 43, 44, 45, 46)
 #: never used to choose a setting. (A first version of the base fixes, retrieval and best
 #: matches only, was measured here before the points' PnP existed; nothing was tuned on it.)
 RELOC_SLAM_REPORT_SEEDS = (31, 32, 33, 34, 35)

@@ -285,6 +285,8 @@ def _check_slam_from_base(summary_path: Path) -> None:
     assert summary["georeferenced"] and summary["tracking_failures"] == 0, summary["status"]
     assert summary["base_fixes"] >= 0.8 * summary["base_frames_localised"] > 0
     assert summary["base_fused_keyframes"] > 0 and "gps_error_m" not in summary
+    assert summary["base_adjustment"]["base_rows"] > 0  # the run closed on its fixes
+    assert "online_translation_error_m" in summary
     assert summary["translation_error_m"] < BASE_SLAM_MAX_ERROR_M, summary["translation_error_m"]
     log = list(csv.DictReader(open(summary_path.parent / "keyframes.csv")))
     assert any("base" in r["constraints"] for r in log)

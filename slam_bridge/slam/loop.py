@@ -234,6 +234,9 @@ class SlamResult:
         seconds: total wall time.
         recoveries: ``(keyframe, rms before, rms after)`` of each time the start-up had to
             georeference a segment again (its fixes had left the trajectory).
+        adjustment: the figures of a bundle adjustment of the whole map after the loop
+            (:func:`slam_bridge.system.base_fixes.adjust_on_fixes`), or None: the poses are
+            the loop's.
     """
 
     method: str
@@ -243,6 +246,7 @@ class SlamResult:
     georeferenced_segments: list[int] = field(default_factory=list)
     seconds: float = 0.0
     recoveries: list[tuple[int, float, float]] = field(default_factory=list)
+    adjustment: dict | None = None
 
     @property
     def placed(self) -> np.ndarray:

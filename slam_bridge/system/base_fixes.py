@@ -12,6 +12,12 @@ weight. The fixes join the fusion through the GPS term under the name ``base``, 
 GPS, they georeference the start-up and a segment started after a tracking loss, in the same
 world frame: the SLAM starts and recovers from the base.
 
+The fusion moves only the newest keyframe, and within the barrier's slack (a few per cent of
+the window's reprojection cost): fixes to a decimetre pull it far less than they could, and
+the keyframes behind it never feel the fixes that come after them. Once the run is over, one
+bundle adjustment of every keyframe together (:func:`adjust_on_fixes`, the global adjustment of
+:mod:`slam_bridge.system.refine` with the base's rows) bends the map onto all of them.
+
 The frames are localised before the loop starts (a recorded drive); a live system would
 localise keyframes as they come, with the same fixes.
 """
@@ -28,7 +34,7 @@ import numpy as np
 from slam_bridge.errors import SlamError
 from slam_bridge.slam.fusion import GpsConstraints
 
-__all__ = ["BaseFixConfig", "BaseFixes", "BaseConstraints", "localise_frames"]
+__all__ = ["BaseFixConfig", "BaseFixes", "BaseConstraints", "localise_frames", "adjust_on_fixes"]
 
 logger = logging.getLogger(__name__)
 
@@ -68,6 +74,10 @@ class BaseFixConfig:
             200 m): fixes to centimetres fix the heading within tens of metres, and beyond
             them a refit of the whole segment only spreads the map's own bends over it.
         batch: frames localised together (memory against speed).
+        adjust: once the run is over, adjust all its keyframes together on the fixes
+            (:func:`adjust_on_fixes`): on the tuning drives 41-46, no GPS, mean error 0.61 m
+            without, 0.06 with (0.04-0.14 by drive); the base rows' Huber threshold (3 sigmas)
+            0.06 against 0.08 without one.
     """
 
     every_s: float = 0.5
@@ -81,6 +91,7 @@ class BaseFixConfig:
     track_images: int = 3
     refit_distance_m: float = 80.0
     batch: int = 16
+    adjust: bool = True
 
     def __post_init__(self) -> None:
         for name in (
@@ -352,3 +363,48 @@ def base_constraints(fixes: BaseFixes, config: BaseFixConfig, interpolate_gap_s:
         tolerance_s=0.02,
         interpolate_gap_s=interpolate_gap_s,
     )
+
+
+def adjust_on_fixes(result, inputs, base: BaseConstraints, gps=None) -> dict[str, Any]:
+    """One bundle adjustment of the whole run on the base's fixes, once it is over.
+
+    The global adjustment of :func:`slam_bridge.system.refine.refine_map` (its default
+    settings): every observation the run kept, a row per keyframe with a base fix (its
+    weight, Huber), the GPS's rows when there is one, the DEM, the odometry and the verticals.
+    The adjusted poses and points replace the run's in ``result.map`` (the online poses,
+    ``Map.t_wc_online``, stay what the run knew then); a problem the adjustment cannot solve
+    leaves the run as it was, with a warning.
+
+    Args:
+        result: the run's :class:`slam_bridge.slam.loop.SlamResult`, georeferenced.
+        inputs: its :class:`slam_bridge.system.image_slam.SlamInputs` (DEM, odometry, rig).
+        base: the run's base provider.
+        gps: the run's :class:`slam_bridge.slam.fusion.GpsConstraints`, or None.
+
+    Returns:
+        The adjustment's figures (:attr:`slam_bridge.system.refine.RefineResult.figures`;
+        ``error``: why nothing was adjusted).
+    """
+    from slam_bridge.system.map_file import saved_map
+    from slam_bridge.system.refine import refine_map
+
+    try:
+        refined = refine_map(
+            saved_map(result, inputs, gps=gps), dem=inputs.dem, gps=gps, base=base,
+            odometry=inputs.odometry,
+        )  # fmt: skip
+    except SlamError as err:
+        logger.warning("image base: the run's keyframes were not adjusted on its fixes (%s)", err)
+        return {"error": str(err)}
+    m, kf = result.map, refined.refined
+    m.R_wc[kf] = refined.map.R_wc[kf]
+    m.t_wc[kf] = refined.map.t_wc[kf]
+    m.X_w[:] = refined.map.X_w
+    f = refined.figures
+    logger.info(
+        "image base: %d keyframes adjusted on %d fixes (moved %.2f m on average, %.2f at most; "
+        "%.1f s)",
+        kf.sum(), f.get("base_rows", 0), f["keyframe_shift_m_mean"], f["keyframe_shift_m_max"],
+        f["seconds"],
+    )  # fmt: skip
+    return f

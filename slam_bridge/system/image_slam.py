@@ -73,6 +73,7 @@ from slam_bridge.system.base_fixes import (
     BaseConstraints,
     BaseFixConfig,
     BaseFixes,
+    adjust_on_fixes,
     base_constraints,
     localise_frames,
 )
@@ -343,6 +344,8 @@ def run_image_slam(
     if inputs.base is not None:
         summary.update(base_fixes_of(inputs, cfg).summary())
         summary["base_fused_keyframes"] = sum("base" in r.constraints for r in result.records)
+        if result.adjustment is not None:
+            summary["base_adjustment"] = result.adjustment
     if gps is not None and gps.bias is not None and gps.bias.history:
         _, _, b, _, facades, p_biased = gps.bias.history[-1]
         summary.update(  # the last estimate of the GPS's bias (the fixes less it were fused)
@@ -382,7 +385,9 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         ``rotation_error_deg`` (mean), ``gps_error_m`` (mean horizontal error of the valid
         fixes over the keyframes' time span, each against the true antenna position at the
         fix's own time: :func:`gps_fix_errors`) and their ratio ``translation_error_over_gps``;
-        over the keyframes placed in the world frame only (``keyframes_in_world``).
+        over the keyframes placed in the world frame only (``keyframes_in_world``). After an
+        adjustment of the whole run (``result.adjustment``), ``online_translation_error_m``
+        is the error of the poses the loop gave each keyframe when it was made.
     """
     from slam_bridge.evaluation.metrics import rotation_errors
 
@@ -404,6 +409,9 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         translation_error_3d_m=float(e_3.mean()),
         rotation_error_deg=float(e_r.mean()),
     )
+    if result.adjustment is not None:
+        online = m.t_wc_online[keep, :2] - T_true[idx][keep, :2]
+        out["online_translation_error_m"] = float(np.nanmean(np.linalg.norm(online, axis=1)))
     if inputs.gps_xy is not None:
         t0, t1 = float(m.timestamps[keep][0]), float(m.timestamps[keep][-1])
         errors = gps_fix_errors(inputs, (t0, t1))
@@ -521,6 +529,8 @@ def run_on_images(
         source.bar.close()
         if bridge is not None:
             bridge.close()
+    if base is not None and cfg.base.adjust and result.in_world.any():
+        result.adjustment = adjust_on_fixes(result, inputs, base, gps)
     return result, tracks
 
 

@@ -53,7 +53,7 @@ import numpy as np
 from geoseg.atomic import atomic_output
 from slam_bridge.errors import SlamError
 
-__all__ = ["MAP_FILE", "MAP_FORMAT_VERSION", "SavedMap", "save_map", "load_map"]
+__all__ = ["MAP_FILE", "MAP_FORMAT_VERSION", "SavedMap", "save_map", "load_map", "saved_map"]
 
 MAP_FILE = "map.npz"
 MAP_FORMAT_VERSION = 1
@@ -127,6 +127,26 @@ def save_map(path: str | Path, result, inputs, bridge=None, gps=None) -> Path:
 
     Args:
         path: the file (``RUN/map.npz``).
+        result, inputs, bridge, gps: as :func:`map_arrays`.
+
+    Returns:
+        ``path``.
+    """
+    with atomic_output(path, "wb") as f:
+        np.savez_compressed(f, **map_arrays(result, inputs, bridge, gps))
+    return Path(path)
+
+
+def saved_map(result, inputs, bridge=None, gps=None) -> SavedMap:
+    """A run's map as :func:`load_map` would read it back, without a file (the arguments of
+    :func:`map_arrays`; the arrays are copies)."""
+    return _saved_map(map_arrays(result, inputs, bridge, gps), Path("<memory>"))
+
+
+def map_arrays(result, inputs, bridge=None, gps=None) -> dict[str, np.ndarray]:
+    """The file's arrays (module docstring) of a run.
+
+    Args:
         result: the run's :class:`slam_bridge.slam.loop.SlamResult`.
         inputs: its :class:`slam_bridge.system.image_slam.SlamInputs` (rig, frame times,
             georeference).
@@ -134,9 +154,6 @@ def save_map(path: str | Path, result, inputs, bridge=None, gps=None) -> Path:
             is saved), or None.
         gps: its :class:`slam_bridge.slam.fusion.GpsConstraints` (the bias it estimated, if
             any, is saved at its fixes' times), or None.
-
-    Returns:
-        ``path``.
     """
     m = result.map
     frame_t = np.asarray(inputs.frames.timestamps, dtype=np.float64)
@@ -187,9 +204,7 @@ def save_map(path: str | Path, result, inputs, bridge=None, gps=None) -> Path:
             gps_bias_xy=np.asarray(bias.at(t)),
             gps_bias_var=np.where(i >= 0, var[np.maximum(i, 0)], 0.0),
         )
-    with atomic_output(path, "wb") as f:
-        np.savez_compressed(f, **arrays)
-    return Path(path)
+    return {k: np.array(v) for k, v in arrays.items()}  # copies: the map goes on changing
 
 
 def load_map(path: str | Path) -> SavedMap:
@@ -217,6 +232,11 @@ def load_map(path: str | Path) -> SavedMap:
             data = {k: z[k] for k in z.files}
     except (OSError, ValueError) as err:
         raise SlamError(f"{path}: not a map file ({err})") from None
+    return _saved_map(data, path)
+
+
+def _saved_map(data: dict[str, np.ndarray], path: Path) -> SavedMap:
+    """The :class:`SavedMap` of a file's arrays, checked (``path`` names them in errors)."""
     missing = [k for k in _REQUIRED if k not in data]
     if missing:
         raise SlamError(f"{path}: not a map file of `geoseg slam run` (missing {missing})")

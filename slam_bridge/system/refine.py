@@ -18,6 +18,9 @@ the points seen at least ``min_views`` times by them:
   less the receiver's bias as the run estimated it from the building model when it did, its
   weight lowered by the estimate's variance as the run's fusion lowers it (``gps_bias``;
   :mod:`slam_bridge.bridge.gps_bias`);
+* a base row per keyframe with a fix from an image base (the camera's own position, each fix
+  with its own weight: :class:`slam_bridge.system.base_fixes.BaseConstraints`), Huber beyond
+  ``base_huber`` sigmas: a fix on a repeated facade is an outlier;
 * a DEM row per keyframe on the DEM's roads (:class:`slam_bridge.factors.dem.DEMFactor`);
 * a vertical row per keyframe whose image gave world down (the run's vertical line segments,
   :class:`slam_bridge.factors.vertical.VerticalFactor`, ``vertical_sigma_deg`` per axis, Huber):
@@ -55,6 +58,7 @@ import numpy as np
 
 from geoseg.errors import check_positive
 from slam_bridge.ba.factor import Factor
+from slam_bridge.ba.robust import HuberKernel
 from slam_bridge.ba.solvers.barrier import BarrierConfig, solve_barrier
 from slam_bridge.ba.solvers.lm import BAObjective, LMConfig, levenberg_marquardt
 from slam_bridge.ba.state import BAState
@@ -102,6 +106,7 @@ class RefineConfig:
         dem_max_distance_m: a camera farther than this from every DEM segment has no DEM row.
         vertical_sigma_deg: standard deviation of a measured vertical, per axis, degrees
             (None: no vertical row).
+        base_huber: Huber threshold of a base row, in sigmas of its fix (None: least squares).
         odometry_band: dead zone of the odometry rows, in sigmas of the odometry's distance.
         association: ``auto`` (the run's when it has one, else ``nearest``), ``saved`` (the
             run's, required) or ``nearest``.
@@ -129,6 +134,7 @@ class RefineConfig:
     dem_weight: float = 0.1
     dem_max_distance_m: float = 15.0
     vertical_sigma_deg: float | None = 0.5
+    base_huber: float | None = 3.0
     odometry_band: float = 2.0
     association: str = "auto"
     radius_m: float = 1.0
@@ -153,6 +159,7 @@ class RefineConfig:
             check_positive(name, getattr(self, name))
         for name in (
             "pixel_huber",
+            "base_huber",
             "gps_interpolate_gap_s",
             "building_share",
             "vertical_sigma_deg",
@@ -191,6 +198,7 @@ def refine_map(
     facades: Facades | None = None,
     dem=None,
     gps: GpsConstraints | None = None,
+    base=None,
     odometry=None,
 ) -> RefineResult:
     """The global constrained bundle adjustment of a run's map (module docstring).
@@ -202,6 +210,9 @@ def refine_map(
         dem: the road DEM (:class:`slam_bridge.factors.dem.DemSegments`).
         gps: the GPS fixes (weight and lever arm of ``config`` and ``saved`` apply, not its
             own).
+        base: fixes of the camera from an image base, each with its weight
+            (:class:`slam_bridge.system.base_fixes.BaseConstraints`; its tolerance and
+            interpolation apply).
         odometry: the wheel odometry (:class:`slam_bridge.slam.initialization.
             OdometryDistance`).
 
@@ -210,7 +221,7 @@ def refine_map(
 
     Raises:
         SlamError: fewer than two keyframes in the world frame, no observation left, nothing
-            that holds the map in the world (no GPS and no building row), ``association:
+            that holds the map in the world (no GPS, base or building row), ``association:
             saved`` on a map without one, an association that refers to facades the table
             lacks.
     """
@@ -249,6 +260,11 @@ def refine_map(
             gps_total = float(np.sum(g.sqrt_weights**2))
         figures["gps_rows"] = 0 if g is None else int(g.cameras.size)
         figures["gps_bias_removed"] = bool(cfg.gps_bias and saved.gps_bias_xy is not None)
+    if base is not None:
+        b = _base_factor(saved, kf, base, cfg)
+        if b is not None:
+            constraints.append(b)
+        figures["base_rows"] = 0 if b is None else int(b.cameras.size)
     if dem is not None:
         d = _dem_factor(saved, state, dem, cfg)
         if d is not None:
@@ -262,8 +278,8 @@ def refine_map(
         figures["association"] = method
     if not any(isinstance(f, (GPSFactor, BuildingFactor)) for f in constraints):
         raise SlamError(
-            "refine: nothing holds the map horizontally in the world frame: give a GPS log "
-            "or a building model whose facades the map points lie near"
+            "refine: nothing holds the map horizontally in the world frame: give a GPS log, "
+            "an image base's fixes or a building model whose facades the map points lie near"
         )
     rms0 = _rms_px(rep, state)
     if cfg.method == "joint":
@@ -363,6 +379,25 @@ def _gps_factor(saved, kf, state, gps: GpsConstraints, cfg: RefineConfig) -> GPS
         logger.warning("refine: no GPS fix at any keyframe's time (no GPS row)")
         return None
     return GPSFactor(np.array(cams), np.array(fixes), np.array(weights), name="gps")
+
+
+def _base_factor(saved, kf, base, cfg: RefineConfig) -> GPSFactor | None:
+    """A row per keyframe with a fix from the image base, weighted as the run weighed it."""
+    cams, fixes, weights = [], [], []
+    for i, k in enumerate(kf):
+        t = float(saved.timestamps[k])
+        fix = base.fix_at(t)
+        if fix is not None:
+            cams.append(i)
+            fixes.append(fix)
+            weights.append(base.weight_at(t))
+    if not cams:
+        logger.warning("refine: no base fix at any keyframe's time (no base row)")
+        return None
+    kernel = None if cfg.base_huber is None else HuberKernel(cfg.base_huber)
+    return GPSFactor(
+        np.array(cams), np.array(fixes), np.array(weights), kernel=kernel, name="base"
+    )
 
 
 def _vertical_factor(saved, kf, sigma_deg: float) -> VerticalFactor | None:

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from geoseg.errors import GeosegError
 from slam_bridge.bridge.association import Association
 from slam_bridge.bridge.facades import Facades
 from slam_bridge.errors import SlamError
@@ -15,7 +16,8 @@ from slam_bridge.factors.dem import DemSegments
 from slam_bridge.slam.fusion import GpsConstraints
 from slam_bridge.slam.initialization import VehicleRig
 from slam_bridge.slam.map import Map
-from slam_bridge.system.map_file import MAP_FILE, SavedMap, load_map, save_map
+from slam_bridge.system.base_fixes import BaseConstraints, adjust_on_fixes
+from slam_bridge.system.map_file import MAP_FILE, SavedMap, load_map, save_map, saved_map
 from slam_bridge.system.reference import Trajectory, compare_trajectories
 from slam_bridge.system.refine import RefineConfig, refine_map
 from slam_bridge.testing.scenes import perturb, street_scene
@@ -40,16 +42,23 @@ def scene_map(scene, R, t, X) -> Map:
     return m
 
 
-def saved_of(m: Map, tmp_path, association=None, gps=None) -> SavedMap:
-    """``m`` through the map file (as ``geoseg slam run`` writes it)."""
+def run_of(m: Map, rig: VehicleRig | None = None):
+    """``(result, inputs)`` of a run whose map is ``m`` (every keyframe in the world frame)."""
     C = m.num_keyframes
     result = SimpleNamespace(
         map=m, in_world=np.ones(C, bool),
         records=[SimpleNamespace(keyframe=k, tracking="tracked") for k in range(C)],
     )  # fmt: skip
     inputs = SimpleNamespace(
-        frames=SimpleNamespace(timestamps=np.arange(2 * C) * 0.05), rig=VehicleRig(), georef=None
-    )
+        frames=SimpleNamespace(timestamps=np.arange(2 * C) * 0.05), rig=rig or VehicleRig(),
+        georef=None, dem=None, odometry=None,
+    )  # fmt: skip
+    return result, inputs
+
+
+def saved_of(m: Map, tmp_path, association=None, gps=None) -> SavedMap:
+    """``m`` through the map file (as ``geoseg slam run`` writes it)."""
+    result, inputs = run_of(m)
     bridge = None
     if association is not None:
         bridge = SimpleNamespace(constraints=SimpleNamespace(association=association))
@@ -81,6 +90,21 @@ def test_the_map_file_round_trips(scene, tmp_path):
     np.testing.assert_array_equal(s.frame, np.arange(m.num_keyframes) * 2)
     assert list(s.tracking) == ["tracked"] * m.num_keyframes and s.georef is None
     assert saved_of(m, tmp_path).facade is None  # a run without buildings has no association
+
+
+def test_the_map_in_memory_is_the_map_file_read_back(scene, tmp_path):
+    m = scene_map(scene, scene.R_wc, scene.t_wc, scene.X_w)
+    result, inputs = run_of(m)
+    memory = saved_map(result, inputs)
+    filed = load_map(save_map(tmp_path / MAP_FILE, result, inputs))
+    for name in SavedMap.__dataclass_fields__:
+        a, b = getattr(memory, name), getattr(filed, name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b, err_msg=name)
+        else:
+            assert a == b, name
+    memory.t_wc[0] += 1.0  # a copy: adjusting it leaves the run's map alone
+    assert m.t_wc[0, 0] == scene.t_wc[0, 0]
 
 
 def test_the_runs_gps_bias_estimate_is_kept_and_removed_from_the_fixes(scene, tmp_path):
@@ -186,3 +210,60 @@ def test_refine_refuses_what_it_cannot_solve(scene, tmp_path):
         RefineConfig(method="global")
     with pytest.raises(SlamError, match="min_views"):
         RefineConfig(min_views=1)
+
+
+def base_fixes_of(scene, m: Map, outlier_m: float = 0.0) -> BaseConstraints:
+    """Fixes of the true camera positions at every keyframe's time (weight 100: 0.1 m), the
+    sixth ``outlier_m`` off across the street (a fix on a repeated facade)."""
+    xy = scene.t_wc[:, :2].copy()
+    xy[5, 1] += outlier_m
+    return BaseConstraints(m.timestamps.copy(), xy, np.full(xy.shape[0], 100.0), tolerance_s=0.02)
+
+
+def test_base_fixes_hold_the_camera_and_huber_cuts_a_wrong_one(scene, tmp_path):
+    """The base's fixes are the camera's own position (a GPS antenna 1 m aside does not move
+    them), and a fix 3 m off costs linearly beyond 3 sigmas instead of bending the street."""
+    R, t, X = perturb(
+        scene.R_wc, scene.t_wc, scene.X_w, rot_sigma=0.02, trans_sigma=0.3, point_sigma=0.2
+    )
+    m = scene_map(scene, R, t, X)
+    result, inputs = run_of(m, VehicleRig(antenna_c=(1.0, 0.0, 0.0)))
+    saved = saved_map(result, inputs)
+    assert np.abs(saved.antenna_c).max() == 1.0
+    flat = DemSegments([[-20.0, 0.0]], [[80.0, 0.0]], [0.0], [0.0])
+    good = refine_map(saved, dem=flat, base=base_fixes_of(scene, m))
+    assert good.figures["base_rows"] == 12 and "gps_rows" not in good.figures
+    # measured: 0.014 m, from 0.31
+    assert truth_errors(scene, good.map)["translation_error_m"] < 0.05
+    wrong = base_fixes_of(scene, m, outlier_m=3.0)
+    robust = refine_map(saved, dem=flat, base=wrong)
+    plain = refine_map(saved, RefineConfig(base_huber=None), dem=flat, base=wrong)
+
+    def error_at_the_wrong_fix(r):
+        return np.linalg.norm(r.map.t_wc[5, :2] - scene.t_wc[5, :2])
+
+    # measured: 0.026 m with Huber, 0.27 m without
+    assert error_at_the_wrong_fix(robust) < 0.5 * error_at_the_wrong_fix(plain)
+    with pytest.raises(GeosegError, match="base_huber"):
+        RefineConfig(base_huber=0.0)
+
+
+def test_a_run_is_adjusted_on_its_base_fixes_and_keeps_its_online_poses(scene):
+    R, t, X = perturb(
+        scene.R_wc, scene.t_wc, scene.X_w, rot_sigma=0.02, trans_sigma=0.3, point_sigma=0.2
+    )
+    m = scene_map(scene, R, t, X)
+    for k in range(m.num_keyframes):
+        m.mark_online(k)
+    result, inputs = run_of(m)
+    figures = adjust_on_fixes(result, inputs, base_fixes_of(scene, m))
+    assert figures["base_rows"] == 12 and figures["keyframe_shift_m_mean"] > 0.1
+    error = np.linalg.norm(m.t_wc[:, :2] - scene.t_wc[:, :2], axis=1)
+    assert error.mean() < 0.05  # measured 0.014, from 0.31
+    np.testing.assert_array_equal(m.t_wc_online, t)
+    # fixes at no keyframe's time: nothing holds the map, and the run stays as it was
+    far = BaseConstraints(m.timestamps + 100.0, scene.t_wc[:, :2], np.ones(12), tolerance_s=0.02)
+    before = m.t_wc.copy()
+    failed = adjust_on_fixes(result, inputs, far)
+    assert "nothing holds the map" in failed["error"]
+    np.testing.assert_array_equal(m.t_wc, before)
