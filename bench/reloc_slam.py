@@ -14,7 +14,10 @@ Keys: ``noGPS_base_translation_error_m`` (target <= 0.5), ``noGPS_base_tracking_
 drive is a run that never restarted), ``base_constrained_share`` (keyframes fused with a base
 fix, no-GPS run), ``gps_plus_base_translation_error_m`` (target <= ``gps_only``'s),
 ``gps_only_translation_error_m``, ``base_fix_error_m`` (the fixes themselves against the
-truth); each the mean over the drives with ``_std`` beside it, every drive's under
+truth), and for the runs with a base the errors before the run's closing adjustment on the
+fixes: of the positions the loop left (``noGPS_base_loop_translation_error_m``,
+``gps_plus_base_loop_translation_error_m``) and of those it gave each keyframe as it went
+(``..._online_translation_error_m``); each the mean over the drives with ``_std`` beside it, every drive's under
 ``per_drive``; ``base_structure_fix_error_m`` the fixes placed on the base's points alone, and
 the counts summed over the drives: ``base_frames_localised`` (retrieval), ``base_frames_tracked``
 (placed on the points without it), ``base_fixes``, ``base_fixes_from_structure``. The base
@@ -160,10 +163,14 @@ def main(argv: list[str] | None = None) -> int:
     figures = {
         "noGPS_base_translation_error_m": "noGPS_base_translation_error_m",
         "noGPS_base_rotation_error_deg": "noGPS_base_rotation_error_deg",
+        "noGPS_base_loop_translation_error_m": "noGPS_base_loop_translation_error_m",
+        "noGPS_base_online_translation_error_m": "noGPS_base_online_translation_error_m",
         "base_constrained_share": "noGPS_base_base_constrained_share",
         "base_fix_error_m": "noGPS_base_base_fix_error_m",
         "base_structure_fix_error_m": "noGPS_base_base_structure_fix_error_m",
         "gps_plus_base_translation_error_m": "gps_plus_base_translation_error_m",
+        "gps_plus_base_loop_translation_error_m": "gps_plus_base_loop_translation_error_m",
+        "gps_plus_base_online_translation_error_m": "gps_plus_base_online_translation_error_m",
         "gps_only_translation_error_m": "gps_only_translation_error_m",
         "gps_error_m": "gps_only_gps_error_m",
     }

@@ -543,7 +543,10 @@ ABOUT: dict[str, str] = {
     "joint network + eq. 4.14, and the wrong associations by class and distance; see "
     "docs/bridge.md.",
     "reloc_slam": "The SLAM started and constrained by an image base (a winter traversal of the "
-    "route) instead of or beside a GPS, on five report drives; see bench/reloc_slam.py.",
+    "route) instead of or beside a GPS, on five report drives, its keyframes adjusted together "
+    "on the base's fixes once the drive is over (before it: the `_loop_` keys, the positions the "
+    "loop left, and the `_online_` keys, those it gave each keyframe as it went); see "
+    "bench/reloc_slam.py.",
     "gps_bias": "A biased GPS caught by the building model (thesis §4.4): six 150 m "
     "chapter-4 drives never used to choose a setting (seeds 31-36; seed 34's GPS misses most of "
     "its drive, so its biased runs never georeference), GIS model + odometry + DEM + "

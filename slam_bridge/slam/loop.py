@@ -237,6 +237,8 @@ class SlamResult:
         adjustment: the figures of a bundle adjustment of the whole map after the loop
             (:func:`slam_bridge.system.base_fixes.adjust_on_fixes`), or None: the poses are
             the loop's.
+        loop_t_wc: ``(C, 3)`` the optical centres the loop left before that adjustment, or
+            None.
     """
 
     method: str
@@ -247,6 +249,7 @@ class SlamResult:
     seconds: float = 0.0
     recoveries: list[tuple[int, float, float]] = field(default_factory=list)
     adjustment: dict | None = None
+    loop_t_wc: np.ndarray | None = None
 
     @property
     def placed(self) -> np.ndarray:

@@ -371,8 +371,9 @@ def adjust_on_fixes(result, inputs, base: BaseConstraints, gps=None) -> dict[str
     The global adjustment of :func:`slam_bridge.system.refine.refine_map` (its default
     settings): every observation the run kept, a row per keyframe with a base fix (its
     weight, Huber), the GPS's rows when there is one, the DEM, the odometry and the verticals.
-    The adjusted poses and points replace the run's in ``result.map`` (the online poses,
-    ``Map.t_wc_online``, stay what the run knew then); a problem the adjustment cannot solve
+    The adjusted poses and points replace the run's in ``result.map`` (the loop's are kept in
+    ``result.loop_t_wc``, and the online poses, ``Map.t_wc_online``, stay what the run knew
+    then); a problem the adjustment cannot solve
     leaves the run as it was, with a warning.
 
     Args:
@@ -397,6 +398,7 @@ def adjust_on_fixes(result, inputs, base: BaseConstraints, gps=None) -> dict[str
         logger.warning("image base: the run's keyframes were not adjusted on its fixes (%s)", err)
         return {"error": str(err)}
     m, kf = result.map, refined.refined
+    result.loop_t_wc = m.t_wc.copy()
     m.R_wc[kf] = refined.map.R_wc[kf]
     m.t_wc[kf] = refined.map.t_wc[kf]
     m.X_w[:] = refined.map.X_w

@@ -386,8 +386,9 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         fixes over the keyframes' time span, each against the true antenna position at the
         fix's own time: :func:`gps_fix_errors`) and their ratio ``translation_error_over_gps``;
         over the keyframes placed in the world frame only (``keyframes_in_world``). After an
-        adjustment of the whole run (``result.adjustment``), ``online_translation_error_m``
-        is the error of the poses the loop gave each keyframe when it was made.
+        adjustment of the whole run (``result.adjustment``), ``loop_translation_error_m`` is
+        the error of the positions the loop left and ``online_translation_error_m`` of those
+        it gave each keyframe when it was made.
     """
     from slam_bridge.evaluation.metrics import rotation_errors
 
@@ -410,8 +411,10 @@ def evaluate_run(result: SlamResult, inputs: SlamInputs) -> dict:
         rotation_error_deg=float(e_r.mean()),
     )
     if result.adjustment is not None:
-        online = m.t_wc_online[keep, :2] - T_true[idx][keep, :2]
-        out["online_translation_error_m"] = float(np.nanmean(np.linalg.norm(online, axis=1)))
+        for name, t_wc in (("loop", result.loop_t_wc), ("online", m.t_wc_online)):
+            if t_wc is not None:
+                e = np.linalg.norm(t_wc[keep, :2] - T_true[idx][keep, :2], axis=1)
+                out[f"{name}_translation_error_m"] = float(np.nanmean(e))
     if inputs.gps_xy is not None:
         t0, t1 = float(m.timestamps[keep][0]), float(m.timestamps[keep][-1])
         errors = gps_fix_errors(inputs, (t0, t1))

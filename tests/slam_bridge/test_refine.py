@@ -261,6 +261,7 @@ def test_a_run_is_adjusted_on_its_base_fixes_and_keeps_its_online_poses(scene):
     error = np.linalg.norm(m.t_wc[:, :2] - scene.t_wc[:, :2], axis=1)
     assert error.mean() < 0.05  # measured 0.014, from 0.31
     np.testing.assert_array_equal(m.t_wc_online, t)
+    np.testing.assert_array_equal(result.loop_t_wc, t)
     # fixes at no keyframe's time: nothing holds the map, and the run stays as it was
     far = BaseConstraints(m.timestamps + 100.0, scene.t_wc[:, :2], np.ones(12), tolerance_s=0.02)
     before = m.t_wc.copy()
