@@ -53,7 +53,15 @@ import numpy as np
 from geoseg.atomic import atomic_output
 from slam_bridge.errors import SlamError
 
-__all__ = ["MAP_FILE", "MAP_FORMAT_VERSION", "SavedMap", "save_map", "load_map", "saved_map"]
+__all__ = [
+    "MAP_FILE",
+    "MAP_FORMAT_VERSION",
+    "SavedMap",
+    "save_map",
+    "load_map",
+    "saved_map",
+    "map_arrays",
+]
 
 MAP_FILE = "map.npz"
 MAP_FORMAT_VERSION = 1

@@ -395,9 +395,7 @@ def _base_factor(saved, kf, base, cfg: RefineConfig) -> GPSFactor | None:
         logger.warning("refine: no base fix at any keyframe's time (no base row)")
         return None
     kernel = None if cfg.base_huber is None else HuberKernel(cfg.base_huber)
-    return GPSFactor(
-        np.array(cams), np.array(fixes), np.array(weights), kernel=kernel, name="base"
-    )
+    return GPSFactor(np.array(cams), np.array(fixes), np.array(weights), kernel=kernel, name="base")
 
 
 def _vertical_factor(saved, kf, sigma_deg: float) -> VerticalFactor | None:
