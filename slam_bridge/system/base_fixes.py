@@ -391,7 +391,7 @@ def adjust_on_fixes(result, inputs, base: BaseConstraints, gps=None) -> dict[str
 
     try:
         refined = refine_map(
-            saved_map(result, inputs, gps=gps), dem=inputs.dem, gps=gps, base=base,
+            saved_map(result, inputs, gps=gps, base=base), dem=inputs.dem, gps=gps, base=base,
             odometry=inputs.odometry,
         )  # fmt: skip
     except SlamError as err:

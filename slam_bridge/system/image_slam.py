@@ -371,7 +371,8 @@ def run_image_slam(
     so.write_frame_poses(out, poses)
     so.write_keyframe_log(out / "keyframes.csv", result, frame_of)
     so.write_map_points(out / "map_points.ply", result.map)
-    save_map(out / "map.npz", result, inputs, bridge, gps)  # for `geoseg slam refine`
+    base = _base_constraints(inputs, cfg)
+    save_map(out / "map.npz", result, inputs, bridge, gps, base)  # for `geoseg slam refine`
     so.plot_run(out / "trajectory.png", result, inputs, title=f"{cfg.method}: {out.name}")
     so.write_summary(out / "summary.json", summary)
     return out

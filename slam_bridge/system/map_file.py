@@ -36,6 +36,9 @@ key                       shape           meaning
 ``gps_bias_xy``,          ``(F, 2)``,     the building model, :mod:`slam_bridge.bridge.
 ``gps_bias_var``          ``(F,)``        gps_bias`) at each fix's time and its variance per
                                           axis (m²), when it did (else absent)
+``base_timestamps``,      ``(B,)``,       the fixes an image base gave the run (``--base``:
+``base_xy``,              ``(B, 2)``,     camera positions, NaN: none) and their weights,
+``base_weight``           ``(B,)``        when it had one (else absent)
 ``camera_height_m``       ``()``          rig: camera height above the road
 ``antenna_c``             ``(3,)``        rig: GPS antenna in the camera frame
 ``frame_timestamps``      ``(F,)``        every frame's time (for per-frame poses)
@@ -83,6 +86,9 @@ class SavedMap:
         gps_bias_timestamps: ``(F,)`` times of the run's GPS bias estimate, or None.
         gps_bias_xy: ``(F, 2)`` the estimate (``fix = true + bias``), metres, or None.
         gps_bias_var: ``(F,)`` its variance per axis (half the covariance's trace), m², or None.
+        base_timestamps: ``(B,)`` times of the image base's fixes, or None (no base).
+        base_xy: ``(B, 2)`` the fixes (the camera's position; NaN: none), or None.
+        base_weight: ``(B,)`` their weights, per square metre, or None.
         georef: ``(3,)`` origin latitude, longitude, altitude, or None.
     """
 
@@ -111,6 +117,9 @@ class SavedMap:
     gps_bias_timestamps: np.ndarray | None = None
     gps_bias_xy: np.ndarray | None = None
     gps_bias_var: np.ndarray | None = None
+    base_timestamps: np.ndarray | None = None
+    base_xy: np.ndarray | None = None
+    base_weight: np.ndarray | None = None
     georef: np.ndarray | None = None
 
     @property
@@ -130,28 +139,28 @@ class SavedMap:
         return ids, self.X_w[ids]
 
 
-def save_map(path: str | Path, result, inputs, bridge=None, gps=None) -> Path:
+def save_map(path: str | Path, result, inputs, bridge=None, gps=None, base=None) -> Path:
     """Write a run's map (module docstring), atomically.
 
     Args:
         path: the file (``RUN/map.npz``).
-        result, inputs, bridge, gps: as :func:`map_arrays`.
+        result, inputs, bridge, gps, base: as :func:`map_arrays`.
 
     Returns:
         ``path``.
     """
     with atomic_output(path, "wb") as f:
-        np.savez_compressed(f, **map_arrays(result, inputs, bridge, gps))
+        np.savez_compressed(f, **map_arrays(result, inputs, bridge, gps, base))
     return Path(path)
 
 
-def saved_map(result, inputs, bridge=None, gps=None) -> SavedMap:
+def saved_map(result, inputs, bridge=None, gps=None, base=None) -> SavedMap:
     """A run's map as :func:`load_map` would read it back, without a file (the arguments of
     :func:`map_arrays`; the arrays are copies)."""
-    return _saved_map(map_arrays(result, inputs, bridge, gps), Path("<memory>"))
+    return _saved_map(map_arrays(result, inputs, bridge, gps, base), Path("<memory>"))
 
 
-def map_arrays(result, inputs, bridge=None, gps=None) -> dict[str, np.ndarray]:
+def map_arrays(result, inputs, bridge=None, gps=None, base=None) -> dict[str, np.ndarray]:
     """The file's arrays (module docstring) of a run.
 
     Args:
@@ -162,6 +171,8 @@ def map_arrays(result, inputs, bridge=None, gps=None) -> dict[str, np.ndarray]:
             is saved), or None.
         gps: its :class:`slam_bridge.slam.fusion.GpsConstraints` (the bias it estimated, if
             any, is saved at its fixes' times), or None.
+        base: its :class:`slam_bridge.system.base_fixes.BaseConstraints` (the fixes and their
+            weights are saved), or None.
     """
     m = result.map
     frame_t = np.asarray(inputs.frames.timestamps, dtype=np.float64)
@@ -212,6 +223,8 @@ def map_arrays(result, inputs, bridge=None, gps=None) -> dict[str, np.ndarray]:
             gps_bias_xy=np.asarray(bias.at(t)),
             gps_bias_var=np.where(i >= 0, var[np.maximum(i, 0)], 0.0),
         )
+    if base is not None:
+        arrays.update(base_timestamps=base.timestamps, base_xy=base.xy, base_weight=base.weights)
     return {k: np.array(v) for k, v in arrays.items()}  # copies: the map goes on changing
 
 
@@ -280,6 +293,9 @@ def _saved_map(data: dict[str, np.ndarray], path: Path) -> SavedMap:
         gps_bias_timestamps=data.get("gps_bias_timestamps"),
         gps_bias_xy=data.get("gps_bias_xy"),
         gps_bias_var=data.get("gps_bias_var"),
+        base_timestamps=data.get("base_timestamps"),
+        base_xy=data.get("base_xy"),
+        base_weight=data.get("base_weight"),
         georef=None if np.isnan(georef).any() else georef,
     )
     _check(path, saved)
@@ -311,6 +327,13 @@ def _check(path: Path, s: SavedMap) -> None:
     bias = (s.gps_bias_timestamps, s.gps_bias_xy, s.gps_bias_var)
     if any(b is None for b in bias) and not all(b is None for b in bias):
         raise SlamError(f"{path}: gps_bias_timestamps, gps_bias_xy, gps_bias_var: all or none")
+    fixes = (s.base_timestamps, s.base_xy, s.base_weight)
+    if any(b is None for b in fixes) and not all(b is None for b in fixes):
+        raise SlamError(f"{path}: base_timestamps, base_xy, base_weight: all or none")
+    if s.base_xy is not None:
+        B = s.base_timestamps.size
+        expected["base_xy"] = (s.base_xy.shape, (B, 2))
+        expected["base_weight"] = (s.base_weight.shape, (B,))
     if s.gps_bias_xy is not None:
         F = s.gps_bias_timestamps.size
         expected["gps_bias_xy"] = (s.gps_bias_xy.shape, (F, 2))

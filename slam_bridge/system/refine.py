@@ -508,7 +508,8 @@ def refine_run(
     ``trajectory_kitti.txt``, ``map_points.ply`` and ``summary.json`` (the adjustment's
     figures, :attr:`RefineResult.figures`, and with ``truth`` the errors of the refined and of
     the run's keyframes against it: ``translation_error_m``, ``run_translation_error_m``, ...).
-    The folder is a reference for ``geoseg slam-eval run --reference``.
+    The folder is a reference for ``geoseg slam-eval run --reference``. A run with an image
+    base saved its fixes in its map: they join the adjustment as base rows.
 
     Args:
         run_dir: a ``geoseg slam run`` output folder.
@@ -548,7 +549,17 @@ def refine_run(
     out = prepare_output_dir(out_dir, producer=PRODUCER, overwrite=overwrite)
     remove_outputs(out, ["summary.json"])
     record_outputs(out, OUTPUTS)
-    result = refine_map(saved, cfg, facades=facades, dem=terrain, gps=fixes, odometry=distance)
+    base = None
+    if saved.base_xy is not None:  # a run with an image base: its fixes, as it weighed them
+        from slam_bridge.system.base_fixes import BaseConstraints
+
+        base = BaseConstraints(
+            saved.base_timestamps, saved.base_xy, saved.base_weight, tolerance_s=0.02,
+            interpolate_gap_s=cfg.gps_interpolate_gap_s,
+        )  # fmt: skip
+    result = refine_map(
+        saved, cfg, facades=facades, dem=terrain, gps=fixes, base=base, odometry=distance
+    )
     summary = {"method": cfg.method, "run": str(Path(run_dir).resolve()), **result.figures}
     if reference is not None:
         world = result.refined

@@ -105,6 +105,12 @@ def test_the_map_in_memory_is_the_map_file_read_back(scene, tmp_path):
             assert a == b, name
     memory.t_wc[0] += 1.0  # a copy: adjusting it leaves the run's map alone
     assert m.t_wc[0, 0] == scene.t_wc[0, 0]
+    assert filed.base_xy is None  # a run without an image base
+    base = base_fixes_of(scene, m)
+    with_base = load_map(save_map(tmp_path / MAP_FILE, result, inputs, base=base))
+    np.testing.assert_array_equal(with_base.base_xy, base.xy)
+    np.testing.assert_array_equal(with_base.base_weight, base.weights)
+    np.testing.assert_array_equal(with_base.base_timestamps, base.timestamps)
 
 
 def test_the_runs_gps_bias_estimate_is_kept_and_removed_from_the_fixes(scene, tmp_path):
@@ -162,6 +168,9 @@ def test_bad_map_files_are_refused_with_what_was_expected(scene, tmp_path):
     np.savez(tmp_path / "short.npz", **{**data, "t_wc": data["t_wc"][:3]})
     with pytest.raises(SlamError, match=r"t_wc: expected shape \(12, 3\)"):
         load_map(tmp_path / "short.npz")
+    np.savez(tmp_path / "half.npz", **{**data, "base_xy": np.zeros((3, 2))})
+    with pytest.raises(SlamError, match="base_timestamps, base_xy, base_weight: all or none"):
+        load_map(tmp_path / "half.npz")
 
 
 def truth_errors(scene, s: SavedMap) -> dict:
@@ -268,3 +277,26 @@ def test_a_run_is_adjusted_on_its_base_fixes_and_keeps_its_online_poses(scene):
     failed = adjust_on_fixes(result, inputs, far)
     assert "nothing holds the map" in failed["error"]
     np.testing.assert_array_equal(m.t_wc, before)
+
+
+def test_slam_refine_uses_the_fixes_a_base_run_saved(scene, tmp_path):
+    """``geoseg slam refine`` of a run from an image base needs no GPS: the fixes the run
+    saved in its map hold it."""
+    import json
+
+    from slam_bridge.system.refine import refine_run
+
+    R, t, X = perturb(
+        scene.R_wc, scene.t_wc, scene.X_w, rot_sigma=0.02, trans_sigma=0.3, point_sigma=0.2
+    )
+    m = scene_map(scene, R, t, X)
+    result, inputs = run_of(m)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_map(run / MAP_FILE, result, inputs, base=base_fixes_of(scene, m))
+    refine_run(run, tmp_path / "refined")
+    summary = json.loads((tmp_path / "refined" / "summary.json").read_text())
+    assert summary["base_rows"] == 12 and summary["keyframe_shift_m_mean"] > 0.1
+    save_map(run / MAP_FILE, result, inputs)  # the same run without its fixes
+    with pytest.raises(SlamError, match="nothing holds the map"):
+        refine_run(run, tmp_path / "again")
