@@ -64,12 +64,14 @@ HEADLINE: tuple[Figure, ...] = (
         ("miou", "miou_std"),
         "segmentation mIoU, five held-out cities: mean / std",
         ">= 0.80 (mean)",
+        fmt=lambda v: f"{v:.3f}",  # the std to the mean's decimals
     ),
     Figure(
         "accuracy_seg",
         ("building_iou", "building_iou_std"),
         "building IoU, five held-out cities: mean / std",
         ">= 0.90 (mean)",
+        fmt=lambda v: f"{v:.3f}",
     ),
     Figure(
         "accuracy_seg",
@@ -77,6 +79,7 @@ HEADLINE: tuple[Figure, ...] = (
         "normal error on building pixels, median, five held-out cities: mean / std",
         "<= 10 (mean)",
         unit=" deg",
+        fmt=lambda v: f"{v:.2f}",
     ),
     Figure(
         "accuracy_seg",
