@@ -312,7 +312,8 @@ def test_results_page_and_readme_table_are_generated_from_bench_results() -> Non
 def test_results_page_takes_unknown_and_broken_results_files(tmp_path: Path) -> None:
     mr = _make_results()
     (tmp_path / "new_bench.json").write_text(json.dumps({"speed": 2.5, "nested": {"a": 1}}))
-    (tmp_path / "accuracy_seg.json").write_text(json.dumps({"miou": 0.5, "machine": "m"}))
+    seg = {"miou": 0.5, "miou_std": 0.01, "machine": "m"}
+    (tmp_path / "accuracy_seg.json").write_text(json.dumps(seg))
     (tmp_path / "broken.json").write_text("{not json")
     (tmp_path / "list.json").write_text("[1, 2]")
     results = mr.load_results(tmp_path)
@@ -321,7 +322,7 @@ def test_results_page_takes_unknown_and_broken_results_files(tmp_path: Path) -> 
     assert "## new_bench" in page and "| `nested.a` | 1 |" in page
     # a headline figure whose file is there; the others (files missing) are left out
     rows = mr.headline_rows(results)
-    assert [r[1] for r in rows] == ["0.500"]
+    assert [r[1] for r in rows] == ["0.500 / 0.010"]
     # three significant digits, trailing zeros kept (0.630 is not 0.63); whole numbers plain
     assert [mr._num(v) for v in (0.63047, 0.0555, 17.6, 0.0, 3.0, 12345.6)] == [
         "0.630",

@@ -323,11 +323,13 @@ def test_bench_end_to_end_and_refusals(cfg, random_models, tmp_path, capsys):
     bench = _load_bench()
     args = [f"--{k}={random_models / k}" for k in ("seg", "normals", "naive", "dirichlet")]
     args += ["--frames", "2", "--size", "64x48", "--cache-dir", str(cfg.cache_dir), "--no-progress"]
+    args += ["--cities", "1000,13"]  # two renders; tuning and validation cities: refused below
 
     results = bench.RESULTS_DIR / "accuracy_seg.json"
     before = results.stat().st_mtime_ns if results.exists() else None
     assert bench.main(args) == 3  # random models, smoke size: refused for bench/results
-    assert "refusing" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "refusing" in err and "city 1000 recipes were chosen on" in err
     assert (results.stat().st_mtime_ns if results.exists() else None) == before
 
     out = tmp_path / "out"
@@ -345,6 +347,16 @@ def test_bench_end_to_end_and_refusals(cfg, random_models, tmp_path, capsys):
                 "train_minutes_naive", "train_minutes_dirichlet", "machine", "command", "untrained"):  # fmt: skip
         assert key in data, key
     assert data["train_minutes_seg"] is None  # save_model_checkpoint alone: no training record
+    assert list(data["per_render"]) == ["1000", "13"] and data["renders"] == 2
+    assert (
+        data["frames"] == 4 and data["frames_per_render"] == 2 and data["eval_seeds"] == "1000,13"
+    )
+    assert data["split"].startswith("not report data: cities 1000, 13")
+    runs = [data["per_render"][c]["miou"] for c in ("1000", "13")]
+    if None not in runs:
+        assert data["miou"] == pytest.approx(np.mean(runs))
+        assert data["miou_std"] == pytest.approx(np.std(runs, ddof=1))
+    assert "### Each render" in printed and "| 13 |" in printed
     assert (out / "accuracy_seg_fig4_20.png").is_file() and (
         out / "accuracy_seg_fig4_8.png"
     ).is_file()
@@ -356,6 +368,32 @@ def test_bench_end_to_end_and_refusals(cfg, random_models, tmp_path, capsys):
     assert bench.main(["--seg", str(tmp_path / "weights" / "seg"), "--normals", "none",
                        "--naive", "none", "--dirichlet", "none"]) == 2  # fmt: skip
     assert "shipped weights" in capsys.readouterr().err
+
+
+def test_bench_summary_means_floats_sums_counts_and_judges_the_filter_on_means():
+    bench = _load_bench()
+    render = {
+        "frames": 48, "eval_width": 320, "eval_seeds": "1001", "conditions": "dusk:8,sun_low:8",
+        "miou": 0.8, "miou_heldout_condition": math.nan, "dirichlet_fp_removed": 0.7,
+        "dirichlet_extra_false_rejections": 0.1, "maxprob_fp_removed_same_rejections": 0.6,
+        "maxprob_extra_false_rejections_same": 0.1, "filter_winner": "dirichlet",
+        "dirichlet_threshold_log_density": 10.0,
+    }  # fmt: skip
+    other = {**render, "eval_seeds": "1002", "conditions": "dusk:8,night:8", "miou": 0.9,
+             "maxprob_fp_removed_same_rejections": 0.75, "filter_winner": "max_probability"}  # fmt: skip
+    out = bench.mean_and_spread({"1001": render, "1002": other})
+    assert out["miou"] == pytest.approx(0.85) and out["miou_std"] == pytest.approx(0.0707, abs=1e-4)
+    assert out["frames"] == 96 and out["eval_width"] == 320 and out["eval_seeds"] == "1001,1002"
+    assert out["conditions"] == "dusk:16,night:8,sun_low:8"
+    assert math.isnan(out["miou_heldout_condition"])
+    assert out["dirichlet_threshold_log_density"] == 10.0
+    assert "dirichlet_threshold_log_density_std" not in out
+    assert out["filter_winner"] == "dirichlet"  # 0.70 against 0.675 on the means
+    assert out["filter_winner_renders"] == "dirichlet:1,max_probability:1"
+    table = bench.markdown_table(out)
+    assert "| mIoU (8 classes) | 0.850 ± 0.071 | >= 0.80 | yes |" in table
+    assert "| Dirichlet: building FP removed | 70.0 ± 0.0 % |" in table
+    assert bench.mean_and_spread({"1001": render})["miou_std"] == 0.0
 
 
 def test_load_predictor_reads_training_checkpoints_and_names_bad_files(tmp_path):
