@@ -5,7 +5,7 @@ with a keyframe every 11.7 m (the thesis's spacing); the query traversal runs 3 
 the track with a +-3 degree yaw jitter, so no query is pixel-aligned with a database image. One
 render per city of ``--city``: by default the five report cities of ``bench/splits.py``
 (``RELOC_REPORT_CITIES``, never seen by the trunk nor the heads, no setting chosen there), a
-``RELOC_REPORT_LENGTH_M`` route each (~100 keyframes; the thesis's sequences were ~5 km). Each
+``RELOC_REPORT_LENGTH_M`` route each (~130 keyframes; the thesis's sequences were ~5 km). Each
 figure below is measured per render; the results file holds the mean over the renders, the
 sample std beside the headline ones (``<key>_std``, :data:`SPREAD`) and every render's value
 under ``per_render`` in the order of ``renders`` (``bench/spread.py``). Measured:
@@ -358,8 +358,13 @@ def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
 
 
 def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
-    """Head vs essential-matrix baseline on same- and cross-condition held-out pairs."""
-    from geoseg.data.pairs import sample_relpose_pairs
+    """Head vs essential-matrix baseline on same- and cross-condition held-out pairs.
+
+    Same-condition pairs exist only where the route passes a place twice (its keyframes are
+    11.7 m apart, the pairs' baselines at most 10 m): a route without such a place has no
+    ``..._same`` figures, and ``relpose_distinct_pairs_<group>`` counts the distinct pairs drawn.
+    """
+    from geoseg.data.pairs import NoEligiblePairError, sample_relpose_pairs
     from geoseg.reloc.essential_baseline import (
         direction_error_deg,
         estimate_relative_pose,
@@ -370,11 +375,16 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
     all_err: dict[str, list] = {}
     for group, combos in groups.items():
         errs: dict[str, list] = {}
+        distinct = 0
         for k, (i, j) in enumerate(combos):
             n = n_pairs // 2 + (k < n_pairs % 2)
-            pairs = sample_relpose_pairs(
-                travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
-            )
+            try:
+                pairs = sample_relpose_pairs(
+                    travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
+                )
+            except NoEligiblePairError:
+                continue
+            distinct += len(set(zip(pairs.idx_a.tolist(), pairs.idx_b.tolist())))
             fa, fb = feats[i][pairs.idx_a], feats[j][pairs.idx_b]
             R, t, dist = relpose_predictions(head, fa, fb)
             errs.setdefault("head_rot", []).append(rotation_error_deg(R, pairs.R_ab))
@@ -393,6 +403,7 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
                     dirn.append(direction_error_deg(est.t_dir_ab, tg) if est.ok else np.nan)
                 errs.setdefault(f"{method}_rot", []).append(np.asarray(rot))
                 errs.setdefault(f"{method}_dir", []).append(np.asarray(dirn))
+        res[f"relpose_distinct_pairs_{group}"] = distinct
         for key, parts in errs.items():
             arr = np.concatenate(parts)
             all_err.setdefault(key, []).append(arr)

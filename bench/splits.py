@@ -101,8 +101,8 @@ RELOC_TUNING_CITY = 13
 #: recipe was chosen there (configs/seg.yaml)
 RELOC_REPORT_CITIES = (1001, 1002, 1003, 1004, 1005)
 #: each report city's tram route: shorter than the 5 km of the first figures so that five
-#: cities and every method fit a loaded 2-core CPU (~100 keyframes a traversal)
-RELOC_REPORT_LENGTH_M = 1200.0
+#: cities and every method fit a loaded 2-core CPU (~130 keyframes a traversal)
+RELOC_REPORT_LENGTH_M = 1500.0
 
 # -- networks on real photographs (bench/accuracy_real*.py, training.camvid_holdout)
 #: models and options are selected on this part of CamVid train, never trained on
