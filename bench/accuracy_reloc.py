@@ -1,10 +1,14 @@
-"""Relocalisation accuracy on a held-out city (thesis §5.1).
+"""Relocalisation accuracy on held-out cities (thesis §5.1), the mean and spread over renders.
 
 Database = one traversal (``summer_day``), queries = another (``winter``) of the same tram route
-in the held-out evaluation city 1000 (never seen by the trunk nor the heads), ~5 km with a
-keyframe every 11.7 m (428 keyframes, like the thesis's sequences); the query traversal runs
-3 m further along the track with a +-3 degree yaw jitter, so no query is pixel-aligned with a
-database image. Measured:
+with a keyframe every 11.7 m (the thesis's spacing); the query traversal runs 3 m further along
+the track with a +-3 degree yaw jitter, so no query is pixel-aligned with a database image. One
+render per city of ``--city``: by default the five report cities of ``bench/splits.py``
+(``RELOC_REPORT_CITIES``, never seen by the trunk nor the heads, no setting chosen there), a
+``RELOC_REPORT_LENGTH_M`` route each (~130 keyframes; the thesis's sequences were ~5 km). Each
+figure below is measured per render; the results file holds the mean over the renders, the
+sample std beside the headline ones (``<key>_std``, :data:`SPREAD`) and every render's value
+under ``per_render`` in the order of ``renders`` (``bench/spread.py``). Measured:
 
 * retrieval, for the raw layer-21 matching of §5.1.1 (flattened features, L2) and the learned
   embedding (eq. 5.1 head): Recall@1 and Recall@3 over the whole base, and Recall@1 with the
@@ -46,9 +50,9 @@ database image. Measured:
   the route filter without GPS (``..._sequence``); ``predicted_distance_at_base_poses_median_m``
   is the head's distance for a query and the base image at its pose (truth: 0). The offset
   queries through the same Localizer give ``position_error_localizer_m``;
-* figures: a t-SNE of the layer-21 features (adaptive-average-pooled to 8x10 before PCA) and of
-  the learned embeddings of both traversals (thesis fig. 5.4), and a retrieval panel
-  (query | top-3, green = correct).
+* figures (``bench/reloc_figures.py``, the first render's): a t-SNE of the layer-21 features
+  (adaptive-average-pooled to 8x10 before PCA) and of the learned embeddings of both traversals
+  (thesis fig. 5.4), and a retrieval panel (query | top-3, green = correct).
 
 Weights: ``--trunk``, ``--reloc``, ``--relpose`` (defaults: the shipped ``geoseg/weights/seg``,
 ``.../reloc``, ``.../relpose``, else ``runs/seg`` etc.); the word ``random`` asks for random
@@ -57,8 +61,8 @@ weights. With the default ``--relpose``, its distances are gated with the shippe
 ``geoseg localize``; ``--relpose-near none`` measures the relative-pose head alone. A missing one is replaced by random weights, and then the results JSON is
 **refused** unless ``--allow-untrained`` (smoke runs must not pass for figures).
 
-``--city`` renders another city with the same settings (validation city 13 to choose settings;
-the figures are those of city 1000).
+``--city`` renders other cities with the same settings (validation city 13 to choose settings;
+the figures are those of the report cities); ``--length-m`` another route length.
 
 Usage: ``python bench/accuracy_reloc.py [--quick] [--allow-untrained] [--out DIR]``. Prints a
 Markdown table and writes ``<out>/accuracy_reloc.json`` (default ``bench/results``) with the PNGs
@@ -70,7 +74,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import math
 import os
 import sys
 import time
@@ -85,18 +88,42 @@ ROOT = Path(__file__).resolve().parents[1]
 NAME = "accuracy_reloc"
 sys.path.insert(0, str(ROOT / "bench"))
 from provenance import provenance  # noqa: E402
-from splits import RELOC_REPORT_CITY, RELOC_TUNING_CITY  # noqa: E402
+from reloc_figures import plot_panel, plot_tsne  # noqa: E402
+from splits import RELOC_REPORT_CITIES, RELOC_REPORT_LENGTH_M, RELOC_TUNING_CITY  # noqa: E402
+from spread import over_renders  # noqa: E402
+
+#: the figures given with their spread over the renders (``<key>_std``): the headline ones
+SPREAD = (
+    "recall_at_1", "recall_at_3", "recall_at_1_gps_window", "recall_at_1_raw_layer21",
+    "recall_at_3_raw_layer21", "recall_at_1_gps_window_raw_layer21", "recall_at_1_reranked",
+    "recall_at_3_reranked", "recall_at_1_gps_window_reranked",
+    "recall_at_1_gps_window_reranked_gps", "recall_at_1_sequence", "triplet_accuracy",
+    "triplet_accuracy_raw_layer21", "relpose_rot_median_deg", "relpose_dir_median_deg",
+    "relpose_dist_median_rel", "essential_rot_median_deg", "essential_dir_median_deg",
+    "essential_sift_failure_share", "abs_position_median_m", "abs_position_p90_m",
+    "abs_position_degenerate_share", "position_error_at_base_poses_m",
+    "position_error_at_base_poses_p90_m", "position_error_at_base_poses_sequence_m",
+    "predicted_distance_at_base_poses_median_m", "position_error_localizer_m",
+    "position_error_localizer_p90_m",
+)  # fmt: skip
 
 
-def _split(city: int) -> str:
-    if city == RELOC_REPORT_CITY:
+def _split(cities: list[int], length_m: float | None, quick: bool) -> str:
+    """The results' ``split`` line for renders of ``cities``."""
+    if quick:
+        return f"smoke run: tiny routes of cities {cities}, not figures"
+    route = f"a {(length_m or RELOC_REPORT_LENGTH_M) / 1000:g} km tram route in each"
+    if cities == list(RELOC_REPORT_CITIES):
         return (
-            f"report: the held-out city {city} (the settings were chosen on validation city "
-            f"{RELOC_TUNING_CITY})"
+            f"report: the held-out cities {cities} (RELOC_REPORT_CITIES: no network trained and "
+            f"no setting chosen there; settings chosen on validation city {RELOC_TUNING_CITY}), "
+            f"{route}, summer base / winter queries"
         )
-    if city == RELOC_TUNING_CITY:
-        return f"tuning: validation city {city}, on which the settings were chosen"
-    return f"city {city} (neither the held-out city 1000 nor the validation city 13)"
+    if set(cities) <= set(RELOC_REPORT_CITIES):
+        return f"a subset of report: the held-out cities {cities}, {route}"
+    if cities == [RELOC_TUNING_CITY]:
+        return f"tuning: validation city {RELOC_TUNING_CITY}, on which the settings were chosen"
+    return f"cities {cities} (neither the report cities nor validation city 13), {route}"
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -124,8 +151,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         help="the near head's distance below which it gives the distance (default: the library's)",
     )
     p.add_argument(
-        "--city", type=int, default=1000, help="city seed (1000: held out; 13: validation)"
-    )
+        "--city", type=int, nargs="+", default=None,
+        help="city seeds, one render each (default: the report cities; 13: validation)",
+    )  # fmt: skip
+    p.add_argument(
+        "--length-m", type=float, default=None,
+        help=f"route length per render (default {RELOC_REPORT_LENGTH_M:g})",
+    )  # fmt: skip
     p.add_argument("--quick", action="store_true", help="tiny smoke run (tiny city, 64x48)")
     p.add_argument(
         "--allow-untrained", action="store_true", help="write the JSON even with random weights"
@@ -183,7 +215,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def eval_route(quick: bool, city: int = 1000) -> Any:
+def eval_route(quick: bool, city: int, length_m: float | None = None) -> Any:
+    """The route rendered in ``city`` (a tiny one with ``quick``)."""
     from geoseg.data.traversals import RouteSpec
 
     if quick:
@@ -199,7 +232,7 @@ def eval_route(quick: bool, city: int = 1000) -> Any:
     return RouteSpec(
         seed=city,
         world={"blocks_x": 6, "blocks_y": 5},
-        length_m=5000.0,
+        length_m=length_m or RELOC_REPORT_LENGTH_M,
         spacing_m=11.7,
         conditions=["summer_day", "winter"],
         size=(240, 320),
@@ -325,8 +358,13 @@ def measure_retrieval(res: dict, db, qr, emb: dict, args) -> dict:
 
 
 def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
-    """Head vs essential-matrix baseline on same- and cross-condition held-out pairs."""
-    from geoseg.data.pairs import sample_relpose_pairs
+    """Head vs essential-matrix baseline on same- and cross-condition held-out pairs.
+
+    Same-condition pairs exist only where the route passes a place twice (its keyframes are
+    11.7 m apart, the pairs' baselines at most 10 m): a route without such a place has no
+    ``..._same`` figures, and ``relpose_distinct_pairs_<group>`` counts the distinct pairs drawn.
+    """
+    from geoseg.data.pairs import NoEligiblePairError, sample_relpose_pairs
     from geoseg.reloc.essential_baseline import (
         direction_error_deg,
         estimate_relative_pose,
@@ -337,11 +375,16 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
     all_err: dict[str, list] = {}
     for group, combos in groups.items():
         errs: dict[str, list] = {}
+        distinct = 0
         for k, (i, j) in enumerate(combos):
             n = n_pairs // 2 + (k < n_pairs % 2)
-            pairs = sample_relpose_pairs(
-                travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
-            )
+            try:
+                pairs = sample_relpose_pairs(
+                    travs[i].poses, travs[j].poses, n, rng=args.seed + 31 * k + (group == "cross")
+                )
+            except NoEligiblePairError:
+                continue
+            distinct += len(set(zip(pairs.idx_a.tolist(), pairs.idx_b.tolist())))
             fa, fb = feats[i][pairs.idx_a], feats[j][pairs.idx_b]
             R, t, dist = relpose_predictions(head, fa, fb)
             errs.setdefault("head_rot", []).append(rotation_error_deg(R, pairs.R_ab))
@@ -360,6 +403,7 @@ def measure_relpose(res: dict, travs, feats, head, args, n_pairs: int) -> None:
                     dirn.append(direction_error_deg(est.t_dir_ab, tg) if est.ok else np.nan)
                 errs.setdefault(f"{method}_rot", []).append(np.asarray(rot))
                 errs.setdefault(f"{method}_dir", []).append(np.asarray(dirn))
+        res[f"relpose_distinct_pairs_{group}"] = distinct
         for key, parts in errs.items():
             arr = np.concatenate(parts)
             all_err.setdefault(key, []).append(arr)
@@ -667,75 +711,6 @@ def measure_at_base_poses(res: dict, spec, db, f_db, emb_db, qr, f_q, emb_q, hea
     )
 
 
-# ----------------------------------------------------------------------------- figures
-def plot_tsne(path: Path, raw: tuple, learned: tuple, conditions: list[str], seed: int) -> None:
-    """Two t-SNE panels (layer-21 features | learned embeddings), coloured by traversal."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from sklearn.decomposition import PCA
-    from sklearn.manifold import TSNE
-
-    fig, axes = plt.subplots(1, 2, figsize=(11, 5))
-    for ax, (title, (a, b)) in zip(
-        axes, (("ENet layer-21 features", raw), ("learned embedding (eq. 5.1)", learned))
-    ):
-        x = np.concatenate([a, b]).astype(np.float64)
-        n = x.shape[0]
-        dims = min(50, n - 1, x.shape[1])
-        if x.shape[1] > dims:
-            x = PCA(n_components=dims, random_state=seed).fit_transform(x)
-        perplexity = float(min(30.0, max(2.0, (n - 1) / 3.0)))
-        y = TSNE(
-            n_components=2, perplexity=perplexity, init="pca", random_state=seed
-        ).fit_transform(x)
-        ax.scatter(y[: len(a), 0], y[: len(a), 1], s=6, label=f"database ({conditions[0]})")
-        ax.scatter(y[len(a) :, 0], y[len(a) :, 1], s=6, label=f"queries ({conditions[1]})")
-        ax.set_title(title)
-        ax.set_xticks([])
-        ax.set_yticks([])
-        ax.legend(loc="best", fontsize=8)
-    fig.suptitle("t-SNE of the two traversals (thesis fig. 5.4)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-
-
-def plot_panel(path: Path, db, qr, retrieval: dict, rows: int = 4) -> None:
-    """Query | top-3 database images (learned embedding, whole base); green = correct."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    keep = np.flatnonzero(retrieval["keep"])
-    picks = keep[np.linspace(0, len(keep) - 1, min(rows, len(keep))).round().astype(int)]
-    ranked, _ = retrieval["index"]["learned"].query(retrieval["q_learned"][picks], k=3)
-    fig, axes = plt.subplots(len(picks), 4, figsize=(12, 2.4 * len(picks)), squeeze=False)
-    for r, (q, row) in enumerate(zip(picks, ranked)):
-        truth = set(retrieval["truth"][q].tolist())
-        axes[r, 0].imshow(qr.images[q])
-        axes[r, 0].set_title(f"query {q} ({qr.condition})", fontsize=8)
-        for c, m in enumerate(row, start=1):
-            ax = axes[r, c]
-            if m < 0:
-                ax.axis("off")
-                continue
-            ax.imshow(db.images[m])
-            ok = int(m) in truth
-            for spine in ax.spines.values():
-                spine.set_edgecolor("green" if ok else "red")
-                spine.set_linewidth(3)
-            ax.set_title(f"#{c}: base {m} ({'ok' if ok else 'wrong'})", fontsize=8)
-        for ax in axes[r]:
-            ax.set_xticks([])
-            ax.set_yticks([])
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
-
-
 # ----------------------------------------------------------------------------- main
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
@@ -754,22 +729,59 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untrained: list) -> int:
-    """Render the routes, extract features and write the figures (gradients off)."""
+    """Measure every city's render, then write the mean, spread and per-render figures."""
+    cities = args.city or (RELOC_REPORT_CITIES[:2] if args.quick else RELOC_REPORT_CITIES)
+    meta = provenance(
+        _split(list(cities), args.length_m, args.quick),
+        command=" ".join(["python bench/accuracy_reloc.py", *(argv or sys.argv[1:])]).strip(),
+    )
+    args.out.mkdir(parents=True, exist_ok=True)
+    renders = {}
+    for n, city in enumerate(cities):
+        print(f"render {n + 1} of {len(cities)}: city {city}", file=sys.stderr)
+        renders[str(city)] = measure_render(args, city, extractor, reloc, relpose, figures=n == 0)
+    res = over_renders(renders, SPREAD)
+    res["renders"] = [int(c) for c in cities]
+    res["figures"] = [f"{NAME}_tsne.png", f"{NAME}_panel.png"]
+    res["figures_city"] = int(cities[0])
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    res["untrained"] = untrained
+    res["relpose_near_gate"] = args.near_gate_used
+    res["quick"] = bool(args.quick)
+    res.update(meta)
+    res["machine"] += f", torch {torch.__version__}, load {load:.1f} at the end"
+    if untrained:
+        res["warning"] = f"random weights for {', '.join(untrained)}: a smoke run, not figures"
+
+    print("| figure | value | per render |")
+    print("|---|---|---|")
+    for key, value in res.items():
+        if key == "per_render":
+            continue
+        text = f"{value:.4f}" if isinstance(value, float) else str(value)
+        each = res["per_render"].get(key)
+        shown = ", ".join(f"{v:.4f}" if isinstance(v, float) else str(v) for v in each or [])
+        print(f"| {key} | {text} | {shown} |")
+    out = args.out / f"{NAME}.json"
+    out.write_text(json.dumps(res, indent=2) + "\n")
+    print(f"\nwritten {out}")
+    return 0
+
+
+def measure_render(args: argparse.Namespace, city: int, extractor, reloc, relpose,
+                   figures: bool) -> dict[str, Any]:  # fmt: skip
+    """Render ``city``'s route, extract features and measure; with ``figures`` the PNGs too.
+    Returns the render's figures (NaN where one could not be measured)."""
     from geoseg.data.pairs import sample_triplets
     from geoseg.data.traversals import render_route, traversal_features
     from geoseg.models.reloc import RawFeatureEmbedder
     from geoseg.reloc.retrieval import triplet_accuracy
     from training.reloc import embed_features
 
-    spec = eval_route(args.quick, args.city)
+    spec = eval_route(args.quick, city, args.length_m)
     n_pairs = args.pairs if args.pairs is not None else (8 if args.quick else 200)
     n_triplets = args.triplets if args.triplets is not None else (32 if args.quick else 2000)
-    meta = provenance(
-        _split(args.city),
-        command=" ".join(["python bench/accuracy_reloc.py", *(argv or sys.argv[1:])]).strip(),
-    )
     res: dict[str, Any] = {}
-
     t0 = time.perf_counter()
     travs = render_route(spec, cache_dir=args.cache_dir, progress=True)
     render_s = time.perf_counter() - t0
@@ -824,39 +836,14 @@ def _measure(args: argparse.Namespace, argv, extractor, reloc, relpose, untraine
         res, spec, db, f_db, learned["db"], qr, f_q, learned["q"], relpose, extractor, args
     )
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    pooled = torch.nn.functional.adaptive_avg_pool2d
-    raw_small = tuple(pooled(f, (8, 10)).flatten(1).numpy() for f in (f_db, f_q))
-    tsne_png = args.out / f"{NAME}_tsne.png"
-    panel_png = args.out / f"{NAME}_panel.png"
-    plot_tsne(
-        tsne_png, raw_small, (learned["db"], learned["q"]), [db.condition, qr.condition], args.seed
-    )
-    plot_panel(panel_png, db, qr, retrieval)
-    res["figures"] = [tsne_png.name, panel_png.name]
-
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
-    res["untrained"] = untrained
-    res["city"] = args.city
-    res["relpose_near_gate"] = args.near_gate_used
-    res["quick"] = bool(args.quick)
-    res.update(meta)
-    res["machine"] += f", torch {torch.__version__}, load {load:.1f} at the end"
-    if untrained:
-        res["warning"] = f"random weights for {', '.join(untrained)}: a smoke run, not figures"
-
-    print("| figure | value |")
-    print("|---|---|")
-    for key, value in res.items():
-        text = f"{value:.4f}" if isinstance(value, float) else str(value)
-        print(f"| {key} | {text} |")
-    out = args.out / f"{NAME}.json"
-    clean = {
-        k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in res.items()
-    }
-    out.write_text(json.dumps(clean, indent=2) + "\n")
-    print(f"\nwritten {out}")
-    return 0
+    if figures:
+        pooled = torch.nn.functional.adaptive_avg_pool2d
+        raw_small = tuple(pooled(f, (8, 10)).flatten(1).numpy() for f in (f_db, f_q))
+        conditions = [db.condition, qr.condition]
+        learned_pair = (learned["db"], learned["q"])
+        plot_tsne(args.out / f"{NAME}_tsne.png", raw_small, learned_pair, conditions, args.seed)
+        plot_panel(args.out / f"{NAME}_panel.png", db, qr, retrieval)
+    return res
 
 
 if __name__ == "__main__":

@@ -41,8 +41,6 @@ PENDING_REMEASURE: dict[str, str] = {
     "accuracy_real_seg_real_train.json": "367 CamVid frames at two sizes, three colour "
     "variants: python bench/accuracy_real.py --model geoseg/weights/seg_real --tag seg_real "
     "--normals normals_real --split train",
-    "accuracy_reloc.json": "renders and localises the held-out city's routes: python "
-    "bench/accuracy_reloc.py",
     "ba_speed.json": "a timing ratio that moves with the host's load (ours / Ceres at C = 40: "
     "0.52 idle, 0.23-0.31 at load 6-10): re-measure on an idle host: python bench/ba_speed.py "
     "--repeat 5 (with the bench extra: gtsam, pycolmap)",
