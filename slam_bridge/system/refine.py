@@ -551,12 +551,7 @@ def refine_run(
     record_outputs(out, OUTPUTS)
     base = None
     if saved.base_xy is not None:  # a run with an image base: its fixes, as it weighed them
-        from slam_bridge.system.base_fixes import BaseConstraints
-
-        base = BaseConstraints(
-            saved.base_timestamps, saved.base_xy, saved.base_weight, tolerance_s=0.02,
-            interpolate_gap_s=cfg.gps_interpolate_gap_s,
-        )  # fmt: skip
+        base = _SavedBaseFixes(saved, cfg.gps_interpolate_gap_s)
     result = refine_map(
         saved, cfg, facades=facades, dem=terrain, gps=fixes, base=base, odometry=distance
     )
@@ -569,6 +564,23 @@ def refine_run(
             summary.update({f"{prefix}{k}": v for k, v in figures.items() if k != "unmatched"})
     _write_outputs(out, result, summary)
     return out
+
+
+class _SavedBaseFixes(GpsConstraints):
+    """The image base's fixes a run saved (the camera's position, each with its weight): what
+    :func:`_base_factor` reads of :class:`slam_bridge.system.base_fixes.BaseConstraints`."""
+
+    def __init__(self, saved: SavedMap, interpolate_gap_s: float | None) -> None:
+        super().__init__(
+            saved.base_timestamps, saved.base_xy, tolerance_s=0.02,
+            interpolate_gap_s=interpolate_gap_s,
+        )  # fmt: skip
+        self.weights = np.asarray(saved.base_weight, dtype=np.float64)
+
+    def weight_at(self, timestamp: float) -> float:
+        """The lower weight of the fixes :meth:`fix_at` uses (0: none)."""
+        rows = self.rows_at(timestamp)
+        return 0.0 if rows is None else float(self.weights[list(rows)].min())
 
 
 def _read_gps(path, saved: SavedMap) -> GpsConstraints:
