@@ -187,6 +187,12 @@ class GpsConstraints:
         accuracy gives its own)."""
         return np.full(self.timestamps.size, self.weight)
 
+    def weight_at(self, timestamp: float) -> float:
+        """The weight of the fix :meth:`fix_at` gives for ``timestamp`` (the lower of the two
+        it interpolates; 0 when it gives none)."""
+        rows = self.rows_at(timestamp)
+        return 0.0 if rows is None else float(self.fix_weights()[list(rows)].min())
+
     def corrected_fix_at(self, timestamp: float) -> np.ndarray | None:
         """:meth:`fix_at` less the bias estimated for ``timestamp`` (``bias.at``; the fix
         itself without a bias source): what the start-up georeferences the map on."""

@@ -185,12 +185,6 @@ class BaseConstraints(GpsConstraints):
         """``(F,)`` each fix's weight (the start-up's fit weighs its fixes by them)."""
         return self.weights
 
-    def weight_at(self, timestamp: float) -> float:
-        """The weight of the fix :meth:`fix_at` gives for ``timestamp`` (the lower of the two
-        it interpolates; 0 when it gives none)."""
-        rows = self.rows_at(timestamp)
-        return 0.0 if rows is None else float(self.weights[list(rows)].min())
-
     def factors(self, slam_map, problem, k: int) -> list:
         """One :class:`~slam_bridge.factors.gps.GPSFactor` on the newest free camera with the
         weight of its fix, or none."""

@@ -577,10 +577,9 @@ class _SavedBaseFixes(GpsConstraints):
         )  # fmt: skip
         self.weights = np.asarray(saved.base_weight, dtype=np.float64)
 
-    def weight_at(self, timestamp: float) -> float:
-        """The lower weight of the fixes :meth:`fix_at` uses (0: none)."""
-        rows = self.rows_at(timestamp)
-        return 0.0 if rows is None else float(self.weights[list(rows)].min())
+    def fix_weights(self) -> np.ndarray:
+        """``(B,)`` the weights the run gave its fixes."""
+        return self.weights
 
 
 def _read_gps(path, saved: SavedMap) -> GpsConstraints:
